@@ -1,0 +1,3 @@
+from dronecal_field.cli import main
+
+raise SystemExit(main())
