@@ -1,0 +1,75 @@
+"""WGS84 <-> local ENU through pyproj's topocentric conversion.
+
+All geodesy in the project goes through here. Heights are metres above the
+WGS84 ellipsoid unless a caller says otherwise (and then uses one datum
+throughout, see shared/contracts/run-format.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class EnuOrigin:
+    """Origin of a local ENU frame: WGS84 latitude/longitude (deg) and ellipsoidal height (m)."""
+
+    lat_deg: float
+    lon_deg: float
+    h_m: float
+
+    def as_list(self) -> list[float]:
+        return [self.lat_deg, self.lon_deg, self.h_m]
+
+
+@lru_cache(maxsize=64)
+def _transformers(lat_deg: float, lon_deg: float, h_m: float):
+    from pyproj import Transformer
+
+    pipeline = (
+        "+proj=pipeline "
+        "+step +proj=unitconvert +xy_in=deg +xy_out=rad "
+        "+step +proj=cart +ellps=WGS84 "
+        f"+step +proj=topocentric +ellps=WGS84 +lat_0={lat_deg!r} +lon_0={lon_deg!r} +h_0={h_m!r}"
+    )
+    forward = Transformer.from_pipeline(pipeline)
+    return forward
+
+
+def geodetic_to_enu(
+    lat_deg: np.ndarray | float,
+    lon_deg: np.ndarray | float,
+    h_m: np.ndarray | float,
+    origin: EnuOrigin,
+) -> np.ndarray:
+    """ENU metres (N, 3) of WGS84 points (each argument scalar or (N,))."""
+    fwd = _transformers(origin.lat_deg, origin.lon_deg, origin.h_m)
+    lat, lon, h = np.broadcast_arrays(
+        np.atleast_1d(np.asarray(lat_deg, float)),
+        np.atleast_1d(np.asarray(lon_deg, float)),
+        np.atleast_1d(np.asarray(h_m, float)),
+    )
+    e, n, u = fwd.transform(lon, lat, h)
+    return np.stack([np.asarray(e), np.asarray(n), np.asarray(u)], -1)
+
+
+def enu_to_geodetic(enu: np.ndarray, origin: EnuOrigin) -> np.ndarray:
+    """WGS84 (N, 3) [lat_deg, lon_deg, h_m] of ENU points (N, 3) metres."""
+    from pyproj.enums import TransformDirection
+
+    fwd = _transformers(origin.lat_deg, origin.lon_deg, origin.h_m)
+    enu = np.atleast_2d(np.asarray(enu, float))
+    lon, lat, h = fwd.transform(enu[:, 0], enu[:, 1], enu[:, 2], direction=TransformDirection.INVERSE)
+    return np.stack([np.asarray(lat), np.asarray(lon), np.asarray(h)], -1)
+
+
+def site_to_enu_rotation(azimuth_deg: float) -> np.ndarray:
+    """(3, 3) R_enu_from_site: site frame X along the azimuth, Y left, Z up (docs/conventions.md)."""
+    a = np.radians(azimuth_deg)
+    x_axis = np.array([np.sin(a), np.cos(a), 0.0])  # east, north components of the azimuth
+    z_axis = np.array([0.0, 0.0, 1.0])
+    y_axis = np.cross(z_axis, x_axis)  # left of X
+    return np.stack([x_axis, y_axis, z_axis], axis=1)
