@@ -248,7 +248,8 @@ def project_batch_jacobians(
     R: np.ndarray,  # (K, 3, 3)
     t: np.ndarray,  # (K, 3)
     points: np.ndarray,  # (K, N, 3) or (1, N, 3)
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    with_points: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Pixels and their analytic Jacobians.
 
     Returns
@@ -256,9 +257,8 @@ def project_batch_jacobians(
     uv : (K, N, 2) pixels
     J_params : (K, N, 2, 15) d(uv)/d(fx, fy, cx, cy, k1, k2, p1, p2, k3, wx, wy, wz, tx, ty, tz),
         w being the left rotation perturbation R' = exp([w]x) R (docs/conventions.md).
-    J_points : (K, N, 2, 3) d(uv)/d(world point)
+    J_points : (K, N, 2, 3) d(uv)/d(world point), or None when ``with_points`` is false
     """
-    K_, N = R.shape[0], points.shape[1]
     RX = np.einsum("kij,knj->kni", R, points)  # (K,N,3)
     Xc = RX + t[:, None, :]
     inv_z = 1.0 / Xc[..., 2]
@@ -267,48 +267,38 @@ def project_batch_jacobians(
     xd, yd, r2, radial = _distort(xn, yn, distortion)
     fx, fy = intrinsics[:, 0:1], intrinsics[:, 1:2]
     k1, k2, p1, p2, k3 = (distortion[:, i : i + 1] for i in range(5))
-    uv = np.stack([fx * xd + intrinsics[:, 2:3], fy * yd + intrinsics[:, 3:4]], -1)
-
-    J = np.zeros((K_, N, 2, 15))
-    J[..., 0, 0] = xd
-    J[..., 1, 1] = yd
-    J[..., 0, 2] = 1.0
-    J[..., 1, 3] = 1.0
+    u = fx * xd + intrinsics[:, 2:3]
+    v = fy * yd + intrinsics[:, 3:4]
     r4 = r2 * r2
-    J[..., 0, 4] = fx * xn * r2
-    J[..., 1, 4] = fy * yn * r2
-    J[..., 0, 5] = fx * xn * r4
-    J[..., 1, 5] = fy * yn * r4
-    J[..., 0, 6] = fx * 2.0 * xn * yn
-    J[..., 1, 6] = fy * (r2 + 2.0 * yn * yn)
-    J[..., 0, 7] = fx * (r2 + 2.0 * xn * xn)
-    J[..., 1, 7] = fy * 2.0 * xn * yn
-    J[..., 0, 8] = fx * xn * r4 * r2
-    J[..., 1, 8] = fy * yn * r4 * r2
+    xy2 = 2.0 * xn * yn
+    zero = np.zeros_like(xn)
+    one = np.ones_like(xn)
 
-    # d(distorted)/d(normalised), (K,N,2,2)
+    # d(distorted)/d(normalised)
     drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
     dxd_dx = radial + 2.0 * xn * xn * drad + 2.0 * p1 * yn + 6.0 * p2 * xn
-    dxd_dy = 2.0 * xn * yn * drad + 2.0 * p1 * xn + 2.0 * p2 * yn
+    dxd_dy = xy2 * drad + 2.0 * p1 * xn + 2.0 * p2 * yn
     dyd_dy = radial + 2.0 * yn * yn * drad + 6.0 * p1 * yn + 2.0 * p2 * xn
     # d(uv)/d(Xc) = diag(f) Jd Jn, with Jn = [[1/z,0,-x/z],[0,1/z,-y/z]]
-    a00 = fx * dxd_dx
-    a01 = fx * dxd_dy
-    a10 = fy * dxd_dy
-    a11 = fy * dyd_dy
-    J_xc = np.empty((K_, N, 2, 3))
-    J_xc[..., 0, 0] = a00 * inv_z
-    J_xc[..., 0, 1] = a01 * inv_z
-    J_xc[..., 0, 2] = -(a00 * xn + a01 * yn) * inv_z
-    J_xc[..., 1, 0] = a10 * inv_z
-    J_xc[..., 1, 1] = a11 * inv_z
-    J_xc[..., 1, 2] = -(a10 * xn + a11 * yn) * inv_z
+    a00 = fx * dxd_dx * inv_z
+    a01 = fx * dxd_dy * inv_z
+    a10 = fy * dxd_dy * inv_z
+    a11 = fy * dyd_dy * inv_z
+    gu = (a00, a01, -(a00 * xn + a01 * yn))  # d u / d Xc
+    gv = (a10, a11, -(a10 * xn + a11 * yn))  # d v / d Xc
+    ax, ay, az = RX[..., 0], RX[..., 1], RX[..., 2]
 
-    # dXc/dw = -[RX]x ; dXc/dt = I ; dXc/dX = R
-    J[..., 9:12] = -J_xc @ skew(RX)
-    J[..., 12:15] = J_xc
-    J_points = J_xc @ R[:, None, :, :]
-    return uv, J, J_points
+    def rot(g):  # d/dw of g . Xc with dXc/dw = -[RX]x, i.e. (RX x g)
+        return (ay * g[2] - az * g[1], az * g[0] - ax * g[2], ax * g[1] - ay * g[0])
+
+    ju = (xd, zero, one, zero, fx * xn * r2, fx * xn * r4, fx * xy2, fx * (r2 + 2.0 * xn * xn), fx * xn * r4 * r2, *rot(gu), *gu)
+    jv = (zero, yd, zero, one, fy * yn * r2, fy * yn * r4, fy * (r2 + 2.0 * yn * yn), fy * xy2, fy * yn * r4 * r2, *rot(gv), *gv)
+    J = np.stack([np.stack(ju, -1), np.stack(jv, -1)], -2)
+    uv = np.stack([u, v], -1)
+    if not with_points:
+        return uv, J, None
+    J_xc = np.stack([np.stack(gu, -1), np.stack(gv, -1)], -2)
+    return uv, J, J_xc @ R[:, None, :, :]
 
 
 def undistort_normalised(

@@ -1,0 +1,499 @@
+"""Calibration from non-coplanar 3D-2D pairs: normalised DLT -> RQ -> Levenberg-Marquardt.
+
+Pure numerical core. The solver is batched over a leading axis of K problems
+(same point count, same model) so the Monte-Carlo runs all its trials in one
+vectorised loop; a single calibration is K = 1. Parameters and the rotation
+perturbation follow docs/conventions.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dronecal_field.core.camera import (
+    N_PARAMS,
+    PARAM_NAMES,
+    Camera,
+    project_batch,
+    project_batch_jacobians,
+    rotation_from_vector,
+)
+from dronecal_field.errors import CalibrationError, DegenerateGeometryError, InputError
+
+DISTORTION_MODELS: dict[str, tuple[str, ...]] = {
+    "none": (),
+    "k1": ("k1",),
+    "k1k2": ("k1", "k2"),
+    "k1k2p1p2": ("k1", "k2", "p1", "p2"),
+    "full": ("k1", "k2", "p1", "p2", "k3"),
+}
+
+
+@dataclass(frozen=True)
+class CalibrationModel:
+    """Which parameters are free.
+
+    ``distortion`` names a model of DISTORTION_MODELS; ``fix_aspect_ratio``
+    keeps fy/fx at its initial value (OpenCV's CALIB_FIX_ASPECT_RATIO);
+    ``fix_principal_point`` keeps (cx, cy) at the initial value (image centre
+    when starting from DLT). The pose is always free.
+    """
+
+    distortion: str = "k1k2p1p2"
+    fix_aspect_ratio: bool = False
+    fix_principal_point: bool = False
+
+    def __post_init__(self) -> None:
+        if self.distortion not in DISTORTION_MODELS:
+            raise InputError(
+                f"unknown distortion model {self.distortion!r}: use one of {', '.join(DISTORTION_MODELS)}"
+            )
+
+    @property
+    def name(self) -> str:
+        parts = [self.distortion]
+        if self.fix_aspect_ratio:
+            parts.append("fixed-aspect")
+        if self.fix_principal_point:
+            parts.append("fixed-pp")
+        return "+".join(parts)
+
+    def free_names(self) -> tuple[str, ...]:
+        names = ["fx"] if self.fix_aspect_ratio else ["fx", "fy"]
+        if not self.fix_principal_point:
+            names += ["cx", "cy"]
+        names += list(DISTORTION_MODELS[self.distortion])
+        names += ["wx", "wy", "wz", "tx", "ty", "tz"]
+        return tuple(names)
+
+    @property
+    def n_free(self) -> int:
+        return len(self.free_names())
+
+    def parameter_map(self, aspect: float = 1.0) -> np.ndarray:
+        """(15, m) matrix A: a step of the free parameters d moves the full vector by A @ d."""
+        free = self.free_names()
+        A = np.zeros((N_PARAMS, len(free)))
+        for j, name in enumerate(free):
+            A[PARAM_NAMES.index(name), j] = 1.0
+            if name == "fx" and self.fix_aspect_ratio:
+                A[PARAM_NAMES.index("fy"), j] = aspect
+        return A
+
+
+def resolve_model(model: "str | CalibrationModel", n_points: int) -> CalibrationModel:
+    """A CalibrationModel from a name ('auto', 'default', a distortion model name) or itself.
+
+    'auto' picks the richest distortion model the point count supports with
+    at least 4 observations per free parameter; 'default' is fx, fy, cx, cy,
+    k1, k2, p1, p2 free with k3 fixed at 0 (OpenCV's CALIB_FIX_K3).
+    """
+    if isinstance(model, CalibrationModel):
+        return model
+    if model == "default":
+        return CalibrationModel(distortion="k1k2p1p2")
+    if model == "auto":
+        for name in ("k1k2p1p2", "k1k2", "k1", "none"):
+            candidate = CalibrationModel(distortion=name)
+            if 2 * n_points >= 4 * candidate.n_free:
+                return candidate
+        return CalibrationModel(distortion="none", fix_aspect_ratio=True, fix_principal_point=True)
+    return CalibrationModel(distortion=model)
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """A calibrated camera with its uncertainty and the evidence for it.
+
+    ``camera.covariance`` is the (15, 15) covariance (fixed parameters have
+    zero variance), from the Jacobian at the solution scaled by the residual
+    variance. ``residuals_px`` (N, 2) are observed minus predicted pixels.
+    ``outliers`` are indices whose residual exceeds 3 robust sigmas (and the
+    loss scale) when a robust loss was used.
+    """
+
+    camera: Camera
+    model: CalibrationModel
+    rms_px: float
+    residuals_px: np.ndarray
+    outliers: tuple[int, ...]
+    iterations: int
+    residual_sigma_px: float
+    points_world: np.ndarray = field(repr=False)
+    pixels: np.ndarray = field(repr=False)
+    loss: str = "linear"
+
+    @property
+    def parameter_std(self) -> dict[str, float]:
+        cov = self.camera.covariance
+        return {name: float(np.sqrt(max(cov[i, i], 0.0))) for i, name in enumerate(PARAM_NAMES)}
+
+
+# --------------------------------------------------------------------------
+# Input checks
+
+
+def check_correspondences(points_world: np.ndarray, pixels: np.ndarray, n_free: int, min_thickness_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Validate shapes, finiteness and geometry; returns float arrays (N, 3), (N, 2)."""
+    X = np.asarray(points_world, dtype=float)
+    uv = np.asarray(pixels, dtype=float)
+    if X.ndim != 2 or X.shape[1] != 3 or uv.ndim != 2 or uv.shape[1] != 2 or X.shape[0] != uv.shape[0]:
+        raise InputError(
+            f"need matching arrays of 3D points (N, 3) and pixels (N, 2), got {X.shape} and {uv.shape}"
+        )
+    bad = ~(np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(uv), axis=1))
+    if bad.any():
+        idx = ", ".join(str(i) for i in np.flatnonzero(bad)[:5])
+        raise InputError(f"{int(bad.sum())} correspondence(s) hold NaN or inf (index {idx}): drop or re-measure them")
+    n = X.shape[0]
+    needed = max(6, (n_free + 1) // 2 + 1)
+    if n < needed:
+        raise DegenerateGeometryError(
+            f"{n} points cannot determine {n_free} parameters: need at least {needed} (fly more waypoints or choose a simpler --model)"
+        )
+    s = np.linalg.svd(X - X.mean(axis=0), compute_uv=False) / np.sqrt(n)
+    if s[1] < 1e-3 * max(s[0], 1e-12) or s[1] < min_thickness_m:
+        raise DegenerateGeometryError(
+            f"the {n} points are collinear (spread {s[1] * 100:.1f} cm across the line): sample a grid in several planes"
+        )
+    if s[2] < min_thickness_m:
+        raise DegenerateGeometryError(
+            f"the {n} points are coplanar (RMS {s[2] * 100:.1f} cm off one plane): fly at least two heights, "
+            f"or several distances, at least {min_thickness_m * 200:.0f} cm apart"
+        )
+    return X, uv
+
+
+# --------------------------------------------------------------------------
+# DLT
+
+
+def _normalisation(points: np.ndarray) -> np.ndarray:
+    """Hartley similarity (d+1, d+1) moving the centroid to 0 and the mean distance to sqrt(d)."""
+    d = points.shape[1]
+    c = points.mean(axis=0)
+    scale = np.sqrt(d) / max(np.mean(np.linalg.norm(points - c, axis=1)), 1e-12)
+    T = np.eye(d + 1)
+    T[:d, :d] *= scale
+    T[:d, d] = -scale * c
+    return T
+
+
+def dlt(points_world: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """(3, 4) projection matrix by the normalised DLT, scaled so det(P[:, :3]) > 0."""
+    n = points_world.shape[0]
+    T3 = _normalisation(points_world)
+    T2 = _normalisation(pixels)
+    Xh = (T3 @ np.c_[points_world, np.ones(n)].T).T
+    uh = (T2 @ np.c_[pixels, np.ones(n)].T).T
+    A = np.zeros((2 * n, 12))
+    A[0::2, 0:4] = Xh
+    A[0::2, 8:12] = -uh[:, 0:1] * Xh
+    A[1::2, 4:8] = Xh
+    A[1::2, 8:12] = -uh[:, 1:2] * Xh
+    _, _, vt = np.linalg.svd(A)
+    P = np.linalg.inv(T2) @ vt[-1].reshape(3, 4) @ T3
+    if np.linalg.det(P[:, :3]) < 0:
+        P = -P
+    return P
+
+
+def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """K (3, 3), R (3, 3), t (3,) with P ~ K [R | t], K upper triangular with positive diagonal."""
+    from scipy.linalg import rq
+
+    M = P[:, :3]
+    K, R = rq(M)
+    S = np.diag(np.sign(np.diag(K)))
+    K, R = K @ S, S @ R
+    if np.linalg.det(R) < 0:  # cannot happen when det(M) > 0, kept for safety
+        R = -R
+        K = -K
+    t = np.linalg.solve(K, P[:, 3])
+    scale = K[2, 2]
+    return K / scale, R, t / scale
+
+
+# --------------------------------------------------------------------------
+# Batched Levenberg-Marquardt
+
+
+@dataclass
+class BatchState:
+    """K camera estimates: intrinsics (K, 4), distortion (K, 5), R (K, 3, 3), t (K, 3)."""
+
+    intrinsics: np.ndarray
+    distortion: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+
+    def copy(self) -> "BatchState":
+        return BatchState(self.intrinsics.copy(), self.distortion.copy(), self.R.copy(), self.t.copy())
+
+    def stepped(self, delta_full: np.ndarray) -> "BatchState":
+        """A new state moved by (K, 15) full-parameter steps."""
+        return BatchState(
+            self.intrinsics + delta_full[:, 0:4],
+            self.distortion + delta_full[:, 4:9],
+            rotation_from_vector(delta_full[:, 9:12]) @ self.R,
+            self.t + delta_full[:, 12:15],
+        )
+
+    def take(self, idx: np.ndarray) -> "BatchState":
+        return BatchState(self.intrinsics[idx], self.distortion[idx], self.R[idx], self.t[idx])
+
+    def put(self, idx: np.ndarray, other: "BatchState") -> None:
+        self.intrinsics[idx] = other.intrinsics
+        self.distortion[idx] = other.distortion
+        self.R[idx] = other.R
+        self.t[idx] = other.t
+
+    @classmethod
+    def from_camera(cls, camera: Camera, k: int = 1) -> "BatchState":
+        i, d, R, t = camera.batch_arrays()
+        return cls(np.repeat(i, k, 0), np.repeat(d, k, 0), np.repeat(R, k, 0), np.repeat(t, k, 0))
+
+
+def _robust_weights(sq_norm: np.ndarray, loss: str, scale: float) -> np.ndarray:
+    """IRLS weights (K, N) per point from squared residual norms (K, N)."""
+    if loss == "linear":
+        return np.ones_like(sq_norm)
+    r = np.sqrt(sq_norm) / scale
+    if loss == "huber":
+        return np.where(r <= 1.0, 1.0, 1.0 / np.maximum(r, 1e-12))
+    if loss == "cauchy":
+        return 1.0 / (1.0 + r * r)
+    raise InputError(f"unknown loss {loss!r}: use linear, huber or cauchy")
+
+
+def _free_columns(A: np.ndarray) -> tuple[np.ndarray, int, float]:
+    """The kernel's view of a parameter map: primary index per free column, tied fx column, aspect."""
+    m = A.shape[1]
+    sel = np.array([int(np.flatnonzero(A[:, j])[0]) for j in range(m)], dtype=np.int64)
+    fx_col, aspect = -1, 0.0
+    fy_index = PARAM_NAMES.index("fy")
+    for j in range(m):
+        if sel[j] == 0 and A[fy_index, j] != 0.0:
+            fx_col, aspect = j, float(A[fy_index, j])
+    return sel, fx_col, aspect
+
+
+def levenberg_marquardt(
+    state: BatchState,
+    points: np.ndarray,  # (K, N, 3) or (1, N, 3)
+    pixels: np.ndarray,  # (K, N, 2)
+    A: np.ndarray,  # (15, m)
+    max_iterations: int = 50,
+    tolerance: float = 1e-12,
+    loss: str = "linear",
+    loss_scale: float = 2.0,
+) -> tuple[BatchState, np.ndarray, int]:
+    """Minimise the (robustified) reprojection error of K problems at once.
+
+    Returns the refined state, the per-problem cost (K,) (sum of squared
+    residuals, unweighted) and the iteration count. A problem leaves the
+    working set once its relative cost decrease falls below ``tolerance``
+    (or several steps in a row fail, which at a minimum is round-off), so
+    late iterations only touch the few problems still moving. Robust losses
+    are iteratively reweighted: a step is judged with the weights it was
+    computed with, so reweighting cannot fake progress.
+    """
+    from dronecal_field.core.kernels import normal_equations
+
+    K = state.R.shape[0]
+    m = A.shape[1]
+    sel, fx_col, aspect = _free_columns(A)
+    out = state.copy()
+    out_cost = np.zeros(K)
+    work = np.arange(K)
+    X = np.ascontiguousarray(points, dtype=float)
+    shared_points = X.shape[0] == 1
+    y = np.ascontiguousarray(pixels, dtype=float)
+    N = y.shape[1]
+    s = state.copy()
+    lam = np.full(K, 1e-3)
+    fails = np.zeros(K, dtype=int)
+    eye = np.eye(m)
+
+    def evaluate(st: BatchState, X_, y_, w_):
+        k = st.R.shape[0]
+        JtJ_, g_, sq_ = np.empty((k, m, m)), np.empty((k, m)), np.empty((k, N))
+        normal_equations(st.intrinsics, st.distortion, st.R, st.t, X_, y_, w_, sel, fx_col, aspect, JtJ_, g_, sq_)
+        return JtJ_, g_, sq_
+
+    w = np.ones((K, N))
+    JtJ, g, sq = evaluate(s, X, y, w)
+    if loss != "linear":
+        w = _robust_weights(sq, loss, loss_scale)
+        JtJ, g, sq = evaluate(s, X, y, w)
+    cost = np.sum(w * sq, axis=1)
+    it = 0
+    for it in range(1, max_iterations + 1):
+        k = work.size
+        diag = np.maximum(np.diagonal(JtJ, axis1=1, axis2=2), 1e-12)
+        H = JtJ + lam[:, None, None] * (diag[:, :, None] * eye)
+        try:
+            delta = np.linalg.solve(H, g[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            delta = np.stack([np.linalg.lstsq(H[i], g[i], rcond=None)[0] for i in range(k)])
+        trial = s.stepped(delta @ A.T)
+        JtJ_new, g_new, sq_new = evaluate(trial, X, y, w)
+        cost_new = np.sum(w * sq_new, axis=1)
+        better = (cost_new < cost) & np.isfinite(cost_new)
+        rel_drop = np.where(better, (cost - cost_new) / np.maximum(cost, 1e-300), 0.0)
+        if better.any():
+            b = np.flatnonzero(better)
+            s.put(b, trial.take(b))
+            JtJ[b], g[b], sq[b], cost[b] = JtJ_new[b], g_new[b], sq_new[b], cost_new[b]
+            if loss != "linear":
+                w[b] = _robust_weights(sq_new[b], loss, loss_scale)
+                # the next step uses the new weights: rebuild its equations and cost with them
+                Xb = X if shared_points else X[b]
+                JtJ[b], g[b], sq[b] = evaluate(s.take(b), Xb, y[b], w[b])
+                cost[b] = np.sum(w[b] * sq[b], axis=1)
+        lam = np.where(better, np.maximum(lam / 10.0, 1e-9), lam * 10.0)
+        fails = np.where(better, 0, fails + 1)
+        done = (better & (rel_drop < tolerance)) | (fails >= 4) | (lam > 1e10) | (cost <= 1e-24)
+        if done.any() or it == max_iterations:
+            fin = done if it < max_iterations else np.ones(k, dtype=bool)
+            idx = np.flatnonzero(fin)
+            out.put(work[idx], s.take(idx))
+            out_cost[work[idx]] = np.sum(sq[idx], axis=1)
+            keep = np.flatnonzero(~fin)
+            if keep.size == 0:
+                break
+            work, s, JtJ, g, sq, w, cost, lam, fails = (
+                work[keep], s.take(keep), JtJ[keep], g[keep], sq[keep], w[keep], cost[keep], lam[keep], fails[keep]
+            )
+            y = y[keep]
+            if not shared_points:
+                X = X[keep]
+    return out, out_cost, it
+
+
+# --------------------------------------------------------------------------
+# Single calibration
+
+
+def initial_camera(points_world: np.ndarray, pixels: np.ndarray, width: int, height: int) -> Camera:
+    """Pinhole camera (no distortion) from the normalised DLT and an RQ decomposition."""
+    P = dlt(points_world, pixels)
+    K, R, t = decompose_projection(P)
+    depth = points_world @ R.T + t
+    behind = depth[:, 2] <= 0
+    if behind.any():
+        if behind.all():
+            raise DegenerateGeometryError("all points project from behind the camera: check the 3D-2D pairing and the world frame")
+        raise DegenerateGeometryError(
+            f"{int(behind.sum())} of {len(behind)} points lie behind the camera (index {int(np.flatnonzero(behind)[0])}): "
+            "a 3D point is paired with the wrong pixel or the frame is mirrored"
+        )
+    f = np.array([abs(K[0, 0]), abs(K[1, 1]), K[0, 2], K[1, 2]])
+    if not np.all(np.isfinite(f)) or f[0] <= 0 or f[1] <= 0:
+        raise CalibrationError("the DLT gave no finite camera: the 3D-2D pairs are inconsistent")
+    return Camera.from_arrays(f, np.zeros(5), R, t, width, height)
+
+
+def calibrate(
+    points_world: np.ndarray,
+    pixels: np.ndarray,
+    width: int,
+    height: int,
+    model: "str | CalibrationModel" = "auto",
+    loss: str = "linear",
+    loss_scale_px: float = 2.0,
+    initial: Camera | None = None,
+    min_thickness_m: float = 0.05,
+    max_iterations: int = 200,
+) -> CalibrationResult:
+    """Calibrate a camera from non-coplanar 3D-2D pairs; no initial guess needed.
+
+    Parameters
+    ----------
+    points_world : (N, 3) world points, metres (any right-handed metric frame)
+    pixels : (N, 2) observed pixels
+    width, height : image size, pixels
+    model : 'auto', 'default', 'none', 'k1', 'k1k2', 'k1k2p1p2', 'full' or a CalibrationModel
+    loss : 'linear', 'huber' or 'cauchy'; robust losses downweight outliers beyond ``loss_scale_px``
+    initial : start from this camera instead of the DLT (fixed parameters keep its values)
+    min_thickness_m : RMS distance from the best plane below which the points count as coplanar
+
+    Raises
+    ------
+    InputError, DegenerateGeometryError, CalibrationError with a one-line reason.
+
+    Examples
+    --------
+    >>> result = calibrate(points, pixels, 1280, 960, model="default")
+    >>> result.camera.intrinsics.fx, result.rms_px
+    """
+    n = np.asarray(points_world).shape[0] if np.ndim(points_world) == 2 else 0
+    mdl = resolve_model(model, n)
+    X, uv = check_correspondences(points_world, pixels, mdl.n_free, min_thickness_m)
+    if initial is None:
+        cam0 = initial_camera(X, uv, width, height)
+        if mdl.fix_principal_point:
+            i = cam0.intrinsics
+            cam0 = Camera.from_arrays([i.fx, i.fy, (width - 1) / 2.0, (height - 1) / 2.0], np.zeros(5), cam0.pose.R_cam_from_world, cam0.pose.t_cam_from_world, width, height)
+        # pinhole first: the distortion terms are only meaningful near the right pose
+        pin = CalibrationModel(distortion="none", fix_aspect_ratio=mdl.fix_aspect_ratio, fix_principal_point=mdl.fix_principal_point)
+        state = BatchState.from_camera(cam0)
+        state, _, _ = levenberg_marquardt(state, X[None], uv[None], pin.parameter_map(cam0.intrinsics.fy / cam0.intrinsics.fx), max_iterations=max_iterations, loss=loss, loss_scale=loss_scale_px)
+    else:
+        state = BatchState.from_camera(initial)
+    aspect = float(state.intrinsics[0, 1] / state.intrinsics[0, 0])
+    A = mdl.parameter_map(aspect)
+    state, _, iters = levenberg_marquardt(state, X[None], uv[None], A, max_iterations=max_iterations, loss=loss, loss_scale=loss_scale_px)
+    return _result_from_state(state, X, uv, width, height, mdl, A, iters, loss, loss_scale_px, initial)
+
+
+def _result_from_state(state, X, uv, width, height, mdl, A, iters, loss, loss_scale_px, initial) -> CalibrationResult:
+    uv_hat, J, _ = project_batch_jacobians(state.intrinsics, state.distortion, state.R, state.t, X[None])
+    depth = np.einsum("ij,nj->ni", state.R[0], X) + state.t[0]
+    if np.any(depth[:, 2] <= 0) or not np.all(np.isfinite(uv_hat)):
+        raise CalibrationError("the solver converged to a camera with points behind it: check the 3D-2D pairs or give --model none")
+    if state.intrinsics[0, 0] <= 0 or state.intrinsics[0, 1] <= 0:
+        raise CalibrationError("the solver reached a negative focal length: the 3D-2D pairs are inconsistent")
+    res = uv - uv_hat[0]
+    n = X.shape[0]
+    m = A.shape[1]
+    sq = np.sum(res * res, axis=1)
+    outliers: tuple[int, ...] = ()
+    inlier = np.ones(n, dtype=bool)
+    if loss != "linear":
+        norm = np.sqrt(sq)
+        robust_sigma = 1.4826 * np.median(norm) + 1e-12
+        out = (norm > 3.0 * robust_sigma) & (norm > loss_scale_px)
+        outliers = tuple(int(i) for i in np.flatnonzero(out))
+        inlier = ~out
+    dof = max(2 * int(inlier.sum()) - m, 1)
+    sigma2 = float(np.sum(sq[inlier]) / dof)
+    Jm = (J[0][inlier] @ A).reshape(-1, m)
+    JtJ = Jm.T @ Jm
+    try:
+        cov_free = sigma2 * np.linalg.inv(JtJ)
+    except np.linalg.LinAlgError:
+        raise CalibrationError("the calibration is not determined by these points (singular normal matrix): sample more of the image and more depths") from None
+    cov = A @ cov_free @ A.T
+    enu_origin = initial.enu_origin if initial is not None else None
+    camera = Camera.from_arrays(state.intrinsics[0], state.distortion[0], state.R[0], state.t[0], width, height, enu_origin=enu_origin, covariance=cov)
+    return CalibrationResult(
+        camera=camera,
+        model=mdl,
+        rms_px=float(np.sqrt(np.mean(sq))),
+        residuals_px=res,
+        outliers=outliers,
+        iterations=iters,
+        residual_sigma_px=float(np.sqrt(sigma2 / 2.0)),
+        points_world=X,
+        pixels=uv,
+        loss=loss,
+    )
+
+
+def reprojection_rms(camera: Camera, points_world: np.ndarray, pixels: np.ndarray) -> float:
+    """RMS reprojection error (px) of pixels (N, 2) against world points (N, 3)."""
+    uv = project_batch(*camera.batch_arrays(), np.asarray(points_world, float)[None])[0]
+    return float(np.sqrt(np.mean(np.sum((np.asarray(pixels) - uv) ** 2, axis=1))))

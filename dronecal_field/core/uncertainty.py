@@ -1,0 +1,404 @@
+"""Calibration uncertainty: the paper's Monte-Carlo (section II.B), batched, and its linearised twin.
+
+For k trials, every 3D point is perturbed with N(0, diag(sigma_3d^2)) and
+every 2D point with N(0, sigma_2d^2); the camera is re-estimated and
+E(C), the RMS reprojection error over that trial's perturbed points (what
+``cv2.calibrateCamera`` returns), is stored. All trials are solved at once
+by the batched Levenberg-Marquardt of ``core.calibrate``, warm-started at the
+reference camera, in chunks so memory stays bounded for any k.
+
+Beyond the paper, the same trials give the spread of every parameter and the
+*projection error*: how far each estimated camera projects world points from
+where the reference camera does (pixels, over the sampled volume and over
+the ground), and what that means on the ground 15 m out (position error in
+cm, speed error in km/h). The RMS reprojection error alone rewards
+overfitting; the projection error does not.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from dronecal_field.core.calibrate import BatchState, CalibrationModel, levenberg_marquardt, resolve_model
+from dronecal_field.core.camera import (
+    PARAM_NAMES,
+    Camera,
+    intersect_plane_z,
+    project_batch,
+    project_batch_jacobians,
+    vector_from_rotation,
+)
+from dronecal_field.errors import InputError
+
+DEFAULT_SIGMA_3D = (0.01, 0.01, 0.015)
+DEFAULT_SIGMA_2D = 2.0
+GROUND_DISTANCE_M = 15.0
+VEHICLE_SPEED_KMH = 50.0
+SPEED_BASE_S = 0.5  # a speed camera measures displacement over about half a second
+
+
+@dataclass(frozen=True)
+class GroundProbe:
+    """Ground points 15 m out along the camera's heading, for user-facing error figures.
+
+    ``point`` (3,) lies on the ground plane at horizontal distance 15 m from
+    the camera along its heading; ``track`` (2, 3) are a vehicle's positions
+    ``SPEED_BASE_S`` apart at 50 km/h driving along the line of sight, centred
+    on ``point``.
+    """
+
+    point: np.ndarray
+    track: np.ndarray
+
+
+def ground_probe(camera: Camera, ground_z: float = 0.0, distance_m: float = GROUND_DISTANCE_M) -> GroundProbe:
+    """The ground probe of ``camera`` (its optical axis projected on the ground plane gives the heading)."""
+    R = camera.pose.R_cam_from_world
+    c = camera.pose.position_world
+    heading = R[2].copy()
+    heading[2] = 0.0
+    if np.linalg.norm(heading) < 1e-9:  # looking straight down: use the image's up direction
+        heading = -R[1].copy()
+        heading[2] = 0.0
+    heading /= np.linalg.norm(heading)
+    point = np.array([c[0], c[1], ground_z]) + distance_m * heading
+    half = 0.5 * VEHICLE_SPEED_KMH / 3.6 * SPEED_BASE_S
+    track = np.stack([point - half * heading, point + half * heading])
+    return GroundProbe(point=point, track=track)
+
+
+@dataclass(frozen=True, eq=False)
+class UncertaintyResult:
+    """Statistics of the calibration uncertainty for one camera and one set of points.
+
+    RMS reprojection error (px) statistics as in the paper; parameter standard
+    deviations (``param_std``: fx, fy, cx, cy, k1..k3 in their units, camera
+    position in metres as ``pos_x/y/z``, orientation in degrees as
+    ``rot_x/y/z``); projection error RMS (px) against the reference camera
+    over the sampled points and over ground points in view; ground position
+    error (cm) and speed error (km/h) 15 m out. ``rms`` holds the k trial
+    values for Monte-Carlo, None for the linearised estimate.
+    """
+
+    method: str
+    trials: int
+    model: str
+    rms_mean: float
+    rms_max: float
+    rms_var: float
+    rms_percentiles: dict[int, float]
+    param_std: dict[str, float]
+    projection_error_px: float
+    ground_projection_error_px: float
+    ground_error_15m_cm: float
+    ground_error_15m_cm_p95: float
+    speed_error_15m_kmh: float
+    speed_error_15m_kmh_p95: float
+    n_points: int
+    rms: np.ndarray | None = field(default=None, repr=False)
+    failed_trials: int = 0
+
+    def to_dict(self) -> dict:
+        d = {
+            "method": self.method,
+            "trials": self.trials,
+            "model": self.model,
+            "n_points": self.n_points,
+            "rms_mean": self.rms_mean,
+            "rms_max": self.rms_max,
+            "rms_var": self.rms_var,
+            "rms_std": float(np.sqrt(self.rms_var)),
+            "rms_percentiles": {str(k): v for k, v in self.rms_percentiles.items()},
+            "param_std": self.param_std,
+            "projection_error_px": self.projection_error_px,
+            "ground_projection_error_px": self.ground_projection_error_px,
+            "ground_error_15m_cm": self.ground_error_15m_cm,
+            "ground_error_15m_cm_p95": self.ground_error_15m_cm_p95,
+            "speed_error_15m_kmh": self.speed_error_15m_kmh,
+            "speed_error_15m_kmh_p95": self.speed_error_15m_kmh_p95,
+            "failed_trials": self.failed_trials,
+        }
+        return d
+
+
+PERCENTILES = (5, 50, 95, 99)
+
+
+def _sigmas(points: np.ndarray, sigma_3d, sigma_2d) -> tuple[np.ndarray, np.ndarray]:
+    n = points.shape[0]
+    s3 = np.broadcast_to(np.asarray(sigma_3d, float), (n, 3)).copy()
+    s2 = np.broadcast_to(np.asarray(sigma_2d, float).reshape(-1), (n,)).copy() if np.ndim(sigma_2d) else np.full(n, float(sigma_2d))
+    if np.any(s3 < 0) or np.any(s2 < 0) or not (np.all(np.isfinite(s3)) and np.all(np.isfinite(s2))):
+        raise InputError("noise sigmas must be finite and non-negative: check --sigma-3d and --sigma-2d")
+    return s3, s2
+
+
+def _ground_pixels(camera: Camera, ground_z: float, nu: int = 16, nv: int = 12) -> np.ndarray:
+    """(M, 2) pixels of a grid over the image whose rays meet the ground in front of the camera."""
+    u = np.linspace(0.05, 0.95, nu) * (camera.width - 1)
+    v = np.linspace(0.05, 0.95, nv) * (camera.height - 1)
+    uv = np.stack(np.meshgrid(u, v), -1).reshape(-1, 2)
+    g = intersect_plane_z(*camera.batch_arrays()[:3], camera.batch_arrays()[3], uv[None], ground_z)[0]
+    ok = np.all(np.isfinite(g), axis=1)
+    dist = np.linalg.norm(g[:, :2] - camera.pose.position_world[:2], axis=1)
+    ok &= dist < 200.0
+    return uv[ok]
+
+
+@dataclass(frozen=True, eq=False)
+class _Probes:
+    points_world: np.ndarray  # (N, 3) the sampled points
+    uv_ref_points: np.ndarray  # (N, 2)
+    ground_world: np.ndarray  # (M, 3)
+    uv_ref_ground: np.ndarray  # (M, 2)
+    probe: GroundProbe
+    uv_probe: np.ndarray  # (3, 2) pixels of the probe point and the two track points
+
+
+def _make_probes(camera: Camera, points: np.ndarray, ground_z: float) -> _Probes:
+    arrays = camera.batch_arrays()
+    uv_g = _ground_pixels(camera, ground_z)
+    g = intersect_plane_z(*arrays, uv_g[None], ground_z)[0] if len(uv_g) else np.zeros((0, 3))
+    probe = ground_probe(camera, ground_z)
+    probe_pts = np.vstack([probe.point[None], probe.track])
+    return _Probes(
+        points_world=points,
+        uv_ref_points=camera.project(points),
+        ground_world=g,
+        uv_ref_ground=uv_g,
+        probe=probe,
+        uv_probe=camera.project(probe_pts),
+    )
+
+
+def _projection_metrics(state: BatchState, probes: _Probes, ground_z: float) -> dict[str, np.ndarray]:
+    """Per-trial projection errors (K,) of estimated cameras against the reference."""
+    args = (state.intrinsics, state.distortion, state.R, state.t)
+    uv = project_batch(*args, probes.points_world[None])
+    proj = np.sqrt(np.mean(np.sum((uv - probes.uv_ref_points) ** 2, -1), -1))
+    if len(probes.ground_world):
+        uvg = project_batch(*args, probes.ground_world[None])
+        gproj = np.sqrt(np.mean(np.sum((uvg - probes.uv_ref_ground) ** 2, -1), -1))
+    else:
+        gproj = np.full(state.R.shape[0], np.nan)
+    hits = intersect_plane_z(*args, probes.uv_probe[None], ground_z)  # (K, 3, 3)
+    pos_err_cm = 100.0 * np.linalg.norm(hits[:, 0, :2] - probes.probe.point[:2], axis=-1)
+    d_true = np.linalg.norm(probes.probe.track[1] - probes.probe.track[0])
+    d_est = np.linalg.norm(hits[:, 2] - hits[:, 1], axis=-1)
+    speed_err = np.abs(d_est - d_true) / SPEED_BASE_S * 3.6
+    return {"projection": proj, "ground_projection": gproj, "pos15": pos_err_cm, "speed15": speed_err}
+
+
+def _param_samples(state: BatchState, reference: Camera) -> dict[str, np.ndarray]:
+    """Per-trial parameter values (K,) including camera position (m) and orientation error (deg)."""
+    out = {name: state.intrinsics[:, i] for i, name in enumerate(PARAM_NAMES[0:4])}
+    out.update({name: state.distortion[:, i] for i, name in enumerate(PARAM_NAMES[4:9])})
+    centres = -np.einsum("kji,kj->ki", state.R, state.t)
+    for i, axis in enumerate("xyz"):
+        out[f"pos_{axis}"] = centres[:, i]
+    dR = state.R @ reference.pose.R_cam_from_world.T
+    rot = np.degrees(vector_from_rotation(dR))
+    for i, axis in enumerate("xyz"):
+        out[f"rot_{axis}"] = rot[:, i]
+    return out
+
+
+def _nan_stat(fn, values: np.ndarray) -> float:
+    values = values[np.isfinite(values)]
+    return float(fn(values)) if values.size else float("nan")
+
+
+def monte_carlo(
+    camera: Camera,
+    points_world: np.ndarray,
+    trials: int = 500,
+    sigma_3d=DEFAULT_SIGMA_3D,
+    sigma_2d=DEFAULT_SIGMA_2D,
+    seed: int = 0,
+    model: "str | CalibrationModel" = "default",
+    chunk_size: int = 2000,
+    ground_z: float = 0.0,
+    max_iterations: int = 30,
+    mc_tolerance: float = 1e-7,
+    observed_pixels: np.ndarray | None = None,
+) -> UncertaintyResult:
+    """The paper's Monte-Carlo estimate of calibration uncertainty, all trials batched.
+
+    Parameters
+    ----------
+    camera : the reference camera C (truth in simulation, the calibrated camera from a flight)
+    points_world : (N, 3) sampled 3D points P_i, world metres
+    trials : k, the number of trials (the paper uses 500)
+    sigma_3d : (3,) or (N, 3) standard deviations along world X, Y, Z, metres
+    sigma_2d : scalar or (N,) pixel standard deviation per axis
+    seed : seeds numpy's Generator: the same seed gives the same statistics
+    model : calibration model re-estimated in each trial ('default' = OpenCV's CALIB_FIX_K3)
+    chunk_size : trials solved together; bounds memory (~ chunk_size * N * 240 bytes)
+    observed_pixels : (N, 2) p_i; default the reference camera's projection of P_i
+    mc_tolerance : a trial stops when its cost drops by less than this fraction in an
+        iteration; 1e-7 leaves the RMS within 1e-7 of the converged value (the
+        large-residual problem converges linearly, so tighter costs iterations)
+
+    Returns
+    -------
+    UncertaintyResult with rms_mean/max/var/percentiles (px), parameter spreads
+    and projection errors.
+    """
+    P = np.asarray(points_world, float)
+    if trials < 2:
+        raise InputError(f"--trials {trials} is too few for statistics: use at least 2 (the paper uses 500)")
+    s3, s2 = _sigmas(P, sigma_3d, sigma_2d)
+    mdl = resolve_model(model, P.shape[0])
+    A = mdl.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx)
+    uv_ref = camera.project(P) if observed_pixels is None else np.asarray(observed_pixels, float)
+    probes = _make_probes(camera, P, ground_z)
+    rng = np.random.default_rng(seed)
+
+    rms_all, metrics_all, params_all, failed = [], [], [], 0
+    for start in range(0, trials, chunk_size):
+        k = min(chunk_size, trials - start)
+        Q = P[None] + rng.standard_normal((k, P.shape[0], 3)) * s3[None]
+        q = uv_ref[None] + rng.standard_normal((k, P.shape[0], 2)) * s2[None, :, None]
+        state = BatchState.from_camera(camera, k)
+        state, cost, _ = levenberg_marquardt(state, Q, q, A, max_iterations=max_iterations, tolerance=mc_tolerance)
+        rms = np.sqrt(cost / P.shape[0])
+        ok = np.isfinite(rms)
+        failed += int((~ok).sum())
+        rms_all.append(rms)
+        metrics_all.append(_projection_metrics(state, probes, ground_z))
+        params_all.append(_param_samples(state, camera))
+
+    rms = np.concatenate(rms_all)
+    metrics = {key: np.concatenate([m[key] for m in metrics_all]) for key in metrics_all[0]}
+    params = {key: np.concatenate([p[key] for p in params_all]) for key in params_all[0]}
+    return UncertaintyResult(
+        method="monte-carlo",
+        trials=trials,
+        model=mdl.name,
+        rms_mean=_nan_stat(np.mean, rms),
+        rms_max=_nan_stat(np.max, rms),
+        rms_var=_nan_stat(lambda v: np.var(v, ddof=1), rms),
+        rms_percentiles={p: _nan_stat(lambda v, p=p: np.percentile(v, p), rms) for p in PERCENTILES},
+        param_std={key: _nan_stat(lambda v: np.std(v, ddof=1), val) for key, val in params.items()},
+        projection_error_px=_nan_stat(lambda v: np.sqrt(np.mean(v**2)), metrics["projection"]),
+        ground_projection_error_px=_nan_stat(lambda v: np.sqrt(np.mean(v**2)), metrics["ground_projection"]),
+        ground_error_15m_cm=_nan_stat(lambda v: np.sqrt(np.mean(v**2)), metrics["pos15"]),
+        ground_error_15m_cm_p95=_nan_stat(lambda v: np.percentile(v, 95), metrics["pos15"]),
+        speed_error_15m_kmh=_nan_stat(lambda v: np.sqrt(np.mean(v**2)), metrics["speed15"]),
+        speed_error_15m_kmh_p95=_nan_stat(lambda v: np.percentile(v, 95), metrics["speed15"]),
+        n_points=P.shape[0],
+        rms=rms,
+        failed_trials=failed,
+    )
+
+
+def convergence_curve(rms: np.ndarray) -> np.ndarray:
+    """(k,) running mean of the RMS after 1..k trials: the paper's Figure 1."""
+    rms = np.asarray(rms, float)
+    return np.cumsum(rms) / np.arange(1, rms.size + 1)
+
+
+def linearised(
+    camera: Camera,
+    points_world: np.ndarray,
+    sigma_3d=DEFAULT_SIGMA_3D,
+    sigma_2d=DEFAULT_SIGMA_2D,
+    model: "str | CalibrationModel" = "default",
+    ground_z: float = 0.0,
+) -> UncertaintyResult:
+    """First-order propagation of the same noise: the Monte-Carlo's figures in milliseconds.
+
+    Each observation's noise, as seen in the image, is Sigma_i = s_i^2 I +
+    J_X,i S_i J_X,i^T (the 3D noise pushed through the projection). The
+    unweighted least-squares estimate then has covariance
+    (J^T J)^-1 J^T Sigma J (J^T J)^-1, and the residual sum of squares has
+    mean tr((I - H) Sigma) and variance 2 tr(((I - H) Sigma)^2), H being the
+    hat matrix; the RMS statistics follow from a scaled chi-square fit.
+    Derived quantities (projection errors, ground errors) are propagated with
+    their Jacobians by central differences over the free parameters.
+    """
+    from scipy import stats
+
+    P = np.asarray(points_world, float)
+    n = P.shape[0]
+    s3, s2 = _sigmas(P, sigma_3d, sigma_2d)
+    mdl = resolve_model(model, n)
+    A = mdl.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx)
+    m = A.shape[1]
+    _, J, Jx = project_batch_jacobians(*camera.batch_arrays(), P[None])
+    Jm = (J[0] @ A).reshape(2 * n, m)
+    Sigma_blocks = s2[:, None, None] ** 2 * np.eye(2) + np.einsum("nij,nj,nkj->nik", Jx[0], s3**2, Jx[0])  # (N,2,2)
+    Sigma = np.zeros((2 * n, 2 * n))
+    for i in range(n):
+        Sigma[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = Sigma_blocks[i]
+    JtJ_inv = np.linalg.inv(Jm.T @ Jm)
+    cov = JtJ_inv @ Jm.T @ Sigma @ Jm @ JtJ_inv
+    H = Jm @ JtJ_inv @ Jm.T
+    M = (np.eye(2 * n) - H) @ Sigma
+    ssr_mean = float(np.trace(M))
+    ssr_var = float(2.0 * np.trace(M @ M))
+    # SSR ~ a * chi2(nu): match mean and variance
+    a = ssr_var / (2.0 * ssr_mean)
+    nu = 2.0 * ssr_mean**2 / ssr_var
+    dist = stats.chi2(nu, scale=a)
+    rms_mean = float(dist.expect(lambda s: np.sqrt(s / n)))
+    rms_sq_mean = ssr_mean / n
+    rms_var = max(rms_sq_mean - rms_mean**2, 0.0)
+    percentiles = {p: float(np.sqrt(dist.ppf(p / 100.0) / n)) for p in PERCENTILES}
+
+    # Derived quantities: central differences over the free parameters, all at once.
+    probes = _make_probes(camera, P, ground_z)
+    std_free = np.sqrt(np.maximum(np.diag(cov), 1e-30))
+    h = 1e-3 * std_free
+    steps = np.concatenate([np.diag(h), -np.diag(h)]) @ A.T  # (2m, 15)
+    state = BatchState.from_camera(camera, 2 * m).stepped(steps)
+    vals = _derived_vectors(state, probes, camera, ground_z)
+    param_std: dict[str, float] = {}
+    out: dict[str, float] = {}
+    for key, v in vals.items():
+        D = (v[:m] - v[m:]) / (2.0 * h[:, None])  # (m, dims)
+        C = D.T @ cov @ D
+        if key.startswith("param:"):
+            param_std[key[6:]] = float(np.sqrt(max(C[0, 0], 0.0)))
+        else:
+            out[key] = C
+    # Projection error RMS over points: sqrt(mean_i tr(C_i)).
+    proj = float(np.sqrt(np.trace(out["points"]) / max(len(P), 1)))
+    gproj = float(np.sqrt(np.trace(out["ground"]) / max(len(probes.ground_world), 1))) if len(probes.ground_world) else float("nan")
+    pos_cov = out["pos15"]
+    pos_rms = float(100.0 * np.sqrt(np.trace(pos_cov)))
+    speed_sd = float(np.sqrt(max(out["speed15"][0, 0], 0.0)))
+    return UncertaintyResult(
+        method="linearised",
+        trials=0,
+        model=mdl.name,
+        rms_mean=rms_mean,
+        rms_max=float(np.sqrt(dist.ppf(0.999) / n)),
+        rms_var=rms_var,
+        rms_percentiles=percentiles,
+        param_std=param_std,
+        projection_error_px=proj,
+        ground_projection_error_px=gproj,
+        ground_error_15m_cm=pos_rms,
+        ground_error_15m_cm_p95=float(100.0 * np.sqrt(stats.chi2.ppf(0.95, 2) * np.max(np.linalg.eigvalsh(pos_cov)))),
+        speed_error_15m_kmh=speed_sd,
+        speed_error_15m_kmh_p95=float(1.96 * speed_sd),
+        n_points=n,
+    )
+
+
+def _derived_vectors(state: BatchState, probes: _Probes, reference: Camera, ground_z: float) -> dict[str, np.ndarray]:
+    """(K, dims) derived quantities of K cameras, for finite-difference Jacobians."""
+    args = (state.intrinsics, state.distortion, state.R, state.t)
+    K = state.R.shape[0]
+    out = {"points": project_batch(*args, probes.points_world[None]).reshape(K, -1)}
+    if len(probes.ground_world):
+        out["ground"] = project_batch(*args, probes.ground_world[None]).reshape(K, -1)
+    hits = intersect_plane_z(*args, probes.uv_probe[None], ground_z)
+    out["pos15"] = hits[:, 0, :2]
+    out["speed15"] = (np.linalg.norm(hits[:, 2] - hits[:, 1], axis=-1) / SPEED_BASE_S * 3.6)[:, None]
+    for key, v in _param_samples(state, reference).items():
+        out[f"param:{key}"] = v[:, None]
+    return out
