@@ -1,0 +1,558 @@
+"""open_run: stream a run file, complete or cut off, and check it against the contract.
+
+A complete MCAP file ends with a summary (chunk index, channels, metadata
+index); a recording killed mid-flight has none and ends inside a chunk. Both
+are read the same way: a list of *units* (chunks, or lone messages in an
+unchunked file) with their time ranges, taken from the summary when there is
+one and otherwise from one cheap linear pass over the record headers that
+skips chunk bodies and stops at the first record that runs past the end of the
+file. Messages are then decoded one unit at a time, in log-time order, so
+memory stays bounded by a few chunks, and time windows only decompress the
+chunks that overlap them.
+
+The records are parsed with mcap's own record classes; only the scheduling of
+chunks is ours, because mcap's StreamReader cannot skip chunk bodies and
+raises assorted errors on a cut-off file.
+"""
+
+from __future__ import annotations
+
+import heapq
+import io
+import json
+import os
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator
+
+from dronecal_field.errors import ContractError
+from dronecal_field.runfile import messages as pm
+from dronecal_field.runfile.records import (
+    RUN_METADATA_NAME,
+    SITE_METADATA_NAME,
+    Attitude,
+    Frame,
+    GnssFix,
+    RunEvent,
+    RunMetadata,
+)
+
+MAGIC = bytes([137, 77, 67, 65, 80, 48, 13, 10])
+_OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
+_OP_ATTACHMENT, _OP_METADATA, _OP_DATA_END = 0x09, 0x0C, 0x0F
+
+# The contract's required topics and their schema names.
+REQUIRED_TOPICS = {pm.IMAGE_TOPIC: pm.IMAGE_SCHEMA, pm.FIX_TOPIC: pm.FIX_SCHEMA}
+OPTIONAL_TOPICS = {pm.ATTITUDE_TOPIC: pm.ATTITUDE_SCHEMA, pm.EVENTS_TOPIC: pm.EVENT_SCHEMA}
+
+# Frames are selected by MCAP log time first (cheap, per chunk), then by the
+# message's own timestamp. A writer whose log time lags capture by more than
+# this would lose frames at window edges.
+LOG_TIME_SLACK_NS = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class _Unit:
+    """A chunk, or a lone message record, of the data section."""
+
+    offset: int  # file offset of the record's opcode byte
+    length: int  # record body length, bytes
+    start_ns: int
+    end_ns: int
+    channel_ids: frozenset[int] | None  # from the chunk index; None when unknown
+
+
+@dataclass(frozen=True)
+class _Channel:
+    id: int
+    topic: str
+    message_encoding: str
+    schema_name: str
+    schema_encoding: str
+
+
+def open_run(path: str | os.PathLike) -> "Run":
+    """Open and check a run file; use as a context manager.
+
+    Parameters
+    ----------
+    path : the .mcap run file.
+
+    Returns
+    -------
+    Run
+        with ``metadata``, ``truncated`` and the ``iter_*`` methods.
+
+    Raises
+    ------
+    ContractError
+        when the file is not MCAP, lacks the ``dronecal.run`` metadata or a key
+        of it, or lacks ``/camera/image`` / ``/gnss/fix`` with their schemas.
+    InputError
+        when the file cannot be read.
+
+    Examples
+    --------
+    >>> with open_run("run.mcap") as run:          # doctest: +SKIP
+    ...     for fix in run.iter_fixes(): ...
+    """
+    return Run(path)
+
+
+class Run:
+    """An open run file. Not thread-safe: iterate from one thread.
+
+    Attributes
+    ----------
+    path : the file.
+    metadata : the parsed ``dronecal.run`` (+ ``dronecal.site``) metadata.
+    truncated : True when the file has no valid end (cut off, killed writer):
+        only the complete chunks before the damage are read.
+    truncated_at : byte offset where readable data ends when truncated, else None.
+    topics : topic -> schema name of every channel seen.
+    warnings : problems that do not stop calibration (e.g. an optional topic
+        with the wrong schema, which is then ignored).
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        from dronecal_field.errors import InputError
+
+        self.path = Path(path)
+        self._name = self.path.name
+        try:
+            self._f = open(self.path, "rb")
+        except OSError as exc:
+            raise InputError(f"cannot open run file {self.path}: {exc.strerror}") from exc
+        try:
+            self._size = os.fstat(self._f.fileno()).st_size
+            self.truncated = False
+            self.truncated_at: int | None = None
+            self.warnings: list[str] = []
+            self._units: list[_Unit] = []
+            self._channels: dict[int, _Channel] = {}
+            self._schemas: dict[int, tuple[str, str]] = {}  # id -> (name, encoding)
+            self._metadata: dict[str, dict[str, str]] = {}
+            self._attachments: list[tuple[str, int]] = []  # (name, record offset)
+            self._open()
+            self.metadata = self._check_contract()
+        except BaseException:
+            self._f.close()
+            raise
+
+    # -- context manager ---------------------------------------------------
+
+    def __enter__(self) -> "Run":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the file."""
+        self._f.close()
+
+    # -- public reading ------------------------------------------------------
+
+    @property
+    def time_range_ns(self) -> tuple[int, int] | None:
+        """(first, last) message log time in the readable part of the file, UTC ns; None when empty."""
+        if not self._units:
+            return None
+        return min(u.start_ns for u in self._units), max(u.end_ns for u in self._units)
+
+    @property
+    def topics(self) -> dict[str, str]:
+        return {c.topic: c.schema_name for c in self._channels.values()}
+
+    def metadata_record(self, name: str) -> dict[str, str] | None:
+        """Any MCAP metadata record by name (the last one when repeated), or None."""
+        record = self._metadata.get(name)
+        return dict(record) if record is not None else None
+
+    def iter_fixes(self) -> Iterator[GnssFix]:
+        """GNSS fixes of ``/gnss/fix`` in log-time order."""
+        for _, data, log_time in self._iter_topic({pm.FIX_TOPIC}):
+            yield pm.fix_from_bytes(data, log_time)
+
+    def iter_frames(self, windows: list[tuple[int, int]] | None = None) -> Iterator[Frame]:
+        """Video frames of ``/camera/image`` in log-time order.
+
+        Parameters
+        ----------
+        windows : optional [start_ns, end_ns] ranges (inclusive, UTC ns); only
+            frames whose timestamp lies in one of them are returned, and only
+            chunks overlapping them (with LOG_TIME_SLACK_NS) are read.
+        """
+        if windows is None:
+            for _, data, log_time in self._iter_topic({pm.IMAGE_TOPIC}):
+                yield pm.frame_from_bytes(data, log_time)
+            return
+        merged = _merge_windows(windows)
+        if not merged:
+            return
+        wide = _merge_windows([(a - LOG_TIME_SLACK_NS, b + LOG_TIME_SLACK_NS) for a, b in merged])
+        starts = [a for a, _ in merged]
+        import bisect
+
+        def inside(t: int) -> bool:
+            i = bisect.bisect_right(starts, t) - 1
+            return i >= 0 and t <= merged[i][1]
+
+        for _, data, log_time in self._iter_topic({pm.IMAGE_TOPIC}, wide):
+            frame = pm.frame_from_bytes(data, log_time)
+            if inside(frame.timestamp_ns):
+                yield frame
+
+    def iter_events(self) -> Iterator[RunEvent]:
+        """Events of ``/events`` (hover windows and other marks) in log-time order."""
+        if not self._has_topic(pm.EVENTS_TOPIC):
+            return
+        for _, data, log_time in self._iter_topic({pm.EVENTS_TOPIC}):
+            yield pm.event_from_bytes(data, log_time)
+
+    def iter_attitude(self) -> Iterator[Attitude]:
+        """Vehicle attitude from ``/vehicle/attitude``, else from ``/mavlink/ATTITUDE``."""
+        if self._has_topic(pm.ATTITUDE_TOPIC):
+            for _, data, log_time in self._iter_topic({pm.ATTITUDE_TOPIC}):
+                yield pm.attitude_from_bytes(data, log_time)
+            return
+        for _, t_ns, fields in self.iter_mavlink({"ATTITUDE"}):
+            try:
+                yield Attitude(
+                    timestamp_ns=t_ns,
+                    roll_rad=float(fields["roll"]),
+                    pitch_rad=float(fields["pitch"]),
+                    yaw_rad=float(fields["yaw"]),
+                )
+            except (KeyError, TypeError, ValueError):
+                continue  # a malformed optional message is skipped, not fatal
+
+    def iter_mavlink(self, names: set[str] | None = None) -> Iterator[tuple[str, int, dict[str, Any]]]:
+        """Raw MAVLink messages of ``/mavlink/<NAME>`` topics in log-time order.
+
+        Parameters
+        ----------
+        names : message names to return (e.g. ``{"GPS_RAW_INT"}``); None for all.
+
+        Yields
+        ------
+        (name, timestamp_ns, fields) : ``timestamp_ns`` is ``_time_unix_ns``
+            when the message has it, else its log time.
+        """
+        prefix = pm.MAVLINK_TOPIC_PREFIX
+        if names is None:
+            wanted: Callable[[str], bool] = lambda topic: topic.startswith(prefix)  # noqa: E731
+        else:
+            topics = {prefix + n for n in names}
+            wanted = topics.__contains__
+        for topic, data, log_time in self._iter_topic(wanted):
+            try:
+                fields = json.loads(data)
+            except ValueError:
+                continue
+            if not isinstance(fields, dict):
+                continue
+            t_ns = fields.get("_time_unix_ns")
+            yield topic[len(prefix):], int(t_ns) if isinstance(t_ns, int) else log_time, fields
+
+    def attachment(self, name: str) -> bytes | None:
+        """The data of the last attachment with this name (e.g. ``mission.plan``), or None."""
+        from mcap.data_stream import ReadDataStream
+        from mcap.records import Attachment
+
+        for att_name, offset in reversed(self._attachments):
+            if att_name != name:
+                continue
+            body = self._read_record_body(offset)
+            if body is None:
+                return None
+            return Attachment.read(ReadDataStream(io.BytesIO(body))).data
+        return None
+
+    # -- opening -----------------------------------------------------------
+
+    def _open(self) -> None:
+        self._f.seek(0)
+        if self._f.read(8) != MAGIC:
+            raise ContractError(f"{self._name}: not an MCAP file (no MCAP magic at the start); give a .mcap run file")
+        if not self._open_from_summary():
+            self._scan()
+
+    def _open_from_summary(self) -> bool:
+        """Use the summary section when the file is complete and has a chunk index."""
+        from mcap.data_stream import ReadDataStream
+        from mcap.exceptions import McapError
+        from mcap.reader import SeekingReader
+        from mcap.records import Metadata
+
+        if self._size < 8 + 9 + 20 + 8:
+            return False
+        self._f.seek(-8, io.SEEK_END)
+        if self._f.read(8) != MAGIC:
+            return False
+        try:
+            summary = SeekingReader(self._f).get_summary()
+        except (McapError, struct.error, ValueError, EOFError):
+            return False
+        if summary is None or not summary.chunk_indexes or not summary.channels:
+            return False
+        for sid, s in summary.schemas.items():
+            self._schemas[sid] = (s.name, s.encoding)
+        for ch in summary.channels.values():
+            self._add_channel(ch.id, ch.topic, ch.message_encoding, ch.schema_id)
+        for ci in summary.chunk_indexes:
+            self._units.append(
+                _Unit(
+                    offset=ci.chunk_start_offset,
+                    length=ci.chunk_length - 9,
+                    start_ns=ci.message_start_time,
+                    end_ns=ci.message_end_time,
+                    channel_ids=frozenset(ci.message_index_offsets) or None,
+                )
+            )
+        for ai in summary.attachment_indexes:
+            self._attachments.append((ai.name, ai.offset))
+        if summary.metadata_indexes:
+            for mi in summary.metadata_indexes:
+                body = self._read_record_body(mi.offset)
+                if body is not None:
+                    md = Metadata.read(ReadDataStream(io.BytesIO(body)))
+                    self._metadata[md.name] = dict(md.metadata)
+        else:
+            # A summary without a metadata index: metadata lives outside chunks, a header pass finds it.
+            self._units.clear()
+            self._attachments.clear()
+            self._scan()
+        return True
+
+    def _scan(self) -> None:
+        """One pass over record headers: units, metadata, attachments, top-level channels.
+
+        Chunk bodies are skipped (only their 28-byte time header is read). The
+        pass stops at DataEnd/Footer, or at the first record that does not fit
+        in the file, which marks the file as truncated.
+        """
+        from mcap.data_stream import ReadDataStream
+        from mcap.records import Channel, Message, Metadata, Schema
+
+        f = self._f
+        pos = 8
+        complete = False
+        while True:
+            f.seek(pos)
+            head = f.read(9)
+            if len(head) < 9:
+                break
+            opcode, length = struct.unpack("<BQ", head)
+            body_at = pos + 9
+            if body_at + length > self._size:
+                break
+            if opcode == _OP_CHUNK:
+                if length < 28:
+                    break
+                start_ns, end_ns = struct.unpack("<QQ", f.read(16))
+                self._units.append(_Unit(offset=pos, length=length, start_ns=start_ns, end_ns=end_ns, channel_ids=None))
+            elif opcode in (_OP_DATA_END, _OP_FOOTER):
+                complete = True
+                break
+            elif opcode in (_OP_METADATA, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE):
+                try:
+                    stream = ReadDataStream(io.BytesIO(f.read(length)))
+                    if opcode == _OP_METADATA:
+                        md = Metadata.read(stream)
+                        self._metadata[md.name] = dict(md.metadata)
+                    elif opcode == _OP_SCHEMA:
+                        s = Schema.read(stream)
+                        self._schemas[s.id] = (s.name, s.encoding)
+                    elif opcode == _OP_CHANNEL:
+                        ch = Channel.read(stream)
+                        self._add_channel(ch.id, ch.topic, ch.message_encoding, ch.schema_id)
+                    else:
+                        msg = Message.read(stream, length)
+                        self._units.append(
+                            _Unit(
+                                offset=pos,
+                                length=length,
+                                start_ns=msg.log_time,
+                                end_ns=msg.log_time,
+                                channel_ids=frozenset([msg.channel_id]),
+                            )
+                        )
+                except Exception:  # noqa: BLE001 - any damage ends the readable part
+                    break
+            elif opcode == _OP_ATTACHMENT:
+                name = self._attachment_name(body_at)
+                if name is not None:
+                    self._attachments.append((name, pos))
+            pos = body_at + length
+        if not complete:
+            self.truncated = True
+            self.truncated_at = pos
+
+    def _attachment_name(self, body_at: int) -> str | None:
+        # Attachment body: log_time u64, create_time u64, name (u32 length + utf-8), ...
+        self._f.seek(body_at + 16)
+        raw = self._f.read(4)
+        if len(raw) < 4:
+            return None
+        (n,) = struct.unpack("<I", raw)
+        try:
+            return self._f.read(n).decode("utf-8")
+        except UnicodeDecodeError:
+            return None
+
+    def _add_channel(self, cid: int, topic: str, encoding: str, schema_id: int) -> None:
+        name, schema_encoding = self._schemas.get(schema_id, ("", ""))
+        self._channels[cid] = _Channel(cid, topic, encoding, name, schema_encoding)
+
+    def _check_contract(self) -> RunMetadata:
+        cut = f" (the file is cut off at byte {self.truncated_at})" if self.truncated else ""
+        run_md = self._metadata.get(RUN_METADATA_NAME)
+        if run_md is None:
+            raise ContractError(
+                f"{self._name}: no metadata record '{RUN_METADATA_NAME}'{cut}; the writer must store "
+                "format_version, camera.width/height and marker.* (shared/contracts/run-format.md)"
+            )
+        metadata = RunMetadata.from_mcap_metadata(run_md, self._metadata.get(SITE_METADATA_NAME), source=self._name)
+        if not self._has_topic(pm.IMAGE_TOPIC) or not self._has_topic(pm.FIX_TOPIC):
+            self._discover_channels(set(REQUIRED_TOPICS))
+        for topic, schema in REQUIRED_TOPICS.items():
+            channels = [c for c in self._channels.values() if c.topic == topic]
+            if not channels:
+                what = "video frames" if topic == pm.IMAGE_TOPIC else "GNSS fixes"
+                raise ContractError(
+                    f"{self._name}: no topic '{topic}' ({schema}){cut}: the run has no {what}; "
+                    "record them, or build a run from a flight log with `dronecal-field import`"
+                )
+            for c in channels:
+                if c.schema_name != schema or c.message_encoding != "protobuf":
+                    raise ContractError(
+                        f"{self._name}: topic '{topic}' has schema '{c.schema_name}' "
+                        f"({c.message_encoding or 'no'} encoding); the contract needs '{schema}' in protobuf"
+                    )
+        for topic, schema in OPTIONAL_TOPICS.items():
+            for c in self._channels.values():
+                if c.topic == topic and (c.schema_name != schema or c.message_encoding != "protobuf"):
+                    self.warnings.append(
+                        f"topic '{topic}' has schema '{c.schema_name}', not '{schema}' in protobuf: ignored"
+                    )
+        return metadata
+
+    def _discover_channels(self, topics: set[str]) -> None:
+        """Decompress units in file order until channels of all these topics are known."""
+        for unit in sorted(self._units, key=lambda u: u.offset):
+            self._read_unit(unit)
+            if all(self._has_topic(t) for t in topics):
+                return
+
+    def _has_topic(self, topic: str) -> bool:
+        return any(c.topic == topic for c in self._channels.values())
+
+    def _good_channel(self, c: _Channel) -> bool:
+        schema = REQUIRED_TOPICS.get(c.topic) or OPTIONAL_TOPICS.get(c.topic)
+        return schema is None or (c.schema_name == schema and c.message_encoding == "protobuf")
+
+    # -- unit reading --------------------------------------------------------
+
+    def _read_record_body(self, offset: int) -> bytes | None:
+        self._f.seek(offset)
+        head = self._f.read(9)
+        if len(head) < 9:
+            return None
+        _, length = struct.unpack("<BQ", head)
+        body = self._f.read(length)
+        return body if len(body) == length else None
+
+    def _read_unit(self, unit: _Unit) -> list[Any]:
+        """Messages of one unit; channel and schema records inside it are registered."""
+        from mcap.data_stream import ReadDataStream
+        from mcap.records import Channel, Chunk, Message, Schema
+        from mcap.stream_reader import breakup_chunk
+
+        self._f.seek(unit.offset)
+        head = self._f.read(9)
+        if len(head) < 9:
+            return []
+        opcode, length = struct.unpack("<BQ", head)
+        body = self._f.read(length)
+        if len(body) < length:
+            return []
+        stream = ReadDataStream(io.BytesIO(body))
+        if opcode == _OP_MESSAGE:
+            return [Message.read(stream, length)]
+        try:
+            records = breakup_chunk(Chunk.read(stream), validate_crc=True)
+        except Exception:  # noqa: BLE001 - a damaged chunk is skipped, as if cut off
+            self.warnings.append(f"damaged chunk at byte {unit.offset} skipped")
+            return []
+        out = []
+        for rec in records:
+            if isinstance(rec, Message):
+                out.append(rec)
+            elif isinstance(rec, Schema):
+                self._schemas[rec.id] = (rec.name, rec.encoding)
+            elif isinstance(rec, Channel):
+                if rec.id not in self._channels:
+                    self._add_channel(rec.id, rec.topic, rec.message_encoding, rec.schema_id)
+        return out
+
+    def _iter_topic(
+        self,
+        topics: set[str] | Callable[[str], bool],
+        windows: list[tuple[int, int]] | None = None,
+    ) -> Iterator[tuple[str, bytes, int]]:
+        """(topic, data, log_time_ns) of messages on the wanted topics, merged in log-time order.
+
+        Units are loaded in order of their start time; a message is released
+        once no unit still to be loaded can start before it (mcap's own
+        ordering rule), so memory holds only the units that overlap in time.
+        """
+        wanted = topics.__contains__ if isinstance(topics, (set, frozenset)) else topics
+
+        def overlaps(u: _Unit) -> bool:
+            if windows is None:
+                return True
+            return any(u.start_ns <= b and a <= u.end_ns for a, b in windows)
+
+        def may_hold(u: _Unit) -> bool:
+            if u.channel_ids is None:
+                return True
+            for cid in u.channel_ids:
+                c = self._channels.get(cid)
+                if c is None or wanted(c.topic):
+                    return True
+            return False
+
+        def in_windows(t: int) -> bool:
+            return windows is None or any(a <= t <= b for a, b in windows)
+
+        units = sorted((u for u in self._units if overlaps(u) and may_hold(u)), key=lambda u: (u.start_ns, u.offset))
+        heap: list[tuple[int, int, int, str, bytes]] = []
+        serial = 0
+        i = 0
+        while i < len(units) or heap:
+            if i < len(units) and (not heap or units[i].start_ns <= heap[0][0]):
+                for msg in self._read_unit(units[i]):
+                    c = self._channels.get(msg.channel_id)
+                    if c is None or not wanted(c.topic) or not self._good_channel(c):
+                        continue
+                    if not in_windows(msg.log_time):
+                        continue
+                    heapq.heappush(heap, (msg.log_time, serial, msg.channel_id, c.topic, msg.data))
+                    serial += 1
+                i += 1
+            else:
+                log_time, _, _, topic, data = heapq.heappop(heap)
+                yield topic, data, log_time
+
+
+def _merge_windows(windows: Iterable[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Sorted, non-overlapping union of [start, end] windows (empty ones dropped)."""
+    out: list[list[int]] = []
+    for a, b in sorted((int(a), int(b)) for a, b in windows if b >= a):
+        if out and a <= out[-1][1]:
+            out[-1][1] = max(out[-1][1], b)
+        else:
+            out.append([a, b])
+    return [(a, b) for a, b in out]

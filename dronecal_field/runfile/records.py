@@ -1,0 +1,342 @@
+"""Domain values of a run file: what one MCAP run holds, independent of MCAP.
+
+Every timestamp is integer nanoseconds UTC on the run clock
+(shared/contracts/run-format.md, "The run clock").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Mapping
+
+import numpy as np
+
+from dronecal_field.errors import ContractError
+from dronecal_field.geodesy import EnuOrigin
+
+FORMAT_VERSION = 1
+RUN_METADATA_NAME = "dronecal.run"
+SITE_METADATA_NAME = "dronecal.site"
+
+MARKER_KINDS = ("aruco", "led")
+ALTITUDE_DATUMS = ("ellipsoid", "msl")
+FIX_TYPES = ("no_fix", "2d", "3d", "dgps", "rtk_float", "rtk_fixed")
+
+# Keys of 'dronecal.run' that RunMetadata understands; every other key goes to `extra`.
+_KNOWN_KEYS = (
+    "format_version",
+    "camera.width",
+    "camera.height",
+    "camera.latency_s",
+    "marker.kind",
+    "marker.dictionary",
+    "marker.id",
+    "marker.size_m",
+    "marker.offset_frd_m",
+    "gnss.altitude_datum",
+)
+
+
+@dataclass(frozen=True)
+class MarkerSpec:
+    """The marker the drone carries.
+
+    Attributes
+    ----------
+    kind : ``"aruco"`` or ``"led"``.
+    dictionary : OpenCV ArUco dictionary name, e.g. ``"DICT_4X4_50"`` (aruco only).
+    marker_id : marker id in that dictionary (aruco only).
+    size_m : side of the black square, metres (aruco only).
+    offset_frd_m : marker centre relative to the GNSS antenna phase centre,
+        vehicle body frame (forward, right, down), metres.
+    """
+
+    kind: str
+    dictionary: str | None = None
+    marker_id: int | None = None
+    size_m: float | None = None
+    offset_frd_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class RunMetadata:
+    """The ``dronecal.run`` metadata record (plus ``dronecal.site`` when known).
+
+    Attributes
+    ----------
+    format_version : contract version, 1.
+    width, height : image size, pixels.
+    marker : the marker flown.
+    altitude_datum : ``"ellipsoid"`` (WGS84 h, the default) or ``"msl"``:
+        the datum of every ``GnssFix.alt_m`` in the run.
+    camera_latency_s : best estimate of capture-to-stamp latency of frames
+        stamped at the host on arrival, seconds; None when unknown.
+    site_origin : ENU origin for reports (metadata ``dronecal.site``), or None.
+    extra : further string keys of ``dronecal.run``, kept verbatim.
+    """
+
+    format_version: int
+    width: int
+    height: int
+    marker: MarkerSpec
+    altitude_datum: str = "ellipsoid"
+    camera_latency_s: float | None = None
+    site_origin: EnuOrigin | None = None
+    extra: dict[str, str] = field(default_factory=dict)
+
+    def to_mcap_metadata(self) -> dict[str, str]:
+        """The ``dronecal.run`` metadata record, string to string.
+
+        ``site_origin`` is not part of it: it goes to ``dronecal.site``
+        (see :meth:`site_metadata`).
+        """
+        m = self.marker
+        out = dict(self.extra)
+        out.update(
+            {
+                "format_version": str(int(self.format_version)),
+                "camera.width": str(int(self.width)),
+                "camera.height": str(int(self.height)),
+                "marker.kind": m.kind,
+                "marker.offset_frd_m": ",".join(repr(float(v)) for v in m.offset_frd_m),
+                "gnss.altitude_datum": self.altitude_datum,
+                "camera.latency_s": (
+                    "unknown" if self.camera_latency_s is None else repr(float(self.camera_latency_s))
+                ),
+            }
+        )
+        if m.dictionary is not None:
+            out["marker.dictionary"] = m.dictionary
+        if m.marker_id is not None:
+            out["marker.id"] = str(int(m.marker_id))
+        if m.size_m is not None:
+            out["marker.size_m"] = repr(float(m.size_m))
+        return out
+
+    def site_metadata(self) -> dict[str, str] | None:
+        """The ``dronecal.site`` metadata record, or None without a site origin."""
+        if self.site_origin is None:
+            return None
+        return site_to_metadata(self.site_origin)
+
+    @classmethod
+    def from_mcap_metadata(
+        cls,
+        run: Mapping[str, str],
+        site: Mapping[str, str] | None = None,
+        source: str = "run.mcap",
+    ) -> "RunMetadata":
+        """Parse and check the ``dronecal.run`` (and optional ``dronecal.site``) records.
+
+        Parameters
+        ----------
+        run : the ``dronecal.run`` metadata, string to string.
+        site : the ``dronecal.site`` metadata, or None.
+        source : file name used in error messages.
+
+        Raises
+        ------
+        ContractError
+            naming the missing or malformed key and what the contract expects.
+        """
+        where = f"{source}: metadata '{RUN_METADATA_NAME}'"
+
+        def need(key: str, what: str) -> str:
+            value = run.get(key)
+            if value is None or str(value).strip() == "":
+                raise ContractError(
+                    f"{where} has no '{key}': write {what} (shared/contracts/run-format.md)"
+                )
+            return str(value).strip()
+
+        def as_int(key: str, text: str, minimum: int | None = None) -> int:
+            try:
+                value = int(text)
+            except ValueError:
+                raise ContractError(f"{where}: '{key}' = {text!r} is not a decimal integer") from None
+            if minimum is not None and value < minimum:
+                raise ContractError(f"{where}: '{key}' = {value} must be >= {minimum}")
+            return value
+
+        def as_float(key: str, text: str) -> float:
+            try:
+                value = float(text)
+            except ValueError:
+                raise ContractError(f"{where}: '{key}' = {text!r} is not a number") from None
+            if not np.isfinite(value):
+                raise ContractError(f"{where}: '{key}' = {text!r} is not finite")
+            return value
+
+        version = as_int("format_version", need("format_version", "'1'"), minimum=1)
+        if version > FORMAT_VERSION:
+            raise ContractError(
+                f"{where}: format_version {version} is newer than this tool reads "
+                f"({FORMAT_VERSION}); upgrade dronecal-field"
+            )
+        width = as_int("camera.width", need("camera.width", "the image width in pixels"), minimum=1)
+        height = as_int("camera.height", need("camera.height", "the image height in pixels"), minimum=1)
+        kind = need("marker.kind", "'aruco' or 'led'")
+        if kind not in MARKER_KINDS:
+            raise ContractError(f"{where}: 'marker.kind' = {kind!r}; use one of {', '.join(MARKER_KINDS)}")
+        offset_text = need("marker.offset_frd_m", "'x,y,z', the marker centre from the GNSS antenna in metres (FRD)")
+        parts = [p.strip() for p in offset_text.split(",")]
+        if len(parts) != 3:
+            raise ContractError(f"{where}: 'marker.offset_frd_m' = {offset_text!r}; write three numbers 'x,y,z' in metres")
+        offset = tuple(as_float("marker.offset_frd_m", p) for p in parts)
+        dictionary = marker_id = size_m = None
+        if kind == "aruco":
+            dictionary = need("marker.dictionary", "the OpenCV ArUco dictionary name, e.g. DICT_4X4_50")
+            marker_id = as_int("marker.id", need("marker.id", "the marker id (decimal)"), minimum=0)
+            size_m = as_float("marker.size_m", need("marker.size_m", "the marker's side in metres"))
+            if size_m <= 0:
+                raise ContractError(f"{where}: 'marker.size_m' = {size_m} must be positive")
+        else:
+            dictionary = run.get("marker.dictionary") or None
+            if run.get("marker.id"):
+                marker_id = as_int("marker.id", run["marker.id"], minimum=0)
+            if run.get("marker.size_m"):
+                size_m = as_float("marker.size_m", run["marker.size_m"])
+        datum = str(run.get("gnss.altitude_datum") or "ellipsoid").strip()
+        if datum not in ALTITUDE_DATUMS:
+            raise ContractError(f"{where}: 'gnss.altitude_datum' = {datum!r}; use 'ellipsoid' or 'msl'")
+        latency_text = str(run.get("camera.latency_s") or "unknown").strip()
+        latency = None if latency_text == "unknown" else as_float("camera.latency_s", latency_text)
+        extra = {k: str(v) for k, v in run.items() if k not in _KNOWN_KEYS}
+        origin = site_from_metadata(site, source) if site else None
+        return cls(
+            format_version=version,
+            width=width,
+            height=height,
+            marker=MarkerSpec(
+                kind=kind,
+                dictionary=dictionary,
+                marker_id=marker_id,
+                size_m=size_m,
+                offset_frd_m=offset,  # type: ignore[arg-type]
+            ),
+            altitude_datum=datum,
+            camera_latency_s=latency,
+            site_origin=origin,
+            extra=extra,
+        )
+
+
+def site_to_metadata(origin: EnuOrigin) -> dict[str, str]:
+    """``dronecal.site`` record of an ENU origin (degrees, metres)."""
+    return {
+        "origin_lat": repr(float(origin.lat_deg)),
+        "origin_lon": repr(float(origin.lon_deg)),
+        "origin_h": repr(float(origin.h_m)),
+    }
+
+
+def site_from_metadata(site: Mapping[str, str], source: str = "run.mcap") -> EnuOrigin:
+    """Parse a ``dronecal.site`` record; raise ContractError naming a missing key."""
+    values = []
+    for key in ("origin_lat", "origin_lon", "origin_h"):
+        text = site.get(key)
+        if text is None:
+            raise ContractError(
+                f"{source}: metadata '{SITE_METADATA_NAME}' has no '{key}': write origin_lat, "
+                "origin_lon (degrees) and origin_h (metres) or leave the record out"
+            )
+        try:
+            values.append(float(text))
+        except ValueError:
+            raise ContractError(f"{source}: metadata '{SITE_METADATA_NAME}': '{key}' = {text!r} is not a number") from None
+    return EnuOrigin(lat_deg=values[0], lon_deg=values[1], h_m=values[2])
+
+
+@dataclass(frozen=True, eq=False)
+class GnssFix:
+    """One GNSS position.
+
+    Attributes
+    ----------
+    timestamp_ns : time of the fix, UTC ns on the run clock.
+    lat_deg, lon_deg : WGS84 degrees.
+    alt_m : metres above the run's altitude datum (ellipsoid unless the run says msl).
+    covariance_enu : (3, 3) position covariance, m^2, ENU; None when unknown.
+    fix_type : one of FIX_TYPES, or None when unknown.
+    """
+
+    timestamp_ns: int
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    covariance_enu: np.ndarray | None = None
+    fix_type: str | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One compressed video frame.
+
+    Attributes
+    ----------
+    timestamp_ns : capture time (or host arrival time, see camera.latency_s), UTC ns.
+    format : ``"jpeg"`` or ``"png"``.
+    data : the compressed image bytes.
+    """
+
+    timestamp_ns: int
+    format: str
+    data: bytes
+
+
+@dataclass(frozen=True)
+class RunEvent:
+    """A mark over a time range on ``/events``.
+
+    ``type`` is ``"hover"`` for a hold at a mission waypoint (metadata
+    ``seq``, ``hold_s`` and, when known, ``lat``, ``lon``, ``alt`` of the
+    commanded point), or ``"video_gap"``, ``"link_lost"``, ``"link_restored"``.
+
+    Attributes
+    ----------
+    timestamp_ns : start, UTC ns.
+    duration_ns : length, ns (0 for an instant).
+    type : event type.
+    metadata : further string key/values.
+    """
+
+    timestamp_ns: int
+    duration_ns: int
+    type: str
+    metadata: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def end_ns(self) -> int:
+        """End of the event, UTC ns (inclusive)."""
+        return self.timestamp_ns + self.duration_ns
+
+
+@dataclass(frozen=True)
+class Attitude:
+    """Vehicle attitude as MAVLink ATTITUDE gives it: body FRD relative to NED.
+
+    Attributes
+    ----------
+    timestamp_ns : UTC ns.
+    roll_rad, pitch_rad, yaw_rad : Z-Y-X Euler angles, radians; yaw clockwise from north.
+    """
+
+    timestamp_ns: int
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+
+
+def fix_type_from_mavlink(gps_fix_type: int) -> str | None:
+    """Contract fix_type of a MAVLink GPS_FIX_TYPE (0..8); None for unknown values."""
+    return {
+        0: "no_fix",
+        1: "no_fix",
+        2: "2d",
+        3: "3d",
+        4: "dgps",
+        5: "rtk_float",
+        6: "rtk_fixed",
+        7: "3d",  # static fixed position
+        8: "3d",  # PPP
+    }.get(int(gps_fix_type))
