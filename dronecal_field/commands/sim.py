@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("sim", help="run the SITL-style vehicle or the simulated camera")
     sims = parser.add_subparsers(dest="sim_command", metavar="SIMULATOR", required=True)
-    from dronecal_field.commands import sim_camera, sim_vehicle
-
-    for module in (sim_vehicle, sim_camera):
+    for name in ("sim_vehicle", "sim_camera"):
+        try:
+            module = importlib.import_module(f"dronecal_field.commands.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"dronecal_field.commands.{name}":
+                continue
+            raise
         module.register(sims)

@@ -87,7 +87,7 @@ def resolve_model(model: "str | CalibrationModel", n_points: int) -> Calibration
     """A CalibrationModel from a name ('auto', 'default', a distortion model name) or itself.
 
     'auto' picks the richest distortion model the point count supports with
-    at least 4 observations per free parameter; 'default' is fx, fy, cx, cy,
+    at least 2 observations (one point) per free parameter; 'default' is fx, fy, cx, cy,
     k1, k2, p1, p2 free with k3 fixed at 0 (OpenCV's CALIB_FIX_K3).
     """
     if isinstance(model, CalibrationModel):
@@ -97,7 +97,7 @@ def resolve_model(model: "str | CalibrationModel", n_points: int) -> Calibration
     if model == "auto":
         for name in ("k1k2p1p2", "k1k2", "k1", "none"):
             candidate = CalibrationModel(distortion=name)
-            if 2 * n_points >= 4 * candidate.n_free:
+            if n_points >= candidate.n_free:
                 return candidate
         return CalibrationModel(distortion="none", fix_aspect_ratio=True, fix_principal_point=True)
     return CalibrationModel(distortion=model)
@@ -211,9 +211,8 @@ def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     if np.linalg.det(R) < 0:  # cannot happen when det(M) > 0, kept for safety
         R = -R
         K = -K
-    t = np.linalg.solve(K, P[:, 3])
-    scale = K[2, 2]
-    return K / scale, R, t / scale
+    t = np.linalg.solve(K, P[:, 3])  # K carries P's scale, so t needs none
+    return K / K[2, 2], R, t
 
 
 # --------------------------------------------------------------------------
@@ -434,9 +433,13 @@ def calibrate(
     X, uv = check_correspondences(points_world, pixels, mdl.n_free, min_thickness_m)
     if initial is None:
         cam0 = initial_camera(X, uv, width, height)
+        i = cam0.intrinsics
+        f0 = np.array([i.fx, i.fy, i.cx, i.cy])
+        if mdl.fix_aspect_ratio:  # square pixels unless an initial camera says otherwise
+            f0[:2] = np.sqrt(i.fx * i.fy)
         if mdl.fix_principal_point:
-            i = cam0.intrinsics
-            cam0 = Camera.from_arrays([i.fx, i.fy, (width - 1) / 2.0, (height - 1) / 2.0], np.zeros(5), cam0.pose.R_cam_from_world, cam0.pose.t_cam_from_world, width, height)
+            f0[2:] = (width - 1) / 2.0, (height - 1) / 2.0
+        cam0 = Camera.from_arrays(f0, np.zeros(5), cam0.pose.R_cam_from_world, cam0.pose.t_cam_from_world, width, height)
         # pinhole first: the distortion terms are only meaningful near the right pose
         pin = CalibrationModel(distortion="none", fix_aspect_ratio=mdl.fix_aspect_ratio, fix_principal_point=mdl.fix_principal_point)
         state = BatchState.from_camera(cam0)

@@ -1,0 +1,117 @@
+"""The paper's Monte-Carlo on its Table 1 cameras, and the linearised estimate against it."""
+
+import cv2
+import numpy as np
+import pytest
+
+from dronecal_field.core.synthetic import paper_camera, paper_grid
+from dronecal_field.core.uncertainty import convergence_curve, ground_probe, linearised, monte_carlo
+
+
+@pytest.fixture(scope="module", params=[False, True], ids=["pinhole", "distorted"])
+def table1(request):
+    cam = paper_camera(request.param)
+    return cam, paper_grid(cam)
+
+
+def test_paper_grid_is_what_the_camera_sees(table1):
+    cam, X = table1
+    uv = cam.project(X)
+    assert 55 <= len(X) <= 70
+    assert uv[:, 0].min() > 10 and uv[:, 0].max() < 1270
+    assert set(np.round(X[:, 2], 3)) == {0.5, 1.0}
+
+
+def test_monte_carlo_table1_statistics(table1):
+    cam, X = table1
+    mc = monte_carlo(cam, X, trials=500, seed=11)
+    # Expected RMS for pure noise: each trial's residual carries 2 px image noise plus
+    # the 3D noise pushed through the projection, minus what 14 parameters absorb.
+    assert 3.8 < mc.rms_mean < 5.0
+    assert mc.rms_max < 7.0
+    assert 0.05 < mc.rms_var < 0.25
+    assert mc.rms_percentiles[5] < mc.rms_percentiles[50] < mc.rms_percentiles[95] <= mc.rms_max
+    assert mc.failed_trials == 0
+    assert 5.0 < mc.ground_error_15m_cm < 40.0
+    assert mc.speed_error_15m_kmh < 3.0
+    assert 0.01 < mc.param_std["pos_x"] < 0.1
+
+
+def test_monte_carlo_agrees_with_an_opencv_loop_on_the_same_trials():
+    """The paper's loop done literally with cv2.calibrateCamera, on the same perturbed data."""
+    cam = paper_camera(distorted=True)
+    X = paper_grid(cam)
+    k = 60
+    mc = monte_carlo(cam, X, trials=k, seed=5)
+    rng = np.random.default_rng(5)  # the engine draws 3D then 2D noise for the whole chunk
+    uv = cam.project(X)
+    Q = X[None] + rng.standard_normal((k, len(X), 3)) * np.array([0.01, 0.01, 0.015])
+    q = uv[None] + rng.standard_normal((k, len(X), 2)) * 2.0
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    rms_cv = np.array([
+        cv2.calibrateCamera([Q[i].astype(np.float32)], [q[i].astype(np.float32)], (1280, 960), cam.intrinsics.matrix.copy(), np.zeros(5), flags=flags, criteria=crit)[0]
+        for i in range(k)
+    ])
+    assert np.max(np.abs(mc.rms - rms_cv) / rms_cv) < 1e-4
+
+
+def test_seeded_and_reproducible(table1):
+    cam, X = table1
+    a = monte_carlo(cam, X, trials=50, seed=3)
+    b = monte_carlo(cam, X, trials=50, seed=3)
+    c = monte_carlo(cam, X, trials=50, seed=4)
+    assert np.array_equal(a.rms, b.rms)
+    assert not np.array_equal(a.rms, c.rms)
+
+
+def test_chunking_does_not_change_the_numbers(table1):
+    cam, X = table1
+    whole = monte_carlo(cam, X, trials=120, seed=9, chunk_size=2000)
+    chunked = monte_carlo(cam, X, trials=120, seed=9, chunk_size=120)
+    assert np.allclose(whole.rms, chunked.rms)
+
+
+def test_per_point_sigmas_are_used():
+    cam = paper_camera()
+    X = paper_grid(cam)
+    s2 = np.full(len(X), 2.0)
+    s2[::2] = 0.5
+    mixed = monte_carlo(cam, X, trials=200, seed=1, sigma_2d=s2, sigma_3d=np.zeros((len(X), 3)))
+    uniform = monte_carlo(cam, X, trials=200, seed=1, sigma_2d=2.0, sigma_3d=(0, 0, 0))
+    expected_ratio = np.sqrt((0.25 + 4.0) / 2 / 4.0)
+    assert mixed.rms_mean / uniform.rms_mean == pytest.approx(expected_ratio, rel=0.05)
+
+
+def test_linearised_agrees_with_monte_carlo_within_15_percent_at_small_noise(table1):
+    cam, X = table1
+    small = dict(sigma_3d=(0.002, 0.002, 0.003), sigma_2d=0.4)
+    mc = monte_carlo(cam, X, trials=500, seed=2, **small)
+    lin = linearised(cam, X, **small)
+    assert lin.rms_mean == pytest.approx(mc.rms_mean, rel=0.15)
+    assert np.sqrt(lin.rms_var) == pytest.approx(np.sqrt(mc.rms_var), rel=0.15)
+    assert lin.rms_percentiles[95] == pytest.approx(mc.rms_percentiles[95], rel=0.15)
+    for key in ("fx", "fy", "k1", "pos_x", "pos_z", "rot_x"):
+        assert lin.param_std[key] == pytest.approx(mc.param_std[key], rel=0.15), key
+    assert lin.projection_error_px == pytest.approx(mc.projection_error_px, rel=0.15)
+    assert lin.ground_error_15m_cm == pytest.approx(mc.ground_error_15m_cm, rel=0.15)
+    assert lin.speed_error_15m_kmh == pytest.approx(mc.speed_error_15m_kmh, rel=0.15)
+
+
+def test_convergence_curve_settles():
+    cam = paper_camera()
+    X = paper_grid(cam)
+    mc = monte_carlo(cam, X, trials=500, seed=0)
+    curve = convergence_curve(mc.rms)
+    early = np.max(np.abs(curve[5:50] - curve[-1]))
+    late = np.max(np.abs(curve[450:500] - curve[-1]))
+    # the paper: oscillations about 90% smaller from 500 trials on than for a few tens
+    assert late < 0.15 * early
+    assert curve[-1] == pytest.approx(mc.rms_mean)
+
+
+def test_ground_probe_is_15m_out_on_the_heading():
+    cam = paper_camera()
+    probe = ground_probe(cam)
+    assert probe.point == pytest.approx([15.5, 0.0, 0.0])
+    assert np.linalg.norm(probe.track[1] - probe.track[0]) == pytest.approx(50 / 3.6 * 0.5)

@@ -1,0 +1,93 @@
+"""`dronecal-field uncertainty` end to end through the real entry point, and its errors."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import run_cli
+from dronecal_field.camerafile import read_camera, write_camera
+from dronecal_field.core.synthetic import paper_camera, paper_grid
+
+
+@pytest.fixture()
+def table1_files(tmp_path):
+    cam = paper_camera(distorted=True)
+    write_camera(tmp_path / "camera.yaml", cam)
+    X = paper_grid(cam)
+    np.savetxt(tmp_path / "points.csv", X, delimiter=",", header="x,y,z", comments="")
+    return tmp_path
+
+
+def test_camera_file_round_trip_and_opencv_readable(tmp_path):
+    cam = paper_camera(distorted=True).with_(enu_origin=(-35.363261, 149.16523, 584.0), covariance=np.diag(np.arange(1.0, 16.0)))
+    write_camera(tmp_path / "camera.yaml", cam)
+    back = read_camera(tmp_path / "camera.yaml")
+    assert np.allclose(back.intrinsics.matrix, cam.intrinsics.matrix)
+    assert np.allclose(back.distortion.as_array(), cam.distortion.as_array())
+    assert np.allclose(back.pose.R_cam_from_world, cam.pose.R_cam_from_world)
+    assert np.allclose(back.pose.position_world, [0.5, 0.0, 2.0])
+    assert back.enu_origin == pytest.approx(cam.enu_origin)
+    assert np.allclose(back.covariance, cam.covariance)
+    fs = cv2.FileStorage(str(tmp_path / "camera.yaml"), cv2.FILE_STORAGE_READ)
+    assert fs.getNode("image_width").real() == 1280
+    assert fs.getNode("distortion_coefficients").mat().shape == (1, 5)
+    assert fs.getNode("camera_position_enu").mat().shape == (3, 1)
+
+
+def test_json_output(table1_files):
+    r = run_cli("uncertainty", "--camera", str(table1_files / "camera.yaml"), "--points", str(table1_files / "points.csv"),
+                "--trials", "200", "--seed", "4", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["trials"] == 200
+    assert 3.8 < out["rms_mean"] < 5.0
+    assert out["rms_max"] > out["rms_mean"]
+    assert 0.03 < out["rms_var"] < 0.3
+    assert out["model"] == "k1k2p1p2"
+
+
+def test_table_output_with_linearised_and_convergence_plot(table1_files):
+    png = table1_files / "fig1.png"
+    r = run_cli("uncertainty", "--camera", str(table1_files / "camera.yaml"), "--points", str(table1_files / "points.csv"),
+                "--trials", "100", "--linearised", "--plot-convergence", str(png))
+    assert r.returncode == 0, r.stderr
+    assert "RMS reprojection mean (px)" in r.stdout and "linearised" in r.stdout
+    img = cv2.imread(str(png))
+    assert img is not None and img.shape[0] > 200
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--points", "missing.csv"], "points file missing.csv does not exist"),
+        (["--sigma-3d", "0.01,abc"], "--sigma-3d '0.01,abc' is not three non-negative numbers"),
+        (["--trials", "1"], "--trials 1 is too few"),
+        (["--model", "fisheye"], "unknown distortion model 'fisheye'"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2(table1_files, args, needle):
+    base = {"--camera": str(table1_files / "camera.yaml"), "--points": str(table1_files / "points.csv")}
+    argv = ["uncertainty"]
+    given = dict(zip(args[::2], args[1::2]))
+    for k, v in {**base, **given}.items():
+        path = table1_files / v if k == "--points" and v == "missing.csv" else v
+        argv += [k, str(path) if k != "--points" or v != "missing.csv" else "missing.csv"]
+    r = run_cli(*argv, cwd=table1_files)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert needle in r.stderr
+
+
+def test_coplanar_points_file_is_refused(table1_files):
+    (table1_files / "flat.csv").write_text("x,y,z\n" + "\n".join(f"{x},{y},0.5" for x in range(4, 9) for y in range(-3, 4)))
+    r = run_cli("uncertainty", "--camera", str(table1_files / "camera.yaml"), "--points", str(table1_files / "flat.csv"))
+    assert r.returncode == 2 and "coplanar" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_missing_camera_key(table1_files):
+    (table1_files / "bad.yaml").write_text("%YAML:1.0\n---\nimage_width: 1280\nimage_height: 960\n")
+    r = run_cli("uncertainty", "--camera", str(table1_files / "bad.yaml"), "--points", str(table1_files / "points.csv"))
+    assert r.returncode == 2 and "has no 'camera_matrix'" in r.stderr
