@@ -1,0 +1,456 @@
+"""Mission files: QGroundControl ``.plan`` JSON and QGC WPL 110 ``.waypoints``.
+
+Both become one list of :class:`MissionItem` in the wire form of
+MISSION_ITEM_INT (positions as integer 1e-7 degrees), with the home position as
+item 0, which is what ArduPilot expects on upload. Pure parsing and formatting:
+no sockets, no printing.
+
+Example
+-------
+>>> mission = read_mission("site/mission.plan")          # doctest: +SKIP
+>>> [item.command for item in mission.items][:3]          # doctest: +SKIP
+[16, 22, 178]
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from dronecal_field.errors import InputError
+
+# MAV_FRAME values: which frames carry WGS84 positions in x/y (1e-7 deg on the wire).
+FRAME_GLOBAL = 0
+FRAME_LOCAL_NED = 1
+FRAME_MISSION = 2
+FRAME_GLOBAL_RELATIVE_ALT = 3
+FRAME_GLOBAL_INT = 5
+FRAME_GLOBAL_RELATIVE_ALT_INT = 6
+FRAME_GLOBAL_TERRAIN_ALT = 10
+FRAME_GLOBAL_TERRAIN_ALT_INT = 11
+GLOBAL_FRAMES = frozenset({0, 3, 5, 6, 10, 11})
+LOCAL_FRAMES = frozenset({1, 4, 7, 8, 9, 20, 21})
+
+# The float frames and their MISSION_ITEM_INT twins. ArduPilot stores one of each
+# pair and reads back the float one (README "Read-back frames and home").
+INT_FRAME_OF = {FRAME_GLOBAL_RELATIVE_ALT: FRAME_GLOBAL_RELATIVE_ALT_INT, FRAME_GLOBAL_TERRAIN_ALT: FRAME_GLOBAL_TERRAIN_ALT_INT}
+FLOAT_FRAME_OF = {FRAME_GLOBAL_INT: FRAME_GLOBAL, FRAME_GLOBAL_RELATIVE_ALT_INT: FRAME_GLOBAL_RELATIVE_ALT, FRAME_GLOBAL_TERRAIN_ALT_INT: FRAME_GLOBAL_TERRAIN_ALT}
+
+# MAV_CMD values used by the tool and the simulator.
+CMD_NAV_WAYPOINT = 16
+CMD_NAV_LOITER_TIME = 19
+CMD_NAV_RETURN_TO_LAUNCH = 20
+CMD_NAV_LAND = 21
+CMD_NAV_TAKEOFF = 22
+CMD_NAV_DELAY = 93
+CMD_CONDITION_DELAY = 112
+CMD_DO_JUMP = 177
+CMD_DO_CHANGE_SPEED = 178
+CMD_DO_SET_HOME = 179
+CMD_DO_SET_SERVO = 183
+CMD_DO_SET_ROI_LOCATION = 195
+CMD_DO_SET_ROI_NONE = 197
+CMD_DO_SET_ROI = 201
+CMD_DO_DIGICAM_CONTROL = 203
+CMD_DO_SET_CAM_TRIGG_DIST = 206
+
+# Commands ArduPilot stores without a location: they read back with frame 0
+# whatever frame they were sent with (DO_CHANGE_SPEED, RTL in the recording).
+NON_LOCATION_COMMANDS = frozenset(
+    {
+        CMD_NAV_RETURN_TO_LAUNCH,
+        CMD_NAV_DELAY,
+        CMD_CONDITION_DELAY,
+        CMD_DO_JUMP,
+        CMD_DO_CHANGE_SPEED,
+        CMD_DO_SET_SERVO,
+        CMD_DO_SET_ROI_NONE,
+        CMD_DO_DIGICAM_CONTROL,
+        CMD_DO_SET_CAM_TRIGG_DIST,
+    }
+)
+# NAV commands: the vehicle flies them one at a time; everything else is a DO/CONDITION item.
+NAV_COMMANDS = frozenset({CMD_NAV_WAYPOINT, CMD_NAV_LOITER_TIME, CMD_NAV_RETURN_TO_LAUNCH, CMD_NAV_LAND, CMD_NAV_TAKEOFF, CMD_NAV_DELAY})
+
+COMMAND_NAMES = {
+    CMD_NAV_WAYPOINT: "WP",
+    CMD_NAV_LOITER_TIME: "LoiterTime",
+    CMD_NAV_RETURN_TO_LAUNCH: "RTL",
+    CMD_NAV_LAND: "Land",
+    CMD_NAV_TAKEOFF: "Takeoff",
+    CMD_NAV_DELAY: "NavDelay",
+    CMD_CONDITION_DELAY: "CondDelay",
+    CMD_DO_JUMP: "Jump",
+    CMD_DO_CHANGE_SPEED: "ChangeSpeed",
+    CMD_DO_SET_ROI_LOCATION: "SetROI",
+    CMD_DO_SET_ROI_NONE: "SetROI",
+    CMD_DO_SET_ROI: "SetROI",
+}
+
+
+@dataclass(frozen=True)
+class MissionItem:
+    """One mission item as MISSION_ITEM_INT carries it.
+
+    Attributes
+    ----------
+    seq : int
+        Position in the mission; 0 is home on ArduPilot.
+    frame : int
+        MAV_FRAME as written in the file (``3`` = relative altitude).
+    command : int
+        MAV_CMD.
+    p1, p2, p3, p4 : float
+        Params 1-4 (``nan`` = "unset", as QGC writes ``null``).
+    x, y : int
+        Latitude, longitude in 1e-7 degrees for global frames; metres x 1e4 for
+        local frames; the raw param 5/6 rounded to an integer otherwise.
+    z : float
+        Param 7: altitude in metres (datum from ``frame``) or the raw param.
+    autocontinue : bool
+        Go on to the next item when this one completes.
+    """
+
+    seq: int
+    frame: int
+    command: int
+    p1: float = 0.0
+    p2: float = 0.0
+    p3: float = 0.0
+    p4: float = 0.0
+    x: int = 0
+    y: int = 0
+    z: float = 0.0
+    autocontinue: bool = True
+
+    @property
+    def lat_deg(self) -> float | None:
+        """Latitude in degrees, or ``None`` if the frame carries no position."""
+        return self.x * 1e-7 if self.frame in GLOBAL_FRAMES else None
+
+    @property
+    def lon_deg(self) -> float | None:
+        """Longitude in degrees, or ``None`` if the frame carries no position."""
+        return self.y * 1e-7 if self.frame in GLOBAL_FRAMES else None
+
+    @property
+    def is_nav(self) -> bool:
+        """True for NAV commands (the vehicle flies them), False for DO/CONDITION items."""
+        return self.command in NAV_COMMANDS
+
+    @property
+    def hold_s(self) -> float:
+        """Hold time at a NAV_WAYPOINT (param 1, seconds); 0 for other commands."""
+        if self.command == CMD_NAV_WAYPOINT and not math.isnan(self.p1):
+            return max(0.0, float(self.p1))
+        return 0.0
+
+
+@dataclass(frozen=True)
+class Mission:
+    """A mission with its home position.
+
+    Attributes
+    ----------
+    items : tuple of MissionItem
+        Item 0 is home (NAV_WAYPOINT, frame GLOBAL, altitude AMSL), as ArduPilot wants it.
+    home_lat_deg, home_lon_deg, home_alt_m : float
+        The planned home; ``home_alt_m`` is metres above mean sea level (QGC's convention).
+    source_format : str
+        ``"plan"`` or ``"waypoints"``.
+    """
+
+    items: tuple[MissionItem, ...]
+    home_lat_deg: float
+    home_lon_deg: float
+    home_alt_m: float
+    source_format: str = "plan"
+
+    @property
+    def nav_items(self) -> tuple[MissionItem, ...]:
+        """The NAV items after home, in order."""
+        return tuple(item for item in self.items[1:] if item.is_nav)
+
+    @property
+    def last_seq(self) -> int:
+        """Seq of the last item."""
+        return self.items[-1].seq
+
+
+def _encode_xy(value: float, frame: int) -> int:
+    """Param 5/6 to MISSION_ITEM_INT's integer x/y for ``frame``."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return 0
+    if frame in GLOBAL_FRAMES:
+        return int(round(float(value) * 1e7))
+    if frame in LOCAL_FRAMES:
+        return int(round(float(value) * 1e4))
+    return int(round(float(value)))
+
+
+def _param(value: object, where: str) -> float:
+    if value is None:
+        return math.nan  # QGC writes NaN ("leave unchanged") as JSON null
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: param {value!r} is not a number; fix the mission file") from None
+
+
+def parse_qgc_plan(text: str, source: str = "mission.plan") -> Mission:
+    """Parse QGroundControl plan JSON (fileType "Plan", mission.items of SimpleItem).
+
+    Parameters
+    ----------
+    text : str
+        The file's content.
+    source : str
+        Name used in error messages.
+
+    Returns
+    -------
+    Mission
+        Home from ``mission.plannedHomePosition`` as item 0, then the items in order.
+        DO_JUMP targets given as QGC ``doJumpId`` become seq numbers.
+
+    Raises
+    ------
+    InputError
+        Not a plan file, a ComplexItem (survey, corridor) or a malformed item.
+    """
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{source}: not valid JSON ({exc.msg} at line {exc.lineno}); give a QGroundControl .plan file") from None
+    if not isinstance(doc, dict) or doc.get("fileType") != "Plan" or not isinstance(doc.get("mission"), dict):
+        raise InputError(f"{source}: not a QGroundControl plan (fileType 'Plan' with a 'mission' object); give a .plan or .waypoints file")
+    mission = doc["mission"]
+    home = mission.get("plannedHomePosition")
+    if not isinstance(home, list) or len(home) < 3 or any(v is None for v in home[:3]):
+        raise InputError(f"{source}: mission.plannedHomePosition must be [lat, lon, alt]; set the home position in the planner")
+    home_lat, home_lon, home_alt = (float(v) for v in home[:3])
+    raw_items = mission.get("items")
+    if not isinstance(raw_items, list) or not raw_items:
+        raise InputError(f"{source}: mission.items is empty; plan at least one waypoint")
+
+    items: list[MissionItem] = [
+        MissionItem(seq=0, frame=FRAME_GLOBAL, command=CMD_NAV_WAYPOINT, x=_encode_xy(home_lat, 0), y=_encode_xy(home_lon, 0), z=home_alt)
+    ]
+    jump_ids: dict[int, int] = {}
+    for index, raw in enumerate(raw_items):
+        where = f"{source}: mission.items[{index}]"
+        if not isinstance(raw, dict):
+            raise InputError(f"{where} is not an object; fix the mission file")
+        if raw.get("type", "SimpleItem") != "SimpleItem":
+            raise InputError(f"{where} is a {raw.get('type')} ({raw.get('complexItemType', '?')}); convert it to simple waypoints in the planner first")
+        params = raw.get("params")
+        if not isinstance(params, list) or len(params) != 7:
+            raise InputError(f"{where}: 'params' must be a list of 7 numbers; fix the mission file")
+        try:
+            command = int(raw["command"])
+            frame = int(raw["frame"])
+        except (KeyError, TypeError, ValueError):
+            raise InputError(f"{where}: 'command' and 'frame' must be integers; fix the mission file") from None
+        p = [_param(v, where) for v in params]
+        seq = len(items)
+        if "doJumpId" in raw and raw["doJumpId"] is not None:
+            jump_ids[int(raw["doJumpId"])] = seq
+        items.append(
+            MissionItem(
+                seq=seq,
+                frame=frame,
+                command=command,
+                p1=p[0],
+                p2=p[1],
+                p3=p[2],
+                p4=p[3],
+                x=_encode_xy(p[4], frame),
+                y=_encode_xy(p[5], frame),
+                z=0.0 if math.isnan(p[6]) else p[6],
+                autocontinue=bool(raw.get("autoContinue", True)),
+            )
+        )
+    # QGC stores DO_JUMP's target as a doJumpId; on the wire it is the target's seq.
+    for i, item in enumerate(items):
+        if item.command == CMD_DO_JUMP and not math.isnan(item.p1):
+            target = jump_ids.get(int(item.p1))
+            if target is None:
+                raise InputError(f"{source}: DO_JUMP at seq {item.seq} targets doJumpId {int(item.p1)}, which no item has; fix the jump")
+            items[i] = replace(item, p1=float(target))
+    return Mission(items=tuple(items), home_lat_deg=home_lat, home_lon_deg=home_lon, home_alt_m=home_alt, source_format="plan")
+
+
+def parse_waypoints(text: str, source: str = "mission.waypoints") -> Mission:
+    """Parse a QGC WPL 110 file (tab-separated; item 0 is home).
+
+    Columns: seq, current, frame, command, p1, p2, p3, p4, x (lat deg), y (lon deg),
+    z (m), autocontinue.
+
+    Raises
+    ------
+    InputError
+        Wrong header, a malformed line or seq numbers out of order.
+    """
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    if not lines or not lines[0].startswith("QGC WPL 110"):
+        raise InputError(f"{source}: first line must be 'QGC WPL 110'; give a QGC .waypoints or .plan file")
+    items: list[MissionItem] = []
+    for lineno, line in enumerate(lines[1:], start=2):
+        cols = line.split()
+        if len(cols) != 12:
+            raise InputError(f"{source}:{lineno}: expected 12 columns, found {len(cols)}; fix the line")
+        try:
+            seq, _current, frame, command = (int(c) for c in cols[:4])
+            p = [float(c) for c in cols[4:11]]
+            autocontinue = bool(int(cols[11]))
+        except ValueError:
+            raise InputError(f"{source}:{lineno}: non-numeric column; fix the line") from None
+        if seq != len(items):
+            raise InputError(f"{source}:{lineno}: seq {seq} out of order (expected {len(items)}); renumber the items")
+        items.append(
+            MissionItem(
+                seq=seq,
+                frame=frame,
+                command=command,
+                p1=p[0],
+                p2=p[1],
+                p3=p[2],
+                p4=p[3],
+                x=_encode_xy(p[4], frame),
+                y=_encode_xy(p[5], frame),
+                z=p[6],
+                autocontinue=autocontinue,
+            )
+        )
+    if len(items) < 2:
+        raise InputError(f"{source}: needs home (item 0) and at least one more item; plan a waypoint")
+    home = items[0]
+    return Mission(items=tuple(items), home_lat_deg=home.x * 1e-7, home_lon_deg=home.y * 1e-7, home_alt_m=home.z, source_format="waypoints")
+
+
+def read_mission(path: str | os.PathLike) -> Mission:
+    """Read a ``.plan`` (JSON) or ``.waypoints`` (QGC WPL 110) file, told apart by content.
+
+    Raises
+    ------
+    InputError
+        The file is missing or neither format.
+    """
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"cannot read mission {p}: {exc.strerror}; check --mission") from None
+    if text.lstrip().startswith("QGC WPL"):
+        return parse_waypoints(text, source=str(p))
+    return parse_qgc_plan(text, source=str(p))
+
+
+def _decode_xy(value: int, frame: int) -> float:
+    if frame in GLOBAL_FRAMES:
+        return value * 1e-7
+    if frame in LOCAL_FRAMES:
+        return value * 1e-4
+    return float(value)
+
+
+def to_qgc_plan(mission: Mission) -> str:
+    """QGroundControl plan JSON for ``mission`` (home from item 0, the rest as SimpleItems).
+
+    Used to attach the flown mission to a run when it came from a ``.waypoints`` file.
+    """
+
+    def num(v: float) -> float | None:
+        return None if math.isnan(v) else v
+
+    items = []
+    for item in mission.items[1:]:
+        params = [item.p1, item.p2, item.p3, item.p4, _decode_xy(item.x, item.frame), _decode_xy(item.y, item.frame), item.z]
+        items.append(
+            {
+                "type": "SimpleItem",
+                "command": item.command,
+                "frame": item.frame,
+                "params": [num(float(v)) for v in params],
+                "autoContinue": item.autocontinue,
+                "doJumpId": item.seq,
+            }
+        )
+    doc = {
+        "fileType": "Plan",
+        "version": 1,
+        "groundStation": "dronecal-field",
+        "geoFence": {"circles": [], "polygons": [], "version": 2},
+        "rallyPoints": {"points": [], "version": 2},
+        "mission": {
+            "version": 2,
+            "firmwareType": 3,
+            "vehicleType": 2,
+            "cruiseSpeed": 5,
+            "hoverSpeed": 5,
+            "plannedHomePosition": [mission.home_lat_deg, mission.home_lon_deg, mission.home_alt_m],
+            "items": items,
+        },
+    }
+    return json.dumps(doc, indent=2)
+
+
+def wire_frame(item: MissionItem) -> int:
+    """The frame to send in MISSION_ITEM_INT: relative/terrain frames become their ``_INT`` twins.
+
+    Matches the recording (home in frame 0, waypoints in frame 6).
+    """
+    return INT_FRAME_OF.get(item.frame, item.frame)
+
+
+def _same_param(sent: float, back: float) -> bool:
+    import numpy as np
+
+    if math.isnan(sent):
+        return True  # "unset": the autopilot may store anything (ArduPilot reads back 0)
+    return bool(np.float32(sent) == np.float32(back))
+
+
+def compare_readback(sent: list[MissionItem] | tuple[MissionItem, ...], back: list[MissionItem] | tuple[MissionItem, ...]) -> list[str]:
+    """Differences between an uploaded mission and the vehicle's read-back.
+
+    ArduPilot's read-back rules (README "Read-back frames and home") are not
+    differences: seq 0 is replaced by the vehicle's own home; ``_INT`` frames
+    come back as their float twins (6 -> 3); commands stored without a location
+    (DO_CHANGE_SPEED, RTL, ...) come back in frame 0. Everything else must match
+    exactly: params as float32, positions as 1e-7 degree integers.
+
+    Returns
+    -------
+    list of str
+        One line per difference; empty when the missions agree.
+    """
+    problems: list[str] = []
+    if len(sent) != len(back):
+        return [f"vehicle holds {len(back)} items, {len(sent)} were uploaded"]
+    for a, b in zip(sent[1:], back[1:]):
+        where = f"seq {a.seq}"
+        if b.seq != a.seq:
+            problems.append(f"{where}: read back as seq {b.seq}")
+            continue
+        if a.command != b.command:
+            problems.append(f"{where}: command {a.command} read back as {b.command}")
+            continue
+        fa = FLOAT_FRAME_OF.get(a.frame, a.frame)
+        fb = FLOAT_FRAME_OF.get(b.frame, b.frame)
+        frame_ok = fa == fb or (b.frame == FRAME_GLOBAL and (a.command in NON_LOCATION_COMMANDS or a.frame == FRAME_MISSION))
+        if not frame_ok:
+            problems.append(f"{where}: frame {a.frame} read back as {b.frame}")
+        for name in ("p1", "p2", "p3", "p4"):
+            if not _same_param(getattr(a, name), getattr(b, name)):
+                problems.append(f"{where}: {name} {getattr(a, name)!r} read back as {getattr(b, name)!r}")
+        if a.x != b.x or a.y != b.y:
+            problems.append(f"{where}: position ({a.x}, {a.y}) read back as ({b.x}, {b.y}) [1e-7 deg]")
+        if not _same_param(a.z, b.z):
+            problems.append(f"{where}: z {a.z!r} read back as {b.z!r}")
+        if a.autocontinue != b.autocontinue:
+            problems.append(f"{where}: autocontinue {a.autocontinue} read back as {b.autocontinue}")
+    return problems

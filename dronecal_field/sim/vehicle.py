@@ -1,0 +1,619 @@
+"""A SITL-style simulated ArduCopter: MAVLink 2 server over UDP/TCP, several links at once.
+
+The flight logic is :mod:`dronecal_field.sim.vehicle_flight` and the mission
+protocol :mod:`dronecal_field.sim.vehicle_mission`; this module is the shell:
+sockets, the vehicle clock (``speedup`` x wall time), the boot sequence and the
+telemetry streams at the rates the recorded ArduCopter SITL used (per vehicle
+second): ATTITUDE and GLOBAL_POSITION_INT 10 Hz, GPS_RAW_INT 5 Hz, SYS_STATUS,
+EKF_STATUS_REPORT, BATTERY_STATUS, MISSION_CURRENT 2 Hz, HEARTBEAT and
+SYSTEM_TIME 1 Hz, HOME_POSITION 0.5 Hz.
+
+Links (explicit schemes, like SITL's ``--out``):
+
+* listen: ``udp:HOST:PORT`` (or ``udpin:``) binds and answers whoever writes;
+  ``tcp:HOST:PORT`` accepts one client at a time (like SITL's port 5760).
+  Port 0 picks a free port; :meth:`SimVehicle.addresses` tells which.
+* out: ``udp:HOST:PORT`` sends everything there (a simulated camera, a GCS).
+
+Heights: ``home_alt_m`` is above mean sea level, as SITL's ``--home``;
+ellipsoidal height = AMSL + ``geoid_sep_m`` (default 0, so they agree).
+
+Example
+-------
+>>> sim = SimVehicle(VehicleConfig(home_lat_deg=-35.363261, home_lon_deg=149.165230, home_alt_m=584.0, speedup=10),
+...                  listen=["udp:127.0.0.1:0"])             # doctest: +SKIP
+>>> sim.start(); print(sim.addresses()); sim.stop()          # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import math
+import select
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from dronecal_field.errors import InputError
+from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic, geodetic_to_enu
+from dronecal_field.mavlink import ardupilot as ap
+from dronecal_field.mavlink import missionfile as mf
+from dronecal_field.mavlink.link import mavutil_module
+from dronecal_field.mavlink.missionfile import MissionItem
+from dronecal_field.sim.vehicle_flight import CopterModel, CopterParams
+from dronecal_field.sim.vehicle_mission import MissionServer
+
+# Default streams: message name -> rate in Hz of vehicle time (the recording's requested rates).
+DEFAULT_RATES_HZ: tuple[tuple[str, float], ...] = (
+    ("HEARTBEAT", 1.0),
+    ("SYS_STATUS", 2.0),
+    ("GPS_RAW_INT", 5.0),
+    ("GLOBAL_POSITION_INT", 10.0),
+    ("ATTITUDE", 10.0),
+    ("SYSTEM_TIME", 1.0),
+    ("EKF_STATUS_REPORT", 2.0),
+    ("BATTERY_STATUS", 2.0),
+    ("HOME_POSITION", 0.5),
+    ("MISSION_CURRENT", 2.0),
+)
+
+# SYS_STATUS sensor words seen in the recording (before and after the pre-arm checks pass).
+_SENSORS_PRESENT = 1399979023 | ap.MAV_SYS_STATUS_PREARM_CHECK
+_SENSORS_ENABLED = 1380031503 | ap.MAV_SYS_STATUS_PREARM_CHECK
+_SENSORS_HEALTH_BOOT = 1196530703 & ~ap.MAV_SYS_STATUS_PREARM_CHECK
+_SENSORS_HEALTH_OK = 1467063343 & ~ap.MAV_SYS_STATUS_PREARM_CHECK
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """Simulator settings.
+
+    Attributes
+    ----------
+    home_lat_deg, home_lon_deg : float
+        Home (WGS84 degrees).
+    home_alt_m : float
+        Home ground height above mean sea level, metres.
+    geoid_sep_m : float
+        Ellipsoidal minus AMSL height, metres (reported in GPS_RAW_INT.alt_ellipsoid).
+    speedup : float
+        Vehicle seconds per wall second.
+    boot_s : float
+        Vehicle seconds from start to "ready to arm"; uploads before that get NO_SPACE.
+    tick_s : float
+        Physics step, vehicle seconds.
+    seed : int
+        Noise seed.
+    sysid, compid : int
+        Vehicle MAVLink identity.
+    max_items : int
+        Mission capacity including home.
+    gnss_sigma_h_m, gnss_sigma_v_m : float
+        GPS_RAW_INT noise per horizontal axis / vertical, metres (RTK fixed).
+    heading_deg : float
+        Initial heading on the ground.
+    signing_key : bytes or None
+        32-byte MAVLink 2 signing key; unsigned messages are then rejected.
+    params : CopterParams
+        Flight parameters.
+    rates_hz : tuple of (str, float)
+        Default telemetry streams.
+    """
+
+    home_lat_deg: float
+    home_lon_deg: float
+    home_alt_m: float
+    geoid_sep_m: float = 0.0
+    speedup: float = 1.0
+    boot_s: float = 10.0
+    tick_s: float = 0.05
+    seed: int = 0
+    sysid: int = 1
+    compid: int = 1
+    max_items: int = 700
+    gnss_sigma_h_m: float = 0.007
+    gnss_sigma_v_m: float = 0.015
+    heading_deg: float = 353.0
+    signing_key: bytes | None = field(default=None, repr=False)
+    params: CopterParams = CopterParams()
+    rates_hz: tuple[tuple[str, float], ...] = DEFAULT_RATES_HZ
+
+
+def parse_home(text: str) -> tuple[float, float, float]:
+    """``LAT,LON,H`` (degrees, degrees, metres AMSL) from ``--home``; a 4th value (heading) is ignored."""
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise InputError(f"--home {text!r} is not LAT,LON,H; e.g. --home -35.363261,149.165230,584") from None
+    if len(values) < 3 or not -90 <= values[0] <= 90 or not -180 <= values[1] <= 180:
+        raise InputError(f"--home {text!r} is not LAT,LON,H in degrees and metres; e.g. --home -35.363261,149.165230,584")
+    return values[0], values[1], values[2]
+
+
+def _tcp_server_class() -> type:
+    mavutil = mavutil_module()
+
+    class TcpServerLink(mavutil.mavtcpin):  # type: ignore[name-defined,misc]
+        """pymavlink's TCP listener, plus: a closed client frees the port for the next one."""
+
+        def recv(self, n: int | None = None) -> bytes:
+            if not self.port:
+                try:
+                    self.port, _addr = self.listen.accept()
+                except OSError:
+                    return b""
+                self.port.setsockopt(socket.SOL_TCP, socket.TCP_NODELAY, 1)
+                self.port.setblocking(False)
+                self.fd = self.port.fileno()
+                self.mav.buf = bytearray()  # a new client starts a new byte stream
+                self.mav.buf_index = 0
+            try:
+                data = self.port.recv(n or self.mav.bytes_needed())
+            except BlockingIOError:
+                return b""
+            except OSError:
+                data = b""
+            if not data:
+                self.port.close()
+                self.port = None
+                self.fd = self.listen.fileno()
+            return data
+
+    return TcpServerLink
+
+
+def _open_links(listen: list[str], out: list[str], config: VehicleConfig) -> list[Any]:
+    mavutil = mavutil_module()
+    links = []
+    specs = [("listen", u) for u in listen] + [("out", u) for u in out]
+    for role, url in specs:
+        scheme, sep, address = url.partition(":")
+        scheme = scheme.lower()
+        if not sep or address.count(":") != 1:
+            raise InputError(f"--{role} {url!r} is not SCHEME:HOST:PORT; e.g. udp:127.0.0.1:14550")
+        try:
+            if role == "listen" and scheme in ("udp", "udpin"):
+                conn = mavutil.mavlink_connection(f"udpin:{address}", source_system=config.sysid, source_component=config.compid)
+            elif role == "listen" and scheme in ("tcp", "tcpin"):
+                conn = _tcp_server_class()(address, source_system=config.sysid, source_component=config.compid)
+            elif role == "out" and scheme in ("udp", "udpout"):
+                conn = mavutil.mavlink_connection(f"udpout:{address}", source_system=config.sysid, source_component=config.compid)
+            else:
+                raise InputError(f"--{role} scheme {scheme!r} not supported; listen on udp:/tcp:, send with udp:")
+        except OSError as exc:
+            for c in links:
+                c.close()
+            raise InputError(f"cannot open --{role} {url}: {exc.strerror}; pick a free port") from None
+        if config.signing_key is not None:
+            conn.setup_signing(config.signing_key, sign_outgoing=True, allow_unsigned_callback=None)
+        conn._dronecal_role = role  # noqa: SLF001 (remembered for addresses())
+        links.append(conn)
+    return links
+
+
+class SimVehicle:
+    """The simulated vehicle: links, clock and telemetry around a :class:`CopterModel`.
+
+    Parameters
+    ----------
+    config : VehicleConfig
+        Settings.
+    listen : list of str
+        Listening endpoints (``udp:HOST:PORT``, ``tcp:HOST:PORT``).
+    out : list of str
+        Endpoints to send to (``udp:HOST:PORT``).
+    """
+
+    def __init__(self, config: VehicleConfig, listen: list[str], out: list[str] | None = None) -> None:
+        if config.speedup <= 0:
+            raise InputError(f"--speedup {config.speedup} must be positive; e.g. --speedup 10")
+        self.config = config
+        mavutil = mavutil_module()
+        self.dialect = mavutil.mavlink
+        self.enc = self.dialect.MAVLink(None, srcSystem=config.sysid, srcComponent=config.compid)
+        self.links = _open_links(list(listen), list(out or []), config)
+        self.rng = np.random.default_rng(config.seed)
+        self.origin = EnuOrigin(config.home_lat_deg, config.home_lon_deg, config.home_alt_m + config.geoid_sep_m)
+        self.model = CopterModel(self._item_enu, config.params, self.rng)
+        self.model.heading_deg = config.heading_deg
+        self.mission = MissionServer(
+            self.enc,
+            self._send_to,
+            self._home_item,
+            lambda: self.model.ready,
+            self.model.set_mission,
+            self.model.say,
+            config.max_items,
+        )
+        self.periods_s = {name: 1.0 / hz for name, hz in config.rates_hz if hz > 0}
+        self._next_due = {name: 0.0 for name in self.periods_s}
+        self.home_set = False
+        self.fix_type = 0
+        self.ekf_flags = ap.EKF_UNINITIALIZED
+        self._boot_steps = self._boot_sequence()
+        self.start_unix_us = time.time_ns() // 1000
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self.battery_pct = 100.0
+        self.sent_counts: dict[str, int] = {}
+
+    # ----- addresses / lifecycle -----
+    def addresses(self) -> list[str]:
+        """The endpoints as bound (port 0 resolved), e.g. ``["udp:127.0.0.1:40123"]``."""
+        out = []
+        for conn in self.links:
+            role = getattr(conn, "_dronecal_role", "out")
+            if role == "listen" and hasattr(conn, "listen"):
+                host, port = conn.listen.getsockname()[:2]
+                out.append(f"tcp:{host}:{port}")
+            elif role == "listen":
+                host, port = conn.port.getsockname()[:2]
+                out.append(f"udp:{host}:{port}")
+            else:
+                host, port = conn.destination_addr
+                out.append(f"out udp:{host}:{port}")
+        return out
+
+    @property
+    def time_s(self) -> float:
+        """Vehicle time since boot, seconds."""
+        return self.model.time_s
+
+    def start(self) -> SimVehicle:
+        """Run in a background thread (tests); :meth:`stop` ends it."""
+        self._thread = threading.Thread(target=self.run, name="sim-vehicle", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop the loop and close every link."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=5.0)
+        for conn in self.links:
+            try:
+                conn.close()
+            except OSError:
+                pass
+
+    def __enter__(self) -> SimVehicle:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def run(self, stop: threading.Event | None = None) -> None:
+        """The main loop: receive until the next tick is due (wall clock), step, send telemetry."""
+        stop_event = stop or self._stop
+        dt = self.config.tick_s
+        wall_per_tick = dt / self.config.speedup
+        t0 = time.monotonic()
+        tick = 0
+        while not stop_event.is_set() and not self._stop.is_set():
+            due = t0 + (tick + 1) * wall_per_tick
+            while True:
+                remaining = due - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._receive(remaining)
+            if time.monotonic() - due > 0.5:
+                # far behind (a loaded machine): slow vehicle time down instead of bursting
+                t0 = time.monotonic() - (tick + 1) * wall_per_tick
+            with self._lock:
+                self._tick(dt)
+            tick += 1
+
+    # ----- receiving -----
+    def _receive(self, timeout_s: float) -> None:
+        fds = {}
+        for conn in self.links:
+            if conn.fd is not None:
+                fds[conn.fd] = conn
+        try:
+            ready, _, _ = select.select(list(fds), [], [], timeout_s)
+        except (OSError, ValueError):
+            time.sleep(min(timeout_s, 0.01))
+            return
+        for fd in ready:
+            conn = fds[fd]
+            for _ in range(200):
+                try:
+                    msg = conn.recv_msg()
+                except (OSError, ValueError):
+                    break
+                if msg is None:
+                    break
+                if msg.get_type() == "BAD_DATA":
+                    continue
+                with self._lock:
+                    self._handle(conn, msg)
+
+    def _handle(self, link: Any, msg: Any) -> None:
+        target = getattr(msg, "target_system", 0)
+        if target not in (0, self.config.sysid):
+            return
+        now = self.model.time_s
+        if self.mission.handle(link, msg, now):
+            return
+        mtype = msg.get_type()
+        if mtype == "COMMAND_LONG":
+            result = self._command(link, msg)
+            self._send_to(link, self.enc.command_ack_encode(msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+        elif mtype == "SET_MODE":
+            result = self.model.set_mode(int(msg.custom_mode))
+            self._send_to(link, self.enc.command_ack_encode(11, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+        elif mtype == "SET_POSITION_TARGET_GLOBAL_INT":
+            if msg.lat_int == 0 and msg.lon_int == 0:
+                return
+            e, n, _u = geodetic_to_enu(msg.lat_int * 1e-7, msg.lon_int * 1e-7, self.origin.h_m, self.origin)[0]
+            up = float(msg.alt) if msg.coordinate_frame in (3, 6, 10, 11) else float(msg.alt) - self.config.home_alt_m
+            self.model.guided_goto(np.array([e, n, up]))
+
+    def _command(self, link: Any, msg: Any) -> int:
+        cmd = int(msg.command)
+        m = self.model
+        if cmd == ap.CMD_COMPONENT_ARM_DISARM:
+            if msg.param1 >= 0.5:
+                return m.arm()
+            return m.disarm(force=int(msg.param2) == ap.ARM_FORCE_MAGIC)
+        if cmd == ap.CMD_DO_SET_MODE:
+            return m.set_mode(int(msg.param2))
+        if cmd == ap.CMD_MISSION_START:
+            return m.mission_start()
+        if cmd == ap.CMD_NAV_TAKEOFF:
+            return m.guided_takeoff(float(msg.param7))
+        if cmd == ap.CMD_NAV_RETURN_TO_LAUNCH:
+            return m.set_mode(ap.MODE_RTL)
+        if cmd == ap.CMD_NAV_LAND:
+            return m.set_mode(ap.MODE_LAND)
+        if cmd == ap.CMD_SET_MESSAGE_INTERVAL:
+            return self._set_interval(int(msg.param1), float(msg.param2))
+        if cmd == ap.CMD_REQUEST_MESSAGE:
+            name = self._message_name(int(msg.param1))
+            if name is None:
+                return ap.MAV_RESULT_UNSUPPORTED
+            out = self._build(name)
+            if out is None:
+                return ap.MAV_RESULT_FAILED
+            self._send_to(link, out)
+            return ap.MAV_RESULT_ACCEPTED
+        return ap.MAV_RESULT_UNSUPPORTED
+
+    def _message_name(self, msgid: int) -> str | None:
+        cls = self.dialect.mavlink_map.get(msgid)
+        return None if cls is None else cls.msgname
+
+    def _set_interval(self, msgid: int, interval_us: float) -> int:
+        name = self._message_name(msgid)
+        if name is None:
+            return ap.MAV_RESULT_UNSUPPORTED
+        if interval_us < 0:
+            self.periods_s.pop(name, None)
+        elif interval_us == 0:
+            default = dict(self.config.rates_hz).get(name)
+            if default:
+                self.periods_s[name] = 1.0 / default
+        else:
+            self.periods_s[name] = interval_us * 1e-6
+        self._next_due.setdefault(name, self.model.time_s)
+        return ap.MAV_RESULT_ACCEPTED
+
+    # ----- sending -----
+    def _send_to(self, link: Any, msg: Any) -> None:
+        try:
+            link.mav.send(msg)
+        except (OSError, ValueError):
+            return
+        name = msg.get_type()
+        self.sent_counts[name] = self.sent_counts.get(name, 0) + 1
+
+    def _broadcast(self, msg: Any) -> None:
+        for conn in self.links:
+            self._send_to(conn, msg)
+
+    # ----- boot -----
+    def _boot_sequence(self) -> list[tuple[float, str]]:
+        b = self.config.boot_s
+        return [
+            (0.0, "banner"),
+            (0.1 * b, "ekf_init"),
+            (0.25 * b, "gps_detected"),
+            (0.3 * b, "gps_rtk"),
+            (0.5 * b, "origin"),
+            (0.8 * b, "ekf_gps"),
+            (1.0 * b, "ready"),
+        ]
+
+    def _boot(self, now_s: float) -> None:
+        while self._boot_steps and self._boot_steps[0][0] <= now_s:
+            _, step = self._boot_steps.pop(0)
+            say = self.model.say
+            if step == "banner":
+                say("ArduCopter V4.7.0-dev (dronecal-field sim)")
+                say("Frame: QUAD/PLUS")
+                say("ArduPilot Ready")
+            elif step == "ekf_init":
+                self.ekf_flags = ap.EKF_ATTITUDE | ap.EKF_VELOCITY_VERT | ap.EKF_POS_VERT_ABS | ap.EKF_CONST_POS_MODE
+                say("EKF3 IMU0 initialised")
+                say("AHRS: EKF3 active")
+            elif step == "gps_detected":
+                self.fix_type = 1
+                say("GPS 1: detected u-blox")
+            elif step == "gps_rtk":
+                self.fix_type = ap.GPS_FIX_TYPE_RTK_FIXED
+            elif step == "origin":
+                self.home_set = True
+                say("EKF3 IMU0 origin set")
+                say(f"Field Elevation Set: {self.config.home_alt_m:.0f}m")
+            elif step == "ekf_gps":
+                self.ekf_flags = ap.EKF_HEALTHY_FLAGS
+                say("EKF3 IMU0 is using GPS")
+            elif step == "ready":
+                self.model.ready = True
+
+    # ----- one tick -----
+    def _tick(self, dt: float) -> None:
+        m = self.model
+        m.step(dt)
+        now = m.time_s
+        self._boot(now)
+        self.mission.update(now)
+        if m.armed and not m.landed:
+            self.battery_pct = max(0.0, self.battery_pct - dt / 30.0)  # about 1 % per 30 s of flight
+        # event messages first, so a REACHED precedes the position that follows it
+        for seq in m.reached:
+            self._broadcast(self.enc.mission_item_reached_encode(seq))
+        m.reached.clear()
+        for severity, text in m.texts:
+            self._broadcast(self.enc.statustext_encode(severity, text.encode("utf-8")[:50], 0, 0))
+        m.texts.clear()
+        for name, period in list(self.periods_s.items()):
+            due = self._next_due.get(name, now)
+            if now + 1e-9 >= due:
+                msg = self._build(name)
+                if msg is not None:
+                    self._broadcast(msg)
+                # keep the schedule on the grid, but never fire a backlog
+                self._next_due[name] = max(due + period, now + period * 0.5)
+
+    # ----- message builders -----
+    def _geodetic(self) -> tuple[float, float, float, float]:
+        """(lat_deg, lon_deg, h_ellipsoid_m, up_m) of the reported position."""
+        pos = self.model.position
+        lat, lon, h = enu_to_geodetic(pos, self.origin)[0]
+        return float(lat), float(lon), float(h), float(pos[2])
+
+    def _home_item(self) -> MissionItem:
+        c = self.config
+        return MissionItem(
+            seq=0, frame=mf.FRAME_GLOBAL, command=mf.CMD_NAV_WAYPOINT, x=int(round(c.home_lat_deg * 1e7)), y=int(round(c.home_lon_deg * 1e7)), z=float(c.home_alt_m)
+        )
+
+    def _item_enu(self, item: MissionItem) -> np.ndarray | None:
+        """ENU metres of a mission item's position; ``None`` if lat/lon are 0 ("here")."""
+        if item.frame not in mf.GLOBAL_FRAMES or (item.x == 0 and item.y == 0):
+            return None
+        e, n, _u = geodetic_to_enu(item.x * 1e-7, item.y * 1e-7, self.origin.h_m, self.origin)[0]
+        if item.frame in (mf.FRAME_GLOBAL, mf.FRAME_GLOBAL_INT):
+            up = float(item.z) - self.config.home_alt_m
+        else:
+            up = float(item.z)
+        return np.array([e, n, up])
+
+    def _heartbeat_base_mode(self) -> int:
+        m = self.model
+        base = ap.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | ap.MAV_MODE_FLAG_STABILIZE_ENABLED | ap.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+        if m.mode == ap.MODE_GUIDED or (m.armed and m.mode == ap.MODE_AUTO):
+            base |= ap.MAV_MODE_FLAG_GUIDED_ENABLED
+        if m.armed:
+            base |= ap.MAV_MODE_FLAG_SAFETY_ARMED
+        return base
+
+    def _build(self, name: str) -> Any | None:
+        m = self.model
+        c = self.config
+        enc = self.enc
+        boot_ms = int(round(m.time_s * 1000.0))
+        if name == "HEARTBEAT":
+            state = ap.MAV_STATE_ACTIVE if m.armed else ap.MAV_STATE_STANDBY
+            return enc.heartbeat_encode(ap.MAV_TYPE_QUADROTOR, ap.MAV_AUTOPILOT_ARDUPILOTMEGA, self._heartbeat_base_mode(), m.mode, state, 3)
+        if name == "SYS_STATUS":
+            health = (_SENSORS_HEALTH_OK if self.ekf_flags == ap.EKF_HEALTHY_FLAGS else _SENSORS_HEALTH_BOOT) | (ap.MAV_SYS_STATUS_PREARM_CHECK if m.ready else 0)
+            current_ca = 1500 if (m.armed and not m.landed) else 0
+            return enc.sys_status_encode(
+                _SENSORS_PRESENT, _SENSORS_ENABLED, health, 0, 12600, current_ca, int(self.battery_pct), 0, 0, 0, 0, 0, 0, 0, 0, 0
+            )
+        if name == "GPS_RAW_INT":
+            if self.fix_type < 2:
+                return enc.gps_raw_int_encode(int(m.time_s * 1e6), self.fix_type, 0, 0, 0, 65535, 65535, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+            pos = m.position
+            noise = self.rng.standard_normal(3) * np.array([c.gnss_sigma_h_m, c.gnss_sigma_h_m, c.gnss_sigma_v_m])
+            lat, lon, h = enu_to_geodetic(pos + noise, self.origin)[0]
+            speed = float(np.hypot(m.vel[0], m.vel[1]))
+            cog = int(round(math.degrees(math.atan2(m.vel[0], m.vel[1])) % 360.0 * 100)) if speed > 0.05 else 0
+            return enc.gps_raw_int_encode(
+                int(m.time_s * 1e6),
+                self.fix_type,
+                int(round(lat * 1e7)),
+                int(round(lon * 1e7)),
+                int(round((h - c.geoid_sep_m) * 1000)),
+                70,
+                120,
+                int(round(speed * 100)),
+                cog,
+                18,
+                int(round(h * 1000)),
+                int(round(c.gnss_sigma_h_m * 1000 * math.sqrt(2))),
+                int(round(c.gnss_sigma_v_m * 1000)),
+                50,
+                0,
+                0,
+            )
+        if name == "GLOBAL_POSITION_INT":
+            hdg = int(round(m.heading_deg * 100)) % 36000
+            if not self.home_set:
+                return enc.global_position_int_encode(boot_ms, 0, 0, 0, 0, 0, 0, 0, hdg)
+            lat, lon, h, up = self._geodetic()
+            v = m.vel
+            return enc.global_position_int_encode(
+                boot_ms,
+                int(round(lat * 1e7)),
+                int(round(lon * 1e7)),
+                int(round((h - c.geoid_sep_m) * 1000)),
+                int(round(up * 1000)),
+                int(round(v[1] * 100)),
+                int(round(v[0] * 100)),
+                int(round(-v[2] * 100)),
+                hdg,
+            )
+        if name == "ATTITUDE":
+            a = m.accel
+            h = math.radians(m.heading_deg)
+            fwd = a[0] * math.sin(h) + a[1] * math.cos(h)
+            right = a[0] * math.cos(h) - a[1] * math.sin(h)
+            pitch = -math.atan2(fwd, 9.80665) if not m.landed else 0.0
+            roll = math.atan2(right, 9.80665) if not m.landed else 0.0
+            yaw_noise = math.radians(0.05) * float(self.rng.standard_normal()) if not m.landed else 0.0
+            yaw = math.remainder(h + yaw_noise, 2.0 * math.pi)
+            return enc.attitude_encode(boot_ms, roll, pitch, yaw, 0.0, 0.0, 0.0)
+        if name == "SYSTEM_TIME":
+            # SITL: unix time starts at the host clock and advances at vehicle rate
+            return enc.system_time_encode(self.start_unix_us + int(m.time_s * 1e6), boot_ms)
+        if name == "EKF_STATUS_REPORT":
+            good = self.ekf_flags == ap.EKF_HEALTHY_FLAGS
+            var = 0.01 if good else 0.0
+            return enc.ekf_status_report_encode(self.ekf_flags, var, var * 0.6, var * 0.05, var * 0.8, 0.0, 0.0)
+        if name == "BATTERY_STATUS":
+            current_ca = 1500 if (m.armed and not m.landed) else 0
+            return enc.battery_status_encode(
+                0, 0, 0, 32767, [12600] + [65535] * 9, current_ca, -1, -1, int(self.battery_pct), 0, 1, [0, 0, 0, 0], 0, 0
+            )
+        if name == "HOME_POSITION":
+            if not self.home_set:
+                return None
+            return enc.home_position_encode(
+                int(round(c.home_lat_deg * 1e7)),
+                int(round(c.home_lon_deg * 1e7)),
+                int(round(c.home_alt_m * 1000)),
+                0.0,
+                0.0,
+                0.0,
+                [1.0, 0.0, 0.0, 0.0],
+                0.0,
+                0.0,
+                0.0,
+                int(m.time_s * 1e6),
+            )
+        if name == "MISSION_CURRENT":
+            total = max(0, len(self.mission.items) - 1)
+            return enc.mission_current_encode(m.current_seq, total, m.mission_state, 1 if m.mode == ap.MODE_AUTO else 0)
+        if name == "AUTOPILOT_VERSION":
+            return enc.autopilot_version_encode(
+                0xFFFF, (4 << 24) | (7 << 16) | (0 << 8), 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, c.sysid, [0] * 18
+            )
+        return None
