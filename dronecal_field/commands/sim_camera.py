@@ -1,0 +1,137 @@
+"""``dronecal-field sim camera``: a simulated pole camera that watches a MAVLink vehicle.
+
+It follows any MAVLink vehicle's GLOBAL_POSITION_INT and ATTITUDE (it only
+listens), renders the ArUco marker the vehicle carries through the true
+camera model (distortion included) and serves the frames as MJPEG over HTTP.
+The true camera comes from --camera, or is made from --site-* flags and saved
+with --write-truth. See docs/simulators.md.
+
+Example:
+  dronecal-field sim camera --connect udpin:127.0.0.1:14551 --camera truth.yaml \\
+      --serve http://127.0.0.1:8554/stream.mjpg --fps 10 --noise-px 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+
+def _floats(text: str, n: int, flag: str) -> tuple[float, ...]:
+    from dronecal_field.errors import InputError
+
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != n:
+        raise InputError(f"{flag} {text!r} needs {n} comma-separated numbers")
+    return values
+
+
+def register(sims: argparse._SubParsersAction) -> None:
+    parser = sims.add_parser(
+        "camera",
+        help="simulated pole camera: follows a MAVLink vehicle, serves MJPEG",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--connect", required=True, help="MAVLink address with explicit scheme: udpin:HOST:PORT, tcp:HOST:PORT, udpout:, serial:DEV:BAUD")
+    parser.add_argument("--camera", help="truth camera.yaml (world frame ENU at its enu_origin)")
+    parser.add_argument("--write-truth", metavar="PATH", help="write the truth camera made from the --site-* flags here")
+    parser.add_argument("--serve", default="http://127.0.0.1:8554/stream.mjpg", help="MJPEG URL to serve; port 0 picks a free one (default %(default)s)")
+    parser.add_argument("--fps", type=float, default=10.0, help="frames per second (default %(default)s)")
+    parser.add_argument("--latency-s", type=float, default=0.0, help="frames show the vehicle this many seconds late (default %(default)s)")
+    parser.add_argument("--noise-px", type=float, default=2.0, help="Gaussian pixel-value noise, standard deviation in 8-bit grey levels (default %(default)s)")
+    parser.add_argument("--jpeg-quality", type=int, default=90, help="JPEG quality 0..100 (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="background and noise seed (default %(default)s)")
+    parser.add_argument("--marker-dictionary", default="DICT_4X4_50", help="OpenCV ArUco dictionary (default %(default)s)")
+    parser.add_argument("--marker-id", type=int, default=0, help="marker id (default %(default)s)")
+    parser.add_argument("--marker-size", type=float, default=0.4, help="side of the black square, metres (default %(default)s)")
+    parser.add_argument("--marker-offset", default="0.1,0,0.1", help="marker centre from the GNSS antenna, body x,y,z = forward,right,down, metres (default %(default)s)")
+    parser.add_argument("--altitude-datum", choices=("auto", "as-reported"), default="auto",
+                        help="auto: turn GLOBAL_POSITION_INT's MSL heights into ellipsoidal ones with GPS_RAW_INT.alt_ellipsoid when the vehicle "
+                             "reports it; as-reported: use them as they are. The truth camera's enu_origin height must be in the resulting datum.")
+    parser.add_argument("--vehicle-sysid", type=int, help="follow this MAVLink system id (default: the first that reports a position)")
+    parser.add_argument("--duration-s", type=float, help="stop after this many seconds (default: run until Ctrl-C)")
+    site = parser.add_argument_group("truth camera from a site (with --write-truth, when --camera is absent)")
+    site.add_argument("--site-origin", metavar="LAT,LON,H", help="pole foot: WGS84 degrees, height in the vehicle's datum (m)")
+    site.add_argument("--site-mount-height", type=float, default=3.0, help="camera height above the pole foot, m (default %(default)s)")
+    site.add_argument("--site-azimuth", type=float, default=0.0, help="view direction, degrees clockwise from north (default %(default)s)")
+    site.add_argument("--site-tilt", type=float, default=30.0, help="view direction below horizontal, degrees (default %(default)s)")
+    site.add_argument("--site-focal-px", type=float, default=1000.0, help="focal length, pixels (default %(default)s)")
+    site.add_argument("--site-image-size", default="1280x960", help="WIDTHxHEIGHT pixels (default %(default)s)")
+    site.add_argument("--site-distortion", default="-0.25,0.08,0.001,-0.0005,0", help="k1,k2,p1,p2,k3 (default %(default)s)")
+    parser.set_defaults(func=run)
+
+
+def _truth_camera(args: argparse.Namespace):
+    from dronecal_field.camerafile import read_camera, write_camera
+    from dronecal_field.core.camera import Distortion
+    from dronecal_field.errors import InputError
+    from dronecal_field.sim.scene import make_truth_camera
+
+    if args.camera:
+        camera = read_camera(args.camera)
+    elif args.site_origin:
+        try:
+            width, height = (int(v) for v in args.site_image_size.lower().split("x"))
+        except ValueError:
+            raise InputError(f"--site-image-size {args.site_image_size!r} must be WIDTHxHEIGHT, e.g. 1280x960") from None
+        camera = make_truth_camera(
+            _floats(args.site_origin, 3, "--site-origin"),
+            mount_height_m=args.site_mount_height,
+            azimuth_deg=args.site_azimuth,
+            tilt_deg=args.site_tilt,
+            focal_px=args.site_focal_px,
+            width=width,
+            height=height,
+            distortion=Distortion.from_array(_floats(args.site_distortion, 5, "--site-distortion")),
+        )
+    else:
+        raise InputError("no truth camera: pass --camera truth.yaml, or --site-origin LAT,LON,H (and --write-truth to keep it)")
+    if args.write_truth:
+        write_camera(args.write_truth, camera, comment="dronecal-field sim camera: ground truth")
+    return camera
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the simulated camera until --duration-s or Ctrl-C."""
+    from dronecal_field.sim.camera import SimCamera
+    from dronecal_field.sim.scene import MarkerSpec
+
+    camera = _truth_camera(args)
+    marker = MarkerSpec(
+        dictionary=args.marker_dictionary,
+        marker_id=args.marker_id,
+        size_m=args.marker_size,
+        offset_frd_m=_floats(args.marker_offset, 3, "--marker-offset"),
+    )
+    sim = SimCamera(
+        camera,
+        marker,
+        connect=args.connect,
+        serve_url=args.serve,
+        fps=args.fps,
+        latency_s=args.latency_s,
+        noise_sigma_dn=args.noise_px,
+        jpeg_quality=args.jpeg_quality,
+        seed=args.seed,
+        use_ellipsoid=args.altitude_datum == "auto",
+        vehicle_sysid=args.vehicle_sysid,
+    )
+    with sim:
+        print(f"sim camera: serving {sim.url} ({camera.width}x{camera.height} @ {args.fps:g} fps), following {args.connect}", flush=True)
+        deadline = None if args.duration_s is None else time.monotonic() + args.duration_s
+        try:
+            while deadline is None or time.monotonic() < deadline:
+                time.sleep(0.2)
+                if sim.error is not None:
+                    from dronecal_field.errors import LinkError
+
+                    raise LinkError(f"sim camera stopped: {sim.error}")
+        except KeyboardInterrupt:
+            pass
+        print(f"sim camera: {sim.frames_rendered} frames, {sim.messages_received} MAVLink messages", file=sys.stderr, flush=True)
+    return 0
