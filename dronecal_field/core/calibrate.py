@@ -255,18 +255,6 @@ class BatchState:
         return cls(np.repeat(i, k, 0), np.repeat(d, k, 0), np.repeat(R, k, 0), np.repeat(t, k, 0))
 
 
-def _robust_weights(sq_norm: np.ndarray, loss: str, scale: float) -> np.ndarray:
-    """IRLS weights (K, N) per point from squared residual norms (K, N)."""
-    if loss == "linear":
-        return np.ones_like(sq_norm)
-    r = np.sqrt(sq_norm) / scale
-    if loss == "huber":
-        return np.where(r <= 1.0, 1.0, 1.0 / np.maximum(r, 1e-12))
-    if loss == "cauchy":
-        return 1.0 / (1.0 + r * r)
-    raise InputError(f"unknown loss {loss!r}: use linear, huber or cauchy")
-
-
 def _free_columns(A: np.ndarray) -> tuple[np.ndarray, int, float]:
     """The kernel's view of a parameter map: primary index per free column, tied fx column, aspect."""
     m = A.shape[1]
@@ -291,85 +279,32 @@ def levenberg_marquardt(
 ) -> tuple[BatchState, np.ndarray, int]:
     """Minimise the (robustified) reprojection error of K problems at once.
 
+    Each problem runs its own Levenberg-Marquardt (Marquardt's diagonal
+    scaling) in compiled code, in parallel over numba's threads, and stops
+    when its relative cost decrease falls below ``tolerance`` or several steps
+    in a row fail (at a minimum, round-off). Robust losses are iteratively
+    reweighted; a step is judged with the weights it was computed with, so
+    reweighting cannot fake progress.
+
     Returns the refined state, the per-problem cost (K,) (sum of squared
-    residuals, unweighted) and the iteration count. A problem leaves the
-    working set once its relative cost decrease falls below ``tolerance``
-    (or several steps in a row fail, which at a minimum is round-off), so
-    late iterations only touch the few problems still moving. Robust losses
-    are iteratively reweighted: a step is judged with the weights it was
-    computed with, so reweighting cannot fake progress.
+    residuals, unweighted) and the largest iteration count.
     """
-    from dronecal_field.core.kernels import normal_equations
+    from dronecal_field.core.kernels import LOSS_CODES, solve_batch
 
-    K = state.R.shape[0]
-    m = A.shape[1]
-    sel, fx_col, aspect = _free_columns(A)
+    if loss not in LOSS_CODES:
+        raise InputError(f"unknown loss {loss!r}: use linear, huber or cauchy")
     out = state.copy()
-    out_cost = np.zeros(K)
-    work = np.arange(K)
-    X = np.ascontiguousarray(points, dtype=float)
-    shared_points = X.shape[0] == 1
-    y = np.ascontiguousarray(pixels, dtype=float)
-    N = y.shape[1]
-    s = state.copy()
-    lam = np.full(K, 1e-3)
-    fails = np.zeros(K, dtype=int)
-    eye = np.eye(m)
-
-    def evaluate(st: BatchState, X_, y_, w_):
-        k = st.R.shape[0]
-        JtJ_, g_, sq_ = np.empty((k, m, m)), np.empty((k, m)), np.empty((k, N))
-        normal_equations(st.intrinsics, st.distortion, st.R, st.t, X_, y_, w_, sel, fx_col, aspect, JtJ_, g_, sq_)
-        return JtJ_, g_, sq_
-
-    w = np.ones((K, N))
-    JtJ, g, sq = evaluate(s, X, y, w)
-    if loss != "linear":
-        w = _robust_weights(sq, loss, loss_scale)
-        JtJ, g, sq = evaluate(s, X, y, w)
-    cost = np.sum(w * sq, axis=1)
-    it = 0
-    for it in range(1, max_iterations + 1):
-        k = work.size
-        diag = np.maximum(np.diagonal(JtJ, axis1=1, axis2=2), 1e-12)
-        H = JtJ + lam[:, None, None] * (diag[:, :, None] * eye)
-        try:
-            delta = np.linalg.solve(H, g[..., None])[..., 0]
-        except np.linalg.LinAlgError:
-            delta = np.stack([np.linalg.lstsq(H[i], g[i], rcond=None)[0] for i in range(k)])
-        trial = s.stepped(delta @ A.T)
-        JtJ_new, g_new, sq_new = evaluate(trial, X, y, w)
-        cost_new = np.sum(w * sq_new, axis=1)
-        better = (cost_new < cost) & np.isfinite(cost_new)
-        rel_drop = np.where(better, (cost - cost_new) / np.maximum(cost, 1e-300), 0.0)
-        if better.any():
-            b = np.flatnonzero(better)
-            s.put(b, trial.take(b))
-            JtJ[b], g[b], sq[b], cost[b] = JtJ_new[b], g_new[b], sq_new[b], cost_new[b]
-            if loss != "linear":
-                w[b] = _robust_weights(sq_new[b], loss, loss_scale)
-                # the next step uses the new weights: rebuild its equations and cost with them
-                Xb = X if shared_points else X[b]
-                JtJ[b], g[b], sq[b] = evaluate(s.take(b), Xb, y[b], w[b])
-                cost[b] = np.sum(w[b] * sq[b], axis=1)
-        lam = np.where(better, np.maximum(lam / 10.0, 1e-9), lam * 10.0)
-        fails = np.where(better, 0, fails + 1)
-        done = (better & (rel_drop < tolerance)) | (fails >= 4) | (lam > 1e10) | (cost <= 1e-24)
-        if done.any() or it == max_iterations:
-            fin = done if it < max_iterations else np.ones(k, dtype=bool)
-            idx = np.flatnonzero(fin)
-            out.put(work[idx], s.take(idx))
-            out_cost[work[idx]] = np.sum(sq[idx], axis=1)
-            keep = np.flatnonzero(~fin)
-            if keep.size == 0:
-                break
-            work, s, JtJ, g, sq, w, cost, lam, fails = (
-                work[keep], s.take(keep), JtJ[keep], g[keep], sq[keep], w[keep], cost[keep], lam[keep], fails[keep]
-            )
-            y = y[keep]
-            if not shared_points:
-                X = X[keep]
-    return out, out_cost, it
+    K = out.R.shape[0]
+    sel, fx_col, aspect = _free_columns(A)
+    cost = np.empty(K)
+    iterations = np.empty(K, dtype=np.int64)
+    solve_batch(
+        out.intrinsics, out.distortion, out.R, out.t,
+        np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(pixels, dtype=float),
+        np.ascontiguousarray(A, dtype=float), sel, fx_col, aspect,
+        int(max_iterations), float(tolerance), LOSS_CODES[loss], float(loss_scale), cost, iterations,
+    )
+    return out, cost, int(iterations.max(initial=0))
 
 
 # --------------------------------------------------------------------------

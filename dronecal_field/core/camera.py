@@ -232,7 +232,7 @@ def project_batch(
     points: np.ndarray,  # (K, N, 3) or (1, N, 3) world metres
 ) -> np.ndarray:
     """Pixels (K, N, 2) of world points through K cameras."""
-    Xc = np.einsum("kij,knj->kni", R, points) + t[:, None, :]
+    Xc = np.matmul(points, R.transpose(0, 2, 1)) + t[:, None, :]
     z = Xc[..., 2]
     xn = Xc[..., 0] / z
     yn = Xc[..., 1] / z

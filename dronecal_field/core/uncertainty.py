@@ -135,7 +135,7 @@ def _sigmas(points: np.ndarray, sigma_3d, sigma_2d) -> tuple[np.ndarray, np.ndar
     return s3, s2
 
 
-def _ground_pixels(camera: Camera, ground_z: float, nu: int = 16, nv: int = 12) -> np.ndarray:
+def _ground_pixels(camera: Camera, ground_z: float, nu: int = 10, nv: int = 8) -> np.ndarray:
     """(M, 2) pixels of a grid over the image whose rays meet the ground in front of the camera."""
     u = np.linspace(0.05, 0.95, nu) * (camera.width - 1)
     v = np.linspace(0.05, 0.95, nv) * (camera.height - 1)
