@@ -113,6 +113,8 @@ class Run:
     topics : topic -> schema name of every channel seen.
     warnings : problems that do not stop calibration (e.g. an optional topic
         with the wrong schema, which is then ignored).
+    units_read : chunks (or lone message records) decoded so far; shows how
+        much of the file a windowed read touched.
     """
 
     def __init__(self, path: str | os.PathLike) -> None:
@@ -129,6 +131,7 @@ class Run:
             self.truncated = False
             self.truncated_at: int | None = None
             self.warnings: list[str] = []
+            self.units_read = 0
             self._units: list[_Unit] = []
             self._channels: dict[int, _Channel] = {}
             self._schemas: dict[int, tuple[str, str]] = {}  # id -> (name, encoding)
@@ -162,7 +165,13 @@ class Run:
         return min(u.start_ns for u in self._units), max(u.end_ns for u in self._units)
 
     @property
+    def units_total(self) -> int:
+        """Number of chunks (or lone message records) in the readable part of the file."""
+        return len(self._units)
+
+    @property
     def topics(self) -> dict[str, str]:
+        """Topic -> schema name of every channel known so far."""
         return {c.topic: c.schema_name for c in self._channels.values()}
 
     def metadata_record(self, name: str) -> dict[str, str] | None:
@@ -292,6 +301,7 @@ class Run:
         if self._f.read(8) != MAGIC:
             return False
         try:
+            self._f.seek(0)
             summary = SeekingReader(self._f).get_summary()
         except (McapError, struct.error, ValueError, EOFError):
             return False
@@ -478,6 +488,7 @@ class Run:
         body = self._f.read(length)
         if len(body) < length:
             return []
+        self.units_read += 1
         stream = ReadDataStream(io.BytesIO(body))
         if opcode == _OP_MESSAGE:
             return [Message.read(stream, length)]

@@ -56,7 +56,7 @@ def _jsonable(value: Any) -> Any:
 
 
 def _json_schema(name: str, fields: dict[str, Any]) -> bytes:
-    """A small JSON Schema of a MAVLink message's fields, so Foxglove can plot them."""
+    """A small JSON Schema (titled ``name``) of a message's fields, so Foxglove can plot them."""
 
     def kind(v: Any) -> str:
         if isinstance(v, bool):
@@ -70,7 +70,7 @@ def _json_schema(name: str, fields: dict[str, Any]) -> bytes:
         return "object"
 
     props = {k: {"type": kind(v)} for k, v in fields.items()}
-    schema = {"title": f"mavlink.{name}", "type": "object", "properties": props}
+    schema = {"title": name, "type": "object", "properties": props}
     return json.dumps(schema, separators=(",", ":")).encode()
 
 
@@ -181,7 +181,7 @@ class RunWriter:
         self._write_proto(pm.EVENTS_TOPIC, pm.event_to_proto(event), event.timestamp_ns)
 
     def write_mavlink(self, name: str, timestamp_ns: int, fields: dict[str, Any]) -> None:
-        """Write one MAVLink message on ``/mavlink/<name>`` as JSON.
+        """Write one MAVLink message on ``/mavlink/<name>`` as JSON (schema ``mavlink.<name>``).
 
         Parameters
         ----------
@@ -190,19 +190,22 @@ class RunWriter:
         fields : the message's fields as pymavlink's ``to_dict()`` gives them;
             ``mavpackettype`` is dropped, bytes become lists, NaN becomes null.
         """
+        self.write_json(pm.MAVLINK_TOPIC_PREFIX + name, f"mavlink.{name}", timestamp_ns, fields)
+
+    def write_json(self, topic: str, schema_name: str, timestamp_ns: int, fields: dict[str, Any]) -> None:
+        """Write one JSON message (with ``_time_unix_ns``) on any topic, e.g. ``/dataflash/GPS``."""
         body = {k: v for k, v in fields.items() if k != "mavpackettype"}
         body["_time_unix_ns"] = int(timestamp_ns)
         try:
             data = json.dumps(body, separators=(",", ":"), allow_nan=False).encode()
         except (TypeError, ValueError):
             data = json.dumps(_jsonable(body), separators=(",", ":"), allow_nan=False).encode()
-        topic = pm.MAVLINK_TOPIC_PREFIX + name
         with self._lock:
             self._check_open()
             channel = self._channels.get(topic)
             if channel is None:
                 schema = self._mcap.register_schema(
-                    name=f"mavlink.{name}", encoding="jsonschema", data=_json_schema(name, body)
+                    name=schema_name, encoding="jsonschema", data=_json_schema(schema_name, body)
                 )
                 channel = self._mcap.register_channel(topic=topic, message_encoding="json", schema_id=schema)
                 self._channels[topic] = channel
