@@ -26,6 +26,7 @@ from dronecal_field.plan.route import FlightModel, Route, plan_route
 from dronecal_field.plan.site import CameraSite, LensGuess, Marker, guess_camera, latlon_to_site, resolve_focal_px
 from dronecal_field.plan.strategies import (
     Limits,
+    _fold_radius,
     StrategyScore,
     alternatives,
     evaluate_strategy,
@@ -259,8 +260,14 @@ def footprint_site(camera_site: Camera, n_side: int = 24, range_m: float = FOOTP
     K, D, R, _ = camera_site.batch_arrays()
     rays = pixel_rays_batch(K, D, R, border[None])[0]
     c = camera_site.pose.position_world
+    # pixels beyond the distortion model's fold have no ray: drop those whose ray does not project back
+    # (beyond the fold Newton may also land on the far branch, which projects back fine)
+    back = camera_site.project(c[None] + rays)
+    d_cam = rays @ camera_site.pose.R_cam_from_world.T
+    r_norm = np.hypot(d_cam[:, 0], d_cam[:, 1]) / np.maximum(d_cam[:, 2], 1e-9)
+    ok = (np.linalg.norm(back - border, axis=1) < 1.0) & (d_cam[:, 2] > 0) & (r_norm < _fold_radius(camera_site.distortion.as_array()))
     out = []
-    for d in rays:
+    for d in rays[ok]:
         horiz = float(np.hypot(d[0], d[1]))
         if d[2] < -1e-9:
             p = c + (-c[2] / d[2]) * d

@@ -314,7 +314,8 @@ def choose_heights(strategy: Strategy, camera: Camera, limits: Limits) -> tuple[
         good = np.array([int(np.argmax(counts))])
     za, zb = float(zs[good[0]]), float(zs[good[-1]])
     step = limits.height_step_m
-    levels = np.round(np.linspace(za, zb, strategy.n_heights) / step) * step
+    # snap to the search lattice (which starts at z_lo, so no level falls below it)
+    levels = za + np.round((np.linspace(za, zb, strategy.n_heights) - za) / step) * step
     # keep levels at least 0.2 m apart (closer ones add no depth to the lattice)
     out: list[float] = []
     for z in levels:
