@@ -1,0 +1,253 @@
+"""Per-waypoint 3D-2D points: robust positions, measured sigmas, and why a window was dropped.
+
+For each hover window, over its settled part:
+- 3D: the marker's ENU position from the fixes (GNSS antenna + the
+  ``marker.offset_frd_m`` lever arm rotated by the vehicle's attitude), the
+  per-axis median, and its scatter (1.4826 MAD);
+- 2D: the marker centre's per-axis median over the detections, and its scatter.
+The scatter becomes the point's sigma for the Monte-Carlo, floored by the
+receiver's own reported accuracy (an RTK bias is invisible in the scatter)
+and by the detector's sub-pixel precision.
+
+A window is dropped, with the reason kept for the report, when it has too
+few fixes (a GNSS dropout), a fix worse than ``min_fix``, too few detections,
+or a scatter far above the other windows'.
+
+Pure numpy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dronecal_field.pipeline.hover import HoverWindow
+
+# Worst to best; "unknown" (a writer that did not say) ranks just below "3d".
+FIX_TYPES: tuple[str, ...] = ("no_fix", "2d", "unknown", "3d", "dgps", "rtk_float", "rtk_fixed")
+MAD_TO_STD = 1.4826
+
+
+def fix_rank(fix_type: str | None) -> int:
+    """Rank of a fix type in FIX_TYPES (None and unrecognised values count as "unknown")."""
+    if fix_type is None or fix_type not in FIX_TYPES:
+        return FIX_TYPES.index("unknown")
+    return FIX_TYPES.index(fix_type)
+
+
+def enu_from_frd(rpy_rad: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotations from the vehicle body (FRD) to ENU.
+
+    Parameters
+    ----------
+    rpy_rad : (N, 3)
+        Roll, pitch, yaw in radians as MAVLink ATTITUDE gives them: yaw from
+        north, clockwise; the body-to-NED rotation is Rz(yaw) Ry(pitch) Rx(roll).
+    """
+    rpy = np.atleast_2d(np.asarray(rpy_rad, float))
+    cr, sr = np.cos(rpy[:, 0]), np.sin(rpy[:, 0])
+    cp, sp = np.cos(rpy[:, 1]), np.sin(rpy[:, 1])
+    cy, sy = np.cos(rpy[:, 2]), np.sin(rpy[:, 2])
+    ned = np.empty((len(rpy), 3, 3))
+    ned[:, 0, 0] = cy * cp
+    ned[:, 0, 1] = cy * sp * sr - sy * cr
+    ned[:, 0, 2] = cy * sp * cr + sy * sr
+    ned[:, 1, 0] = sy * cp
+    ned[:, 1, 1] = sy * sp * sr + cy * cr
+    ned[:, 1, 2] = sy * sp * cr - cy * sr
+    ned[:, 2, 0] = -sp
+    ned[:, 2, 1] = cp * sr
+    ned[:, 2, 2] = cp * cr
+    # NED -> ENU swaps the first two axes and flips the third.
+    return ned[:, [1, 0, 2], :] * np.array([1.0, 1.0, -1.0])[None, :, None]
+
+
+def lever_arm_enu(offset_frd_m: np.ndarray, rpy_rad: np.ndarray) -> np.ndarray:
+    """(N, 3) ENU vector from the antenna to the marker centre for attitudes (N, 3)."""
+    return np.einsum("nij,j->ni", enu_from_frd(rpy_rad), np.asarray(offset_frd_m, float))
+
+
+def attitude_at(t_ns: np.ndarray, att_t_ns: np.ndarray, att_rpy_rad: np.ndarray, max_gap_s: float = 1.0) -> np.ndarray:
+    """(N, 3) roll, pitch, yaw interpolated at ``t_ns`` (N,), yaw unwrapped so 359->1 deg is 2 deg.
+
+    Times outside the attitude stream take the nearest sample; inside a gap
+    longer than ``max_gap_s`` too (holds are still, so the nearest is close).
+    """
+    t = np.asarray(t_ns, np.int64)
+    at = np.asarray(att_t_ns, np.int64)
+    rpy = np.asarray(att_rpy_rad, float)
+    if len(at) == 0:
+        raise ValueError("no attitude samples")
+    if len(at) == 1:
+        return np.repeat(rpy[:1], len(t), 0)
+    x = (t - at[0]).astype(float)
+    xp = (at - at[0]).astype(float)
+    yaw = np.unwrap(rpy[:, 2])
+    out = np.stack([np.interp(x, xp, rpy[:, 0]), np.interp(x, xp, rpy[:, 1]), np.interp(x, xp, yaw)], -1)
+    k = np.clip(np.searchsorted(at, t), 1, len(at) - 1)
+    gap = (at[k] - at[k - 1]) > max_gap_s * 1e9
+    nearest = np.where(np.abs(t - at[k - 1]) <= np.abs(at[k] - t), k - 1, k)
+    out[gap] = np.c_[rpy[nearest[gap], :2], yaw[nearest[gap]]]
+    out[:, 2] = (out[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    return out
+
+
+@dataclass(frozen=True)
+class PointOptions:
+    """Thresholds of the per-window stage (defaults for RTK and a few-second hold)."""
+
+    settle_s: float = 1.0  # ignore the first second of a hold (arrival overshoot)
+    tail_s: float = 0.2  # and the last moments before leaving
+    min_fix: str = "rtk_fixed"
+    min_fixes: int = 3
+    min_detections: int = 3
+    sigma_px_floor: float = 0.1  # the detector's sub-pixel precision on a still marker
+    sigma_m_floor: float = 0.002
+    outlier_factor: float = 4.0  # scatter above this many times the median window's is outlying
+    outlier_floor_m: float = 0.05  # ... and above this (a calm hold is not an outlier)
+    outlier_floor_px: float = 1.0
+
+
+@dataclass(frozen=True, eq=False)
+class WaypointPoint:
+    """One hover window's 3D-2D correspondence, or the reason it has none.
+
+    ``marker_enu_m`` (3,) and ``uv_px`` (2,) are robust centres over the
+    window's settled part; ``sigma_enu_m`` (3,) and ``sigma_px`` their
+    per-axis standard deviations; ``dropped`` None for a usable point.
+    """
+
+    window: HoverWindow
+    stable_ns: tuple[int, int]
+    n_fixes: int
+    n_detections: int
+    worst_fix: str | None
+    marker_enu_m: np.ndarray | None = None
+    sigma_enu_m: np.ndarray | None = None
+    uv_px: np.ndarray | None = None
+    sigma_px: float | None = None
+    scatter_enu_m: np.ndarray | None = None
+    scatter_px: float | None = None
+    scatter_image_m: float | None = None
+    dropped: str | None = None
+
+    @property
+    def used(self) -> bool:
+        return self.dropped is None
+
+    def with_drop(self, reason: str) -> "WaypointPoint":
+        from dataclasses import replace
+
+        return replace(self, dropped=reason)
+
+
+def robust_centre(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis median (D,) and robust std (D,) = 1.4826 MAD of ``values`` (N, D)."""
+    v = np.asarray(values, float)
+    med = np.median(v, axis=0)
+    return med, MAD_TO_STD * np.median(np.abs(v - med), axis=0)
+
+
+def window_point(
+    window: HoverWindow,
+    stable_ns: tuple[int, int],
+    fix_t_ns: np.ndarray,
+    marker_enu_m: np.ndarray,
+    fix_sigma_m: np.ndarray,
+    fix_types: list[str | None] | np.ndarray,
+    det_t_ns: np.ndarray,
+    det_uv_px: np.ndarray,
+    camera_offset_ns: int,
+    options: PointOptions,
+    det_size_px: np.ndarray | None = None,
+    marker_size_m: float | None = None,
+) -> WaypointPoint:
+    """The correspondence of one window (before the across-window outlier test).
+
+    Parameters
+    ----------
+    stable_ns : (start_ns, end_ns)
+        The settled part, GNSS clock.
+    fix_t_ns : (N,) int64, marker_enu_m : (N, 3) metres, fix_sigma_m : (N, 3) metres
+        All fixes of the run (or a superset of the window): times, the
+        marker's ENU position (lever arm applied), the receiver's reported std.
+    fix_types : (N,) fix type strings or None
+    det_t_ns : (M,) int64, det_uv_px : (M, 2)
+        Detections, stamped on the camera clock.
+    camera_offset_ns : int
+        Camera stamp minus capture time (``align.TimeOffset.offset_ns``).
+    det_size_px : (M,), optional, and marker_size_m : float, optional
+        The marker's apparent and true size: they turn the image scatter into
+        metres at the marker (``scatter_image_m``), comparable across
+        distances and cameras.
+    """
+    a, b = stable_ns
+    fix_t_ns = np.asarray(fix_t_ns, np.int64)
+    in_fix = (fix_t_ns >= a) & (fix_t_ns <= b)
+    det_t = np.asarray(det_t_ns, np.int64) - int(camera_offset_ns)
+    in_det = (det_t >= a) & (det_t <= b)
+    types = [fix_types[k] for k in np.flatnonzero(in_fix)]
+    worst = min(types, key=fix_rank) if types else None
+    base = dict(window=window, stable_ns=(int(a), int(b)), n_fixes=int(in_fix.sum()), n_detections=int(in_det.sum()), worst_fix=worst)
+    if in_fix.sum() < options.min_fixes:
+        return WaypointPoint(**base, dropped=f"only {int(in_fix.sum())} GNSS fixes in the settled part (dropout); need {options.min_fixes}")
+    if fix_rank(worst) < fix_rank(options.min_fix):
+        return WaypointPoint(**base, dropped=f"fix {worst or 'unknown'} is worse than --min-fix {options.min_fix}")
+    if in_det.sum() < options.min_detections:
+        return WaypointPoint(
+            **base,
+            dropped=f"{int(in_det.sum())} marker detections in the settled part; need {options.min_detections}",
+        )
+    xyz, scatter_m = robust_centre(np.asarray(marker_enu_m, float)[in_fix])
+    reported = np.median(np.asarray(fix_sigma_m, float)[in_fix], axis=0)
+    sigma_m = np.maximum(np.maximum(scatter_m, np.nan_to_num(reported, nan=0.0)), options.sigma_m_floor)
+    uv, scatter_uv = robust_centre(np.asarray(det_uv_px, float)[in_det])
+    scatter_px = float(np.sqrt(np.mean(scatter_uv**2)))
+    scatter_image_m = None
+    if det_size_px is not None and marker_size_m:
+        size = float(np.median(np.asarray(det_size_px, float)[in_det]))
+        scatter_image_m = scatter_px * marker_size_m / size if size > 0 else None
+    return WaypointPoint(
+        **base,
+        marker_enu_m=xyz,
+        sigma_enu_m=sigma_m,
+        uv_px=uv,
+        sigma_px=max(scatter_px, options.sigma_px_floor),
+        scatter_enu_m=scatter_m,
+        scatter_px=scatter_px,
+        scatter_image_m=scatter_image_m,
+    )
+
+
+def drop_outlying_scatter(points: list[WaypointPoint], options: PointOptions) -> list[WaypointPoint]:
+    """Drop used points whose 3D or image scatter is far above the median used point's.
+
+    A gust, a fix jump or a detector that flips between two corners shows as
+    a scatter many times the typical hold's; such a point's median is not
+    trustworthy even when its sigma would down-weight it. The image scatter
+    is compared in metres at the marker when its size is known (a near
+    marker's normal drift is many pixels, a far one's a fraction), else in
+    pixels.
+    """
+    used = [p for p in points if p.used]
+    if len(used) < 3:
+        return points
+    s3 = np.array([np.linalg.norm(p.scatter_enu_m) for p in used])
+    lim3 = max(options.outlier_factor * float(np.median(s3)), options.outlier_floor_m)
+    in_metres = all(p.scatter_image_m is not None for p in used)
+    s2 = np.array([p.scatter_image_m if in_metres else p.scatter_px for p in used])
+    floor2 = options.outlier_floor_m if in_metres else options.outlier_floor_px
+    lim2 = max(options.outlier_factor * float(np.median(s2)), floor2)
+    out = []
+    for p in points:
+        if p.used and np.linalg.norm(p.scatter_enu_m) > lim3:
+            p = p.with_drop(f"3D scatter {100 * np.linalg.norm(p.scatter_enu_m):.1f} cm is outlying (limit {100 * lim3:.1f} cm)")
+        elif p.used and in_metres and p.scatter_image_m > lim2:
+            p = p.with_drop(
+                f"image scatter {p.scatter_px:.2f} px ({100 * p.scatter_image_m:.1f} cm at the marker) is outlying (limit {100 * lim2:.1f} cm)"
+            )
+        elif p.used and not in_metres and p.scatter_px > lim2:
+            p = p.with_drop(f"image scatter {p.scatter_px:.2f} px is outlying (limit {lim2:.2f} px)")
+        out.append(p)
+    return out

@@ -1,0 +1,398 @@
+"""The offline stage's files: camera.yaml, camera_info.yaml, report.json, report.html,
+ground_homography.yaml, detections.csv (and, on request, an annotated copy of the run).
+
+Writers only: every number comes from the CalibrationReport. Files are
+written to a temporary name and renamed, so a reader never sees half a file.
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import html
+import io
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from dronecal_field.core.camera import PARAM_NAMES
+
+CAMERA_FILE = "camera.yaml"
+CAMERA_INFO_FILE = "camera_info.yaml"
+REPORT_JSON = "report.json"
+REPORT_HTML = "report.html"
+HOMOGRAPHY_FILE = "ground_homography.yaml"
+DETECTIONS_CSV = "detections.csv"
+ANNOTATED_SUFFIX = ".annotated.mcap"
+
+
+def _atomic_write(path: Path, data: bytes | str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        f.write(data.encode() if isinstance(data, str) else data)
+    os.replace(tmp, path)
+
+
+def _clean(value):
+    """JSON-ready copy: numpy to lists/floats, NaN/inf to None (JSON has neither)."""
+    if isinstance(value, dict):
+        return {str(k): _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _clean(value.tolist())
+    if isinstance(value, (np.floating, float)):
+        v = float(value)
+        return v if math.isfinite(v) else None
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (np.bool_,)):
+        return bool(value)
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+# --------------------------------------------------------------------------
+# report.json
+
+
+def report_dict(report) -> dict:
+    """Every number of the report, JSON-ready (the content of report.json)."""
+    from dronecal_field import __version__
+    from dronecal_field.geodesy import enu_to_geodetic
+
+    md = report.metadata
+    cam = report.camera
+    res = report.result
+    used = report.used_points
+    residual_by_window = {p.window.index: res.residuals_px[i] for i, p in enumerate(used)}
+    outlier_windows = {used[i].window.index for i in res.outliers}
+    windows = []
+    for p in report.points:
+        w = p.window
+        entry = {
+            "index": w.index,
+            "seq": w.seq,
+            "source": w.source,
+            "start_ns": w.start_ns,
+            "end_ns": w.end_ns,
+            "duration_s": w.duration_s,
+            "stable_start_ns": p.stable_ns[0],
+            "stable_end_ns": p.stable_ns[1],
+            "n_fixes": p.n_fixes,
+            "n_detections": p.n_detections,
+            "worst_fix": p.worst_fix,
+            "used": p.used,
+            "dropped": p.dropped,
+            "marker_enu_m": p.marker_enu_m,
+            "sigma_enu_m": p.sigma_enu_m,
+            "scatter_enu_m": p.scatter_enu_m,
+            "uv_px": p.uv_px,
+            "sigma_px": p.sigma_px,
+            "scatter_px": p.scatter_px,
+        }
+        if w.index in residual_by_window:
+            r = residual_by_window[w.index]
+            entry["residual_px"] = r
+            entry["residual_norm_px"] = float(np.linalg.norm(r))
+            entry["outlier"] = w.index in outlier_windows
+        windows.append(entry)
+    position = cam.pose.position_world
+    position_wgs84 = enu_to_geodetic(position[None], report.origin)[0]
+    std_calib = {name: float(np.sqrt(max(report.result.camera.covariance[i, i], 0.0))) for i, name in enumerate(PARAM_NAMES)}
+    std_measured = {name: float(np.sqrt(max(report.covariance_measured[i, i], 0.0))) for i, name in enumerate(PARAM_NAMES)}
+
+    def unc(u):
+        if u is None:
+            return None
+        d = u.to_dict()
+        return d
+
+    mc, lin = report.monte_carlo, report.linearised
+    headline = mc if mc is not None else lin
+    out = {
+        "tool": {"name": "dronecal-field", "version": __version__, "stage": "calibrate"},
+        "run": {
+            "path": str(report.run_path),
+            "truncated": report.truncated,
+            "reader_warnings": report.run_warnings,
+            "format_version": md.format_version,
+            "image_size": [md.width, md.height],
+            "marker": {
+                "kind": md.marker.kind,
+                "dictionary": md.marker.dictionary,
+                "id": md.marker.marker_id,
+                "size_m": md.marker.size_m,
+                "offset_frd_m": list(md.marker.offset_frd_m),
+            },
+            "camera_latency_s_declared": md.camera_latency_s,
+        },
+        "frame": {
+            "enu_origin": {"lat_deg": report.origin.lat_deg, "lon_deg": report.origin.lon_deg, "h_m": report.origin.h_m},
+            "enu_origin_source": report.origin_source,
+            "altitude_datum": report.altitude_datum,
+            "note": "world frame is ENU at enu_origin; heights are metres above the stated datum",
+        },
+        "gnss": {
+            "fixes_used": int(len(report.track.t_ns)),
+            "fix_types": {t or "unknown": int(sum(1 for x in report.track.fix_types if x == t)) for t in sorted(set(report.track.fix_types), key=str)},
+            "min_fix": report.options.min_fix,
+            "attitude": report.attitude_source,
+        },
+        "hover_windows": {
+            "source": report.window_source,
+            "count": len(report.windows),
+            "used": len(used),
+            "dropped": [{"index": p.window.index, "seq": p.window.seq, "reason": p.dropped} for p in report.points if not p.used],
+            "windows": windows,
+        },
+        "frames": report.frames.to_dict(),
+        "time_offset": report.offset.to_dict(),
+        "calibration": {
+            "model": res.model.name,
+            "model_reason": report.model_reason,
+            "free_parameters": list(res.model.free_names()),
+            "loss": res.loss,
+            "loss_scale_px": report.options.loss_scale_px,
+            "n_points": len(used),
+            "rms_px": res.rms_px,
+            "residual_sigma_px": res.residual_sigma_px,
+            "iterations": res.iterations,
+            "outliers": [
+                {"window": used[i].window.index, "seq": used[i].window.seq, "residual_norm_px": float(np.linalg.norm(res.residuals_px[i]))}
+                for i in res.outliers
+            ],
+            "camera": {
+                "image_size": [cam.width, cam.height],
+                "fx": cam.intrinsics.fx, "fy": cam.intrinsics.fy, "cx": cam.intrinsics.cx, "cy": cam.intrinsics.cy,
+                "distortion": {k: float(v) for k, v in zip(("k1", "k2", "p1", "p2", "k3"), cam.distortion.as_array())},
+                "rotation_world_to_camera": cam.pose.R_cam_from_world,
+                "camera_position_enu_m": position,
+                "camera_position_wgs84": {"lat_deg": position_wgs84[0], "lon_deg": position_wgs84[1], "h_m": position_wgs84[2], "datum": report.altitude_datum},
+            },
+            "parameter_std_from_residuals": std_calib,
+            "parameter_std_from_measured_sigmas": std_measured,
+        },
+        "uncertainty": {
+            "sigmas": {
+                "sigma_3d_m_median": np.median(np.array([p.sigma_enu_m for p in used]), axis=0),
+                "sigma_2d_px_median": float(np.median([p.sigma_px for p in used])),
+            },
+            "monte_carlo": unc(mc),
+            "linearised": unc(lin),
+            "image_map": report.maps.summary(),
+            "at_15m": None if headline is None else {
+                "method": headline.method,
+                "ground_position_error_cm": headline.ground_error_15m_cm,
+                "ground_position_error_cm_p95": headline.ground_error_15m_cm_p95,
+                "speed_error_kmh_at_50kmh": headline.speed_error_15m_kmh,
+                "speed_error_kmh_p95": headline.speed_error_15m_kmh_p95,
+            },
+        },
+        "ground_homography": {"H_image_from_ground": report.homography, "pixels": "undistorted"},
+        "timings_s": report.timings_s,
+        "warnings": report.warnings,
+        "options": {
+            "min_fix": report.options.min_fix, "model": report.options.model, "loss": report.options.loss,
+            "trials": report.options.trials, "seed": report.options.seed, "hover_source": report.options.hover_source,
+            "settle_s": report.options.points.settle_s, "tail_s": report.options.points.tail_s,
+            "max_offset_s": report.options.max_offset_s,
+            "max_frames_per_window": report.options.sampling.max_frames_per_window,
+        },
+        "outputs": dict(report.outputs),
+    }
+    return _clean(out)
+
+
+# --------------------------------------------------------------------------
+# YAML files
+
+
+def _yaml_matrix(name: str, m: np.ndarray, indent: str = "") -> str:
+    m = np.atleast_2d(np.asarray(m, float))
+    data = ", ".join(repr(float(v)) for v in m.ravel())
+    return f"{indent}{name}:\n{indent}  rows: {m.shape[0]}\n{indent}  cols: {m.shape[1]}\n{indent}  data: [{data}]\n"
+
+
+def camera_info_yaml(camera, camera_name: str = "dronecal") -> str:
+    """ROS ``sensor_msgs/CameraInfo`` YAML (camera_calibration_parsers' format), plumb_bob model."""
+    K = camera.intrinsics.matrix
+    P = np.c_[K, np.zeros(3)]
+    return (
+        f"image_width: {int(camera.width)}\n"
+        f"image_height: {int(camera.height)}\n"
+        f"camera_name: {camera_name}\n"
+        + _yaml_matrix("camera_matrix", K)
+        + "distortion_model: plumb_bob\n"
+        + _yaml_matrix("distortion_coefficients", camera.distortion.as_array()[None])
+        + _yaml_matrix("rectification_matrix", np.eye(3))
+        + _yaml_matrix("projection_matrix", P)
+    )
+
+
+def homography_yaml(report) -> str:
+    """ground_homography.yaml: H (image from ground z = 0 ENU), its inverse, and how to use them."""
+    H = np.asarray(report.homography, float)
+    Hinv = np.linalg.inv(H)
+    Hinv /= Hinv[2, 2]
+    o = report.origin
+    cam = report.camera
+    return (
+        "# Image <-> ground plane z = 0 of the ENU frame at enu_origin (metres).\n"
+        "# [u, v, 1] ~ H_image_from_ground [E, N, 1] for UNDISTORTED pixels: undistort a measured\n"
+        "# pixel with camera_matrix and distortion_coefficients first (cv2.undistortPoints(..., P=K)).\n"
+        "# Speed: map two image positions dt apart to the ground, distance / dt.\n"
+        f"enu_origin: [{o.lat_deg!r}, {o.lon_deg!r}, {o.h_m!r}]\n"
+        f"altitude_datum: {report.altitude_datum}\n"
+        "ground_z_m: 0.0\n"
+        f"image_width: {cam.width}\nimage_height: {cam.height}\n"
+        + _yaml_matrix("H_image_from_ground", H)
+        + _yaml_matrix("H_ground_from_image", Hinv)
+        + _yaml_matrix("camera_matrix", cam.intrinsics.matrix)
+        + _yaml_matrix("distortion_coefficients", cam.distortion.as_array()[None])
+    )
+
+
+def detections_csv(report) -> str:
+    """detections.csv: one row per detection, with its window and whether it fed the point."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(["timestamp_ns", "capture_ns", "window", "seq", "kind", "u_px", "v_px", "size_px", "in_settled_part", "window_used"])
+    windows = {p.window.index: p for p in report.points}
+    offset = report.offset.offset_ns
+    for d, g in zip(report.detections, report.detection_groups):
+        p = windows.get(g)
+        capture = d.timestamp_ns - offset
+        settled = bool(p is not None and p.stable_ns[0] <= capture <= p.stable_ns[1])
+        writer.writerow([
+            d.timestamp_ns, capture, g, "" if p is None or p.window.seq is None else p.window.seq, d.kind,
+            f"{d.u_px:.4f}", f"{d.v_px:.4f}", f"{d.size_px:.2f}", int(settled), int(bool(p is not None and p.used)),
+        ])
+    return buf.getvalue()
+
+
+# --------------------------------------------------------------------------
+# report.html
+
+
+def _img(png: bytes | None, alt: str) -> str:
+    if png is None:
+        return ""
+    return f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode()}"><figcaption>{html.escape(alt)}</figcaption></figure>'
+
+
+def _table(rows: list[tuple[str, str]]) -> str:
+    return "<table>" + "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>" for k, v in rows) + "</table>"
+
+
+def _fmt(v, spec: str = ".3g", unit: str = "") -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "n/a"
+    return f"{v:{spec}}{unit}"
+
+
+def report_html(report, data: dict) -> str:
+    """A self-contained HTML page: summary tables and the figures embedded as base64 PNG."""
+    from dronecal_field.pipeline import figures
+
+    cam = report.camera
+    cal = data["calibration"]
+    unc = data["uncertainty"]
+    mc = unc["monte_carlo"] or {}
+    at15 = unc["at_15m"] or {}
+    off = data["time_offset"]
+    summary = _table([
+        ("run", f"{report.run_path.name}{' (cut off)' if report.truncated else ''}"),
+        ("model", f"{cal['model']} ({cal['model_reason']})"),
+        ("points used / windows", f"{len(report.used_points)} / {len(report.windows)} (from {report.window_source})"),
+        ("RMS reprojection", _fmt(cal["rms_px"], ".3f", " px")),
+        ("fx, fy", f"{cam.intrinsics.fx:.2f}, {cam.intrinsics.fy:.2f} px"),
+        ("cx, cy", f"{cam.intrinsics.cx:.2f}, {cam.intrinsics.cy:.2f} px"),
+        ("distortion k1 k2 p1 p2 k3", " ".join(f"{v:.4g}" for v in cam.distortion.as_array())),
+        ("camera position ENU", " ".join(f"{v:.3f}" for v in cam.pose.position_world) + " m"),
+        ("ENU origin", f"{report.origin.lat_deg:.8f}, {report.origin.lon_deg:.8f}, {report.origin.h_m:.3f} m ({report.altitude_datum}; {report.origin_source})"),
+        ("camera time offset", f"{_fmt(off['offset_s'], '+.3f', ' s')} ± {_fmt(off['std_s'], '.3f', ' s')} ({off['method']})"),
+        ("MC RMS mean / p95", f"{_fmt(mc.get('rms_mean'), '.3f')} / {_fmt((mc.get('rms_percentiles') or {}).get('95'), '.3f')} px ({mc.get('trials', 0)} trials)"),
+        ("ground position error at 15 m", f"{_fmt(at15.get('ground_position_error_cm'), '.2f', ' cm')} RMS, p95 {_fmt(at15.get('ground_position_error_cm_p95'), '.2f', ' cm')}"),
+        ("speed error at 15 m (50 km/h)", f"{_fmt(at15.get('speed_error_kmh_at_50kmh'), '.3f', ' km/h')} RMS, p95 {_fmt(at15.get('speed_error_kmh_p95'), '.3f', ' km/h')}"),
+        ("frames decoded / read", f"{report.frames.frames_decoded} / {report.frames.frames_read} ({report.frames.frames_corrupt} corrupt)"),
+    ])
+    std_rows = [(k, f"{cal['parameter_std_from_measured_sigmas'][k]:.4g}") for k in PARAM_NAMES[:9] if cal["parameter_std_from_measured_sigmas"][k] > 0]
+    mc_std = mc.get("param_std") or {}
+    mc_rows = [(k, f"{v:.4g}") for k, v in mc_std.items() if v is not None]
+    dropped = "".join(
+        f"<tr><td>{p.window.index}</td><td>{'' if p.window.seq is None else p.window.seq}</td><td>{html.escape(p.dropped)}</td></tr>"
+        for p in report.points if not p.used
+    ) or "<tr><td colspan=3>none</td></tr>"
+    warnings = "".join(f"<li>{html.escape(w)}</li>" for w in report.warnings) or "<li>none</li>"
+    figs = [
+        _img(figures.residuals_figure(report, getattr(report, "background", None)), "detected waypoints and residual vectors (scaled up)"),
+        _img(figures.coverage_figure(report), "coverage of the image"),
+        _img(figures.monte_carlo_figure(report), "Monte-Carlo RMS reprojection error"),
+        _img(figures.uncertainty_map_figure(report), "uncertainty over the image"),
+        _img(figures.track_figure(report), "GNSS track over the hover windows"),
+    ]
+    style = (
+        "body{font-family:sans-serif;max-width:1100px;margin:1em auto;color:#222}"
+        "table{border-collapse:collapse;margin:.5em 0}th,td{border:1px solid #ccc;padding:2px 8px;text-align:left;font-size:14px}"
+        "th{background:#f4f4f4}img{max-width:100%}figure{margin:1em 0}figcaption{font-size:13px;color:#555}"
+    )
+    return (
+        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>dronecal-field calibration report</title>"
+        f"<style>{style}</style></head><body>"
+        f"<h1>Calibration of {html.escape(report.run_path.name)}</h1>{summary}"
+        f"<h2>Warnings</h2><ul>{warnings}</ul>"
+        f"<h2>Dropped hover windows</h2><table><tr><th>window</th><th>seq</th><th>reason</th></tr>{dropped}</table>"
+        "<h2>Parameter standard deviations</h2><div style='display:flex;gap:2em'>"
+        f"<div><h3>linearised, measured sigmas</h3>{_table(std_rows)}</div>"
+        f"<div><h3>Monte-Carlo</h3>{_table(mc_rows)}</div></div>"
+        "<h2>Figures</h2>" + "".join(figs)
+        + "<p style='font-size:12px;color:#777'>All numbers are in report.json.</p></body></html>"
+    )
+
+
+# --------------------------------------------------------------------------
+
+
+def write_outputs(report, out_dir: Path) -> dict[str, str]:
+    """Write every output file into ``out_dir`` (created); returns {kind: path}."""
+    from dronecal_field.camerafile import write_camera
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    outputs = {
+        "camera": str(out_dir / CAMERA_FILE),
+        "camera_info": str(out_dir / CAMERA_INFO_FILE),
+        "ground_homography": str(out_dir / HOMOGRAPHY_FILE),
+        "detections": str(out_dir / DETECTIONS_CSV),
+        "report_json": str(out_dir / REPORT_JSON),
+        "report_html": str(out_dir / REPORT_HTML),
+    }
+    o = report.origin
+    write_camera(
+        out_dir / CAMERA_FILE,
+        report.camera.with_(covariance=report.covariance_measured),
+        comment=(
+            f"dronecal-field calibrate {report.run_path.name}: model {report.result.model.name}, "
+            f"RMS {report.result.rms_px:.3f} px over {len(report.used_points)} waypoints\n"
+            f"world frame ENU at enu_origin {o.lat_deg:.8f} {o.lon_deg:.8f} {o.h_m:.3f} m ({report.altitude_datum} heights)\n"
+            "parameter_covariance: linearised, from the measured per-waypoint sigmas"
+        ),
+    )
+    _atomic_write(out_dir / CAMERA_INFO_FILE, camera_info_yaml(report.camera))
+    _atomic_write(out_dir / HOMOGRAPHY_FILE, homography_yaml(report))
+    _atomic_write(out_dir / DETECTIONS_CSV, detections_csv(report))
+    if report.options.annotate:
+        from dronecal_field.pipeline.annotate import write_annotated_copy
+
+        annotated = out_dir / (report.run_path.stem + ANNOTATED_SUFFIX)
+        write_annotated_copy(report.run_path, annotated, report)
+        outputs["annotated_run"] = str(annotated)
+    report.outputs.update(outputs)
+    data = report_dict(report)
+    _atomic_write(out_dir / REPORT_JSON, json.dumps(data, indent=1, allow_nan=False))
+    _atomic_write(out_dir / REPORT_HTML, report_html(report, data))
+    return outputs

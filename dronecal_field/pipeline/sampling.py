@@ -1,0 +1,130 @@
+"""Which frames to decode: never every frame of a long run.
+
+Decoding and detecting are the offline stage's cost. Frames are read in one
+streaming pass over the hover windows only, and of those this selector
+decodes:
+
+- a few evenly spaced frames inside each window, widened by the largest
+  camera offset (the offset is not known yet), which give the points; and
+- every frame around a dozen transitions between consecutive windows, where
+  the marker moves and the time alignment finds its signal. A transition is
+  taken only once the window before it has shown the marker, so the frames
+  spent there are not wasted on a hold the camera cannot see.
+
+Decisions use only what was already seen, so the pass stays single and the
+memory bounded. Times are frame stamps (camera clock), ns.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from dronecal_field.pipeline.hover import HoverWindow
+
+
+@dataclass(frozen=True)
+class SamplingOptions:
+    """How many frames to spend where."""
+
+    max_frames_per_window: int = 24
+    margin_s: float = 1.2  # each side of a window: covers a camera offset up to 1 s
+    dense_s: float = 2.0  # decode every frame this long into each transition
+    dense_period_s: float = 1.0 / 30.0  # but no faster than this
+    max_transitions: int = 12
+
+
+@dataclass
+class _Zone:
+    start_ns: int
+    end_ns: int
+    period_ns: int
+    group: int
+    dense: bool
+    last_ns: int | None = None
+
+
+class FrameSelector:
+    """Online decision, per frame stamp, whether to decode it (and its group for the jackknife).
+
+    Use: pass :meth:`read_windows` to ``Run.iter_frames``; for each frame call
+    :meth:`wants`; after detecting, call :meth:`record` with the outcome.
+    """
+
+    def __init__(self, windows: list[HoverWindow], options: SamplingOptions = SamplingOptions()) -> None:
+        self.options = options
+        self.windows = sorted(windows, key=lambda w: w.start_ns)
+        m = int(options.margin_s * 1e9)
+        self._zones: list[_Zone] = []
+        for k, w in enumerate(self.windows):
+            a, b = w.start_ns - m, w.end_ns + m
+            period = max(1, (b - a) // max(1, options.max_frames_per_window))
+            self._zones.append(_Zone(a, b, int(period), group=k, dense=False))
+        self._detected = [0] * len(self.windows)
+        n_trans = max(0, len(self.windows) - 1)
+        self._stride = max(1, -(-n_trans // max(1, options.max_transitions)))  # ceil
+        self._next_allowed = 0
+        self._decided: set[int] = set()
+        self.transitions_taken: list[int] = []
+        self.n_decoded = 0
+
+    def read_windows(self) -> list[tuple[int, int]]:
+        """[start_ns, end_ns] frame-stamp ranges to read: every window with its margin and transitions."""
+        m = int(self.options.margin_s * 1e9)
+        d = int(self.options.dense_s * 1e9)
+        out = []
+        for k, w in enumerate(self.windows):
+            out.append((w.start_ns - m - d, w.end_ns + m + d))
+        return out
+
+    def _transition_zones(self, k: int) -> list[_Zone]:
+        """Dense zones of the transition after window k (to window k + 1)."""
+        o = self.options
+        m, d = int(o.margin_s * 1e9), int(o.dense_s * 1e9)
+        period = max(1, int(o.dense_period_s * 1e9))
+        a = self.windows[k].end_ns - m
+        b = self.windows[k + 1].start_ns + m
+        if b - a <= 2 * (d + m):
+            return [_Zone(a, b, period, group=k, dense=True)]
+        return [
+            _Zone(a, self.windows[k].end_ns + d, period, group=k, dense=True),
+            _Zone(self.windows[k + 1].start_ns - d, b, period, group=k, dense=True),
+        ]
+
+    def _maybe_take_transitions(self, t_ns: int) -> None:
+        m = int(self.options.margin_s * 1e9)
+        for k in range(len(self.windows) - 1):
+            if k in self._decided or t_ns < self.windows[k].end_ns - m:
+                continue
+            self._decided.add(k)
+            if len(self.transitions_taken) >= self.options.max_transitions or k < self._next_allowed:
+                continue
+            if self._detected[k] == 0:
+                continue  # the camera did not see this hold: its transition shows nothing either
+            self.transitions_taken.append(k)
+            self._next_allowed = k + self._stride
+            self._zones.extend(self._transition_zones(k))
+
+    def wants(self, t_ns: int) -> tuple[bool, int | None]:
+        """(decode?, group) for a frame stamped ``t_ns``; frames arrive in time order."""
+        self._maybe_take_transitions(t_ns)
+        # Frames come in time order: zones that ended are done.
+        self._zones = [z for z in self._zones if z.end_ns >= t_ns]
+        best: _Zone | None = None
+        for z in self._zones:
+            if z.start_ns <= t_ns <= z.end_ns:
+                if z.dense:
+                    best = z
+                    break
+                best = best or z
+        if best is None:
+            return False, None
+        if best.last_ns is not None and t_ns - best.last_ns < best.period_ns:
+            return False, best.group
+        best.last_ns = t_ns
+        self.n_decoded += 1
+        return True, best.group
+
+    def record(self, group: int | None, detected: bool) -> None:
+        """Feed back whether a decoded frame of ``group`` showed the marker."""
+        if detected and group is not None and 0 <= group < len(self._detected):
+            self._detected[group] += 1

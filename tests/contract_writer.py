@@ -1,0 +1,505 @@
+"""An INDEPENDENT writer of run files, and the synthetic flights it writes.
+
+The offline stage must accept every file that follows
+shared/contracts/run-format.md, whoever wrote it. So the tests do not write
+runs with our recorder's RunWriter: this module writes them from the contract
+text alone, with the raw ``mcap.writer.Writer`` and the message classes of
+``foxglove_schemas_protobuf``.
+
+It also makes the flights: a seeded, truth-known scene (a camera on a pole, a
+drone holding at waypoints with drift, RTK noise, a marker rendered into JPEG
+frames through the true camera with a homography). The scene uses its own
+geometry (scipy's Euler rotations) rather than the pipeline's, so a lever-arm
+or frame mistake in the pipeline shows up as an error, not as agreement.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from dronecal_field.core.camera import Camera, CameraPose, Distortion, Intrinsics, look_rotation
+from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic
+
+T0_NS = 1_700_000_000_000_000_000  # run clock start (UTC ns)
+ORIGIN = EnuOrigin(lat_deg=-35.363261, lon_deg=149.165230, h_m=603.0)
+
+
+# --------------------------------------------------------------------------
+# Scene
+
+
+def pole_camera(
+    width: int = 640,
+    height: int = 480,
+    f_px: float = 520.0,
+    position_enu: tuple[float, float, float] = (0.0, 0.0, 4.0),
+    azimuth_deg: float = 0.0,
+    tilt_deg: float = 15.0,
+    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0),
+    principal_offset_px: tuple[float, float] = (6.0, -4.0),
+) -> Camera:
+    """A fixed camera on a pole looking along ``azimuth_deg`` (from north, clockwise), tilted down."""
+    a, t = np.radians(azimuth_deg), np.radians(tilt_deg)
+    forward = np.array([np.sin(a) * np.cos(t), np.cos(a) * np.cos(t), -np.sin(t)])
+    R = look_rotation(forward)
+    return Camera(
+        intrinsics=Intrinsics(
+            fx=f_px, fy=f_px * 1.002,
+            cx=(width - 1) / 2 + principal_offset_px[0], cy=(height - 1) / 2 + principal_offset_px[1],
+            width=width, height=height,
+        ),
+        distortion=Distortion.from_array(np.array(distortion)),
+        pose=CameraPose.from_position(R, np.array(position_enu, float)),
+        enu_origin=tuple(ORIGIN.as_list()),
+    )
+
+
+def grid_waypoints(
+    east_m: tuple[float, ...] = (-2.5, 0.0, 2.5),
+    north_m: tuple[float, ...] = (6.0, 8.5, 11.0),
+    up_m: tuple[float, ...] = (1.5, 3.5),
+) -> np.ndarray:
+    """(M, 3) ENU antenna positions, flown boustrophedon per height."""
+    points = []
+    for k, z in enumerate(up_m):
+        rows = north_m if k % 2 == 0 else north_m[::-1]
+        for j, y in enumerate(rows):
+            cols = east_m if (j + k) % 2 == 0 else east_m[::-1]
+            points += [(x, y, z) for x in cols]
+    return np.array(points, float)
+
+
+@dataclass
+class Flight:
+    """Truth of one synthetic flight, sampled densely on the run clock."""
+
+    t_ns: np.ndarray  # (T,) int64
+    antenna_enu: np.ndarray  # (T, 3) metres
+    rpy_rad: np.ndarray  # (T, 3) roll, pitch, yaw (yaw from north, clockwise)
+    holds: list[tuple[int, int, int]]  # (start_ns, end_ns, mission seq)
+    waypoints_enu: np.ndarray  # (M, 3)
+    offset_frd_m: np.ndarray  # (3,)
+
+    def at(self, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Antenna ENU (N, 3) and roll/pitch/yaw (N, 3) interpolated at ``t_ns`` (N,)."""
+        t = (np.asarray(t_ns, np.int64) - self.t_ns[0]).astype(float)
+        tt = (self.t_ns - self.t_ns[0]).astype(float)
+        pos = np.stack([np.interp(t, tt, self.antenna_enu[:, i]) for i in range(3)], -1)
+        yaw = np.unwrap(self.rpy_rad[:, 2])
+        rpy = np.stack([np.interp(t, tt, self.rpy_rad[:, 0]), np.interp(t, tt, self.rpy_rad[:, 1]), np.interp(t, tt, yaw)], -1)
+        return pos, rpy
+
+    def marker_centre(self, t_ns: np.ndarray) -> np.ndarray:
+        """(N, 3) ENU marker centre: antenna + R_enu_from_body(attitude) @ offset_frd."""
+        pos, rpy = self.at(t_ns)
+        return pos + np.einsum("nij,j->ni", enu_from_frd(rpy), self.offset_frd_m)
+
+
+def enu_from_frd(rpy_rad: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) body FRD -> ENU rotations from roll, pitch, yaw (N, 3), ZYX aerospace order."""
+    ned_from_frd = Rotation.from_euler("ZYX", np.asarray(rpy_rad)[:, ::-1]).as_matrix()
+    enu_from_ned = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    return enu_from_ned @ ned_from_frd
+
+
+def make_flight(
+    camera: Camera,
+    waypoints_enu: np.ndarray,
+    hold_s: float = 3.0,
+    move_s: float = 2.0,
+    drift_m: float = 0.02,
+    offset_frd_m: tuple[float, float, float] = (0.25, 0.0, 0.10),
+    tilt_rad: float = 0.02,
+    first_seq: int = 4,
+    seed: int = 0,
+    rate_hz: float = 50.0,
+) -> Flight:
+    """A drone that takes off at the origin, holds at each waypoint with drift, nose towards the camera.
+
+    Moves between holds follow a smooth (cosine) speed profile of ``move_s``;
+    during a hold the antenna wanders by a low-passed random walk of about
+    ``drift_m`` (std per axis) around the waypoint, and the body tilts by
+    ``tilt_rad`` of random roll and pitch.
+    """
+    rng = np.random.default_rng(seed)
+    dt = 1.0 / rate_hz
+    start = np.array([0.0, 2.0, 0.0])
+    segments_t, segments_p = [], []
+    holds = []
+    t = 0.0
+    # 2 s on the ground, then climb to the first waypoint.
+    prev = start
+    n = int(round(2.0 / dt))
+    segments_t.append(t + dt * np.arange(n))
+    segments_p.append(np.repeat(prev[None], n, 0))
+    t += n * dt
+    for k, wp in enumerate(np.asarray(waypoints_enu, float)):
+        dur = move_s if k else 2 * move_s
+        n = int(round(dur / dt))
+        s = 0.5 - 0.5 * np.cos(np.pi * np.arange(n) / n)
+        segments_t.append(t + dt * np.arange(n))
+        segments_p.append(prev + s[:, None] * (wp - prev))
+        t += n * dt
+        n = int(round(hold_s / dt))
+        walk = np.cumsum(rng.normal(size=(n, 3)), 0)
+        walk = cv2.GaussianBlur(walk, (1, 0), sigmaX=0, sigmaY=rate_hz * 0.3)
+        walk -= walk.mean(0)
+        walk *= drift_m / max(walk.std(), 1e-9)
+        walk[:, 2] *= 0.5
+        # Blend from the arrival point so the path is continuous.
+        walk *= np.clip(np.arange(n) / (0.3 * rate_hz), 0, 1)[:, None]
+        segments_t.append(t + dt * np.arange(n))
+        segments_p.append(wp + walk)
+        holds.append((T0_NS + int(round(t * 1e9)), T0_NS + int(round((t + n * dt) * 1e9)), first_seq + k))
+        t += n * dt
+        prev = segments_p[-1][-1]
+    n = int(round(3.0 / dt))
+    segments_t.append(t + dt * np.arange(n))
+    segments_p.append(prev + (0.5 - 0.5 * np.cos(np.pi * np.arange(n) / n))[:, None] * (start - prev))
+    tt = np.concatenate(segments_t)
+    pos = np.concatenate(segments_p)
+    cam = camera.pose.position_world
+    yaw = np.arctan2(cam[0] - pos[:, 0], cam[1] - pos[:, 1])  # bearing to the camera, from north
+    yaw = cv2.GaussianBlur(np.unwrap(yaw)[:, None], (1, 0), sigmaX=0, sigmaY=rate_hz * 0.2).ravel()
+    roll = cv2.GaussianBlur(rng.normal(0, 1, (len(tt), 1)), (1, 0), sigmaX=0, sigmaY=rate_hz * 0.5).ravel()
+    pitch = cv2.GaussianBlur(rng.normal(0, 1, (len(tt), 1)), (1, 0), sigmaX=0, sigmaY=rate_hz * 0.5).ravel()
+    roll *= tilt_rad / max(roll.std(), 1e-12)
+    pitch *= tilt_rad / max(pitch.std(), 1e-12)
+    rpy = np.stack([roll, pitch, (yaw + np.pi) % (2 * np.pi) - np.pi], -1)
+    return Flight(
+        t_ns=T0_NS + np.round(tt * 1e9).astype(np.int64),
+        antenna_enu=pos,
+        rpy_rad=rpy,
+        holds=holds,
+        waypoints_enu=np.asarray(waypoints_enu, float),
+        offset_frd_m=np.array(offset_frd_m, float),
+    )
+
+
+# --------------------------------------------------------------------------
+# Rendering
+
+
+@dataclass
+class MarkerLook:
+    """The physical marker: ArUco (dictionary, id, black-square side) or an LED."""
+
+    kind: str = "aruco"
+    dictionary: str = "DICT_4X4_50"
+    marker_id: int = 7
+    size_m: float = 0.4
+    led_radius_m: float = 0.03
+
+
+def _background(width: int, height: int, seed: int = 1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    noise = cv2.GaussianBlur(rng.normal(0, 1, (height, width)).astype(np.float32), (0, 0), 6)
+    noise = (noise - noise.min()) / (np.ptp(noise) + 1e-9)
+    ramp = np.linspace(0.35, 0.6, height, dtype=np.float32)[:, None]
+    return np.clip(255 * (0.25 * noise + ramp), 0, 255).astype(np.uint8)
+
+
+@dataclass
+class Renderer:
+    """Renders the marker into grey frames through a (distorted) camera."""
+
+    camera: Camera
+    flight: Flight
+    look: MarkerLook = field(default_factory=MarkerLook)
+    dark: bool = False
+
+    def __post_init__(self) -> None:
+        self.background = _background(self.camera.width, self.camera.height)
+        if self.dark:
+            self.background = (self.background // 6).astype(np.uint8)
+        if self.look.kind == "aruco":
+            dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.look.dictionary))
+            bits = dictionary.markerSize + 2
+            cell = 12
+            inner = cv2.aruco.generateImageMarker(dictionary, self.look.marker_id, bits * cell)
+            border = cell  # one cell of white quiet zone
+            self.texture = cv2.copyMakeBorder(inner, border, border, border, border, cv2.BORDER_CONSTANT, value=255)
+            b, s = border, bits * cell
+            # Texture coordinates of the black square's corners (pixel edges, centres at integers).
+            self.tex_square = np.array([[b - 0.5, b - 0.5], [b + s - 0.5, b - 0.5], [b + s - 0.5, b + s - 0.5], [b - 0.5, b + s - 0.5]])
+
+    def marker_corners_world(self, t_ns: int) -> np.ndarray:
+        """(4, 3) ENU corners of the black square in ArUco order (TL, TR, BR, BL seen from the front)."""
+        pos, rpy = self.flight.at(np.array([t_ns]))
+        R = enu_from_frd(rpy)[0]
+        centre = pos[0] + R @ self.flight.offset_frd_m
+        left, down = R @ np.array([0.0, -1.0, 0.0]), R @ np.array([0.0, 0.0, 1.0])
+        h = self.look.size_m / 2
+        return np.array([centre + h * (su * left + sv * down) for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+
+    def render(self, t_ns: int, visible: bool = True) -> np.ndarray:
+        """(H, W) uint8 frame at capture time ``t_ns``."""
+        image = self.background.copy()
+        if not visible:
+            return image
+        if self.look.kind == "led":
+            pos, rpy = self.flight.at(np.array([t_ns]))
+            centre = pos[0] + enu_from_frd(rpy)[0] @ self.flight.offset_frd_m
+            if self.camera.depth(centre[None])[0] <= 0:
+                return image
+            uv = self.camera.project(centre[None])[0]
+            r_px = max(1.2, self.camera.intrinsics.fx * self.look.led_radius_m / self.camera.depth(centre[None])[0])
+            ys, xs = np.mgrid[0 : image.shape[0], 0 : image.shape[1]]
+            blob = 255.0 * np.exp(-((xs - uv[0]) ** 2 + (ys - uv[1]) ** 2) / (2 * (r_px / 1.5) ** 2))
+            return np.clip(np.maximum(image.astype(float), blob), 0, 255).astype(np.uint8)
+        corners = self.marker_corners_world(t_ns)
+        if np.any(self.camera.depth(corners) <= 0):
+            return image
+        uv = self.camera.project(corners)
+        # The texture's outer corners through the homography of the square.
+        H = cv2.getPerspectiveTransform(self.tex_square.astype(np.float32), uv.astype(np.float32))
+        th, tw = self.texture.shape
+        outer = cv2.perspectiveTransform(np.array([[[-0.5, -0.5], [tw - 0.5, -0.5], [tw - 0.5, th - 0.5], [-0.5, th - 0.5]]], np.float32), H)[0]
+        x0, y0 = np.floor(outer.min(0)).astype(int) - 2
+        x1, y1 = np.ceil(outer.max(0)).astype(int) + 2
+        x0, y0 = max(x0, 0), max(y0, 0)
+        x1, y1 = min(x1, image.shape[1]), min(y1, image.shape[0])
+        if x1 <= x0 or y1 <= y0:
+            return image
+        shift = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
+        Hs = shift @ H
+        # Pre-blur the texture to the scale it lands at (no aliasing when shrinking).
+        scale = np.linalg.norm(uv[1] - uv[0]) / (self.tex_square[1, 0] - self.tex_square[0, 0])
+        tex = self.texture if scale >= 0.7 else cv2.GaussianBlur(self.texture, (0, 0), 0.45 / scale)
+        size = (x1 - x0, y1 - y0)
+        warped = cv2.warpPerspective(tex, Hs, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        mask = cv2.warpPerspective(np.full(tex.shape, 255, np.uint8), Hs, size, flags=cv2.INTER_LINEAR, borderValue=0).astype(float) / 255
+        roi = image[y0:y1, x0:x1].astype(float)
+        image[y0:y1, x0:x1] = np.clip(mask * warped + (1 - mask) * roi, 0, 255).astype(np.uint8)
+        return image
+
+    def true_centre_px(self, t_ns: np.ndarray) -> np.ndarray:
+        """(N, 2) the marker centre's true pixel at capture times ``t_ns`` (N,)."""
+        return self.camera.project(self.flight.marker_centre(np.asarray(t_ns)))
+
+
+def encode_jpeg(image: np.ndarray, quality: int = 92) -> bytes:
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    assert ok
+    return buf.tobytes()
+
+
+# --------------------------------------------------------------------------
+# The run file, from the contract text
+
+
+def _file_descriptor_set(message_class) -> bytes:
+    """Serialized FileDescriptorSet of a protobuf message class and its imports (MCAP protobuf schema)."""
+    from google.protobuf.descriptor_pb2 import FileDescriptorSet
+
+    fds = FileDescriptorSet()
+    seen: set[str] = set()
+
+    def add(fd) -> None:
+        if fd.name in seen:
+            return
+        seen.add(fd.name)
+        for dep in fd.dependencies:
+            add(dep)
+        fd.CopyToProto(fds.file.add())
+
+    add(message_class.DESCRIPTOR.file)
+    return fds.SerializeToString()
+
+
+def _stamp(msg_field, t_ns: int) -> None:
+    msg_field.seconds = int(t_ns // 1_000_000_000)
+    msg_field.nanos = int(t_ns % 1_000_000_000)
+
+
+@dataclass
+class RunSpec:
+    """What to put in a synthetic run; every flag is one way field data gets messy."""
+
+    fps: float = 10.0
+    gnss_hz: float = 5.0
+    latency_s: float = 0.0  # frames stamped this late (host arrival)
+    declared_latency: str | None = None  # camera.latency_s metadata value
+    gnss_sigma_m: tuple[float, float, float] = (0.008, 0.008, 0.012)
+    jpeg_quality: int = 92
+    with_events: bool = True
+    with_reached: bool = False
+    with_attitude: bool = True
+    dropouts: list[tuple[int, int]] = field(default_factory=list)  # (start_ns, end_ns) with no fixes
+    degraded_holds: dict[int, str] = field(default_factory=dict)  # hold index -> fix_type during it
+    hidden: list[tuple[int, int]] = field(default_factory=list)  # capture-time ranges with no marker
+    corrupt_every: int = 0  # every n-th frame is cut in half
+    omit_metadata_keys: tuple[str, ...] = ()
+    altitude_datum: str | None = None
+    site_origin: EnuOrigin | None = None
+    seed: int = 3
+    chunk_size: int = 256 * 1024
+
+
+def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook, spec: RunSpec) -> dict:
+    """Write a contract-following MCAP run of ``flight`` seen by ``camera``; returns truth for the tests.
+
+    Returns
+    -------
+    dict with ``frame_capture_ns`` (F,), ``frame_stamp_ns`` (F,), ``marker_centre_enu`` per hold
+    (list of (3,)), ``n_frames``, ``n_fixes``, ``n_corrupt``.
+    """
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+    from foxglove_schemas_protobuf.Event_pb2 import Event
+    from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
+    from mcap.writer import CompressionType, Writer
+
+    rng = np.random.default_rng(spec.seed)
+    renderer = Renderer(camera=camera, flight=flight, look=look, dark=look.kind == "led")
+    t_start, t_end = int(flight.t_ns[0]), int(flight.t_ns[-1])
+    records: list[tuple[int, str, bytes]] = []  # (log_time_ns, topic, data), sorted later
+
+    # GNSS fixes
+    n_fix = int((t_end - t_start) * 1e-9 * spec.gnss_hz)
+    fix_t = t_start + np.round(np.arange(n_fix) / spec.gnss_hz * 1e9).astype(np.int64)
+    keep = np.ones(n_fix, bool)
+    for a, b in spec.dropouts:
+        keep &= ~((fix_t >= a) & (fix_t < b))
+    fix_t = fix_t[keep]
+    pos, _ = flight.at(fix_t)
+    fix_type = np.array(["rtk_fixed"] * len(fix_t), dtype=object)
+    sigma = np.tile(np.array(spec.gnss_sigma_m, float), (len(fix_t), 1))
+    for hold_index, kind in spec.degraded_holds.items():
+        a, b, _ = flight.holds[hold_index]
+        inside = (fix_t >= a - 500_000_000) & (fix_t < b + 500_000_000)
+        fix_type[inside] = kind
+        sigma[inside] *= 25.0  # a float or DGPS fix wanders by decimetres
+    noise = rng.normal(size=pos.shape) * sigma
+    geo = enu_to_geodetic(pos + noise, ORIGIN)
+    for k, t in enumerate(fix_t):
+        msg = LocationFix()
+        _stamp(msg.timestamp, int(t))
+        msg.frame_id = "gnss"
+        msg.latitude, msg.longitude, msg.altitude = (float(v) for v in geo[k])
+        msg.position_covariance.extend(np.diag(sigma[k] ** 2).ravel().tolist())
+        msg.position_covariance_type = 2
+        kv = msg.metadata.add()
+        kv.key, kv.value = "fix_type", str(fix_type[k])
+        records.append((int(t), "/gnss/fix", msg.SerializeToString()))
+
+    # Frames: captured at capture_t, stamped latency later.
+    n_frames = int((t_end - t_start) * 1e-9 * spec.fps)
+    capture = t_start + np.round(np.arange(n_frames) / spec.fps * 1e9).astype(np.int64)
+    stamp = capture + int(round(spec.latency_s * 1e9))
+    n_corrupt = 0
+    for k in range(n_frames):
+        visible = not any(a <= capture[k] < b for a, b in spec.hidden)
+        data = encode_jpeg(renderer.render(int(capture[k]), visible=visible), spec.jpeg_quality)
+        if spec.corrupt_every and k % spec.corrupt_every == spec.corrupt_every - 1:
+            data = data[: len(data) // 2]
+            n_corrupt += 1
+        msg = CompressedImage()
+        _stamp(msg.timestamp, int(stamp[k]))
+        msg.frame_id = "camera"
+        msg.format = "jpeg"
+        msg.data = data
+        records.append((int(stamp[k]), "/camera/image", msg.SerializeToString()))
+
+    # Hover events, MISSION_ITEM_REACHED (at the END of a hold), attitude.
+    if spec.with_events:
+        for a, b, seq in flight.holds:
+            msg = Event()
+            _stamp(msg.start_time, a)
+            _stamp(msg.end_time, b)
+            for key, value in (("type", "hover"), ("seq", str(seq)), ("hold_s", f"{(b - a) * 1e-9:.3f}")):
+                kv = msg.metadata.add()
+                kv.key, kv.value = key, value
+            records.append((b, "/events", msg.SerializeToString()))
+    if spec.with_reached:
+        for a, b, seq in flight.holds:
+            fields = {"seq": int(seq), "_time_unix_ns": int(b)}
+            records.append((b, "/mavlink/MISSION_ITEM_REACHED", json.dumps(fields).encode()))
+    if spec.with_attitude:
+        att_t = np.arange(t_start, t_end, 100_000_000, dtype=np.int64)
+        _, rpy = flight.at(att_t)
+        for k, t in enumerate(att_t):
+            yaw = (rpy[k, 2] + np.pi) % (2 * np.pi) - np.pi
+            fields = {
+                "time_boot_ms": int((t - t_start) // 1_000_000), "roll": float(rpy[k, 0]), "pitch": float(rpy[k, 1]),
+                "yaw": float(yaw), "rollspeed": 0.0, "pitchspeed": 0.0, "yawspeed": 0.0, "_time_unix_ns": int(t),
+            }
+            records.append((int(t), "/mavlink/ATTITUDE", json.dumps(fields).encode()))
+
+    records.sort(key=lambda r: r[0])
+    metadata = {
+        "format_version": "1",
+        "camera.width": str(camera.width),
+        "camera.height": str(camera.height),
+        "marker.kind": look.kind,
+        "marker.offset_frd_m": ",".join(f"{v:.4f}" for v in flight.offset_frd_m),
+    }
+    if look.kind == "aruco":
+        metadata.update({"marker.dictionary": look.dictionary, "marker.id": str(look.marker_id), "marker.size_m": f"{look.size_m:.4f}"})
+    if spec.declared_latency is not None:
+        metadata["camera.latency_s"] = spec.declared_latency
+    if spec.altitude_datum is not None:
+        metadata["gnss.altitude_datum"] = spec.altitude_datum
+    for key in spec.omit_metadata_keys:
+        metadata.pop(key, None)
+
+    with open(path, "wb") as stream:
+        writer = Writer(stream, chunk_size=spec.chunk_size, compression=CompressionType.NONE)
+        writer.start(profile="", library="dronecal-tests-contract-writer")
+        schema_ids = {
+            "foxglove.CompressedImage": writer.register_schema("foxglove.CompressedImage", "protobuf", _file_descriptor_set(CompressedImage)),
+            "foxglove.LocationFix": writer.register_schema("foxglove.LocationFix", "protobuf", _file_descriptor_set(LocationFix)),
+            "foxglove.Event": writer.register_schema("foxglove.Event", "protobuf", _file_descriptor_set(Event)),
+        }
+        channels: dict[str, int] = {
+            "/camera/image": writer.register_channel("/camera/image", "protobuf", schema_ids["foxglove.CompressedImage"]),
+            "/gnss/fix": writer.register_channel("/gnss/fix", "protobuf", schema_ids["foxglove.LocationFix"]),
+        }
+        if spec.with_events:
+            channels["/events"] = writer.register_channel("/events", "protobuf", schema_ids["foxglove.Event"])
+        for name in ("MISSION_ITEM_REACHED", "ATTITUDE"):
+            topic = f"/mavlink/{name}"
+            if any(r[1] == topic for r in records):
+                sid = writer.register_schema(f"mavlink.{name}", "jsonschema", b'{"type": "object"}')
+                channels[topic] = writer.register_channel(topic, "json", sid)
+        writer.add_metadata("dronecal.run", metadata)
+        if spec.site_origin is not None:
+            o = spec.site_origin
+            writer.add_metadata("dronecal.site", {"origin_lat": repr(o.lat_deg), "origin_lon": repr(o.lon_deg), "origin_h": repr(o.h_m)})
+        sequence: dict[int, int] = {}
+        for t, topic, data in records:
+            cid = channels[topic]
+            sequence[cid] = sequence.get(cid, 0) + 1
+            writer.add_message(channel_id=cid, log_time=int(t), data=data, publish_time=int(t), sequence=sequence[cid])
+        writer.finish()
+
+    centres = [flight.marker_centre(np.array([(a + b) // 2]))[0] for a, b, _ in flight.holds]
+    return {
+        "frame_capture_ns": capture,
+        "frame_stamp_ns": stamp,
+        "marker_centre_enu": centres,
+        "n_frames": n_frames,
+        "n_fixes": len(fix_t),
+        "n_corrupt": n_corrupt,
+        "renderer": renderer,
+    }
+
+
+def truncate(path: str | Path, fraction: float) -> Path:
+    """Cut a file to ``fraction`` of its bytes in place (a recorder killed mid-write)."""
+    path = Path(path)
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * fraction)])
+    return path
+
+
+def iter_detection_frames(renderer: Renderer, capture_ns: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
+    """(capture_ns, grey image) for each time, for detector tests without a file."""
+    for t in capture_ns:
+        yield int(t), renderer.render(int(t))
