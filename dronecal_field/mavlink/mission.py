@@ -23,7 +23,7 @@ from typing import Any
 from dronecal_field.errors import LinkError, MissionRejectedError
 from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink.link import MavLink
-from dronecal_field.mavlink.missionfile import GLOBAL_FRAMES, MissionItem, compare_readback, wire_frame
+from dronecal_field.mavlink.missionfile import GLOBAL_FRAMES, MissionItem, compare_readback, storage_changes, wire_frame
 
 _UPLOAD_TYPES = frozenset({"MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"})
 _DOWNLOAD_TYPES = frozenset({"MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_ACK"})
@@ -47,6 +47,9 @@ class UploadReport:
         Wall seconds from the first MISSION_COUNT to the verified read-back.
     readback : tuple of MissionItem
         The mission as the vehicle holds it.
+    storage_changes : tuple of str
+        Where the vehicle stores an item differently from the file, as
+        ArduCopter is known to (e.g. NAV_WAYPOINT yaw dropped); verified, not errors.
     """
 
     items: int
@@ -55,6 +58,7 @@ class UploadReport:
     no_space_retries: int
     duration_s: float
     readback: tuple[MissionItem, ...]
+    storage_changes: tuple[str, ...] = ()
 
 
 def _from_us(link: MavLink, msg: Any) -> bool:
@@ -296,4 +300,5 @@ def upload_and_verify(
         no_space_retries=no_space,
         duration_s=time.monotonic() - t0,
         readback=tuple(back),
+        storage_changes=tuple(storage_changes(list(items))),
     )

@@ -47,6 +47,7 @@ CMD_NAV_LAND = 21
 CMD_NAV_TAKEOFF = 22
 CMD_NAV_DELAY = 93
 CMD_CONDITION_DELAY = 112
+CMD_CONDITION_YAW = 115
 CMD_DO_JUMP = 177
 CMD_DO_CHANGE_SPEED = 178
 CMD_DO_SET_HOME = 179
@@ -64,6 +65,7 @@ NON_LOCATION_COMMANDS = frozenset(
         CMD_NAV_RETURN_TO_LAUNCH,
         CMD_NAV_DELAY,
         CMD_CONDITION_DELAY,
+        CMD_CONDITION_YAW,
         CMD_DO_JUMP,
         CMD_DO_CHANGE_SPEED,
         CMD_DO_SET_SERVO,
@@ -83,6 +85,7 @@ COMMAND_NAMES = {
     CMD_NAV_TAKEOFF: "Takeoff",
     CMD_NAV_DELAY: "NavDelay",
     CMD_CONDITION_DELAY: "CondDelay",
+    CMD_CONDITION_YAW: "CondYaw",
     CMD_DO_JUMP: "Jump",
     CMD_DO_CHANGE_SPEED: "ChangeSpeed",
     CMD_DO_SET_ROI_LOCATION: "SetROI",
@@ -406,22 +409,170 @@ def wire_frame(item: MissionItem) -> int:
     return INT_FRAME_OF.get(item.frame, item.frame)
 
 
+# Commands ArduPilot stores with a location (AP_Mission::stored_in_location); all others read
+# back with frame 0 and x = y = z = 0.
+STORED_IN_LOCATION = frozenset({16, 17, 18, 19, 21, 22, 30, 31, 82, 92, 179, 189, 191, 201, 84, 85, 94})
+
+
+def _f32(v: float) -> float:
+    import numpy as np
+
+    return float(np.float32(v))
+
+
+def _int_c(v: float, lo: int, hi: int) -> int:
+    """C float-to-integer conversion (truncation toward zero), clamped to the type's range."""
+    if math.isnan(v):
+        return 0
+    return int(max(lo, min(hi, math.trunc(_f32(v)))))
+
+
+def _u8(v: float) -> float:
+    return float(_int_c(v, 0, 255))
+
+
+def _i8(v: float) -> float:
+    return float(_int_c(v, -128, 127))
+
+
+def _u16(v: float) -> float:
+    return float(_int_c(v, 0, 65535))
+
+
+def _i16(v: float) -> float:
+    return float(_int_c(v, -32768, 32767))
+
+
+def _stored_params(item: MissionItem) -> tuple[float, float, float, float] | None:
+    """Params 1-4 as ArduCopter reads them back, or ``None`` for a command not modelled here.
+
+    Transcribes AP_Mission::mavlink_int_to_mission_cmd / mission_cmd_to_mavlink_int
+    (Copter build): what is kept, in which C type, and what is dropped.
+    """
+    c, p1, p2, p3, p4 = item.command, item.p1, item.p2, item.p3, item.p4
+    if c in (CMD_NAV_WAYPOINT, CMD_NAV_TAKEOFF, CMD_DO_SET_HOME, CMD_DO_SET_ROI):
+        return (_u16(p1), 0.0, 0.0, 0.0)  # hold s / min pitch / use-current / ROI mode: uint16; the rest dropped
+    if c == CMD_NAV_LOITER_TIME:
+        return (_u16(p1), 0.0, -1.0 if p3 < 0 else 1.0, 1.0 if p4 > 0 else 0.0)
+    if c == CMD_NAV_RETURN_TO_LAUNCH:
+        return (0.0, 0.0, 0.0, 0.0)
+    if c == CMD_NAV_LAND:
+        return (_u16(p1), 0.0, 0.0, -1.0 if p4 < 0 else 1.0)  # p4 = yaw direction flag: 0 reads back as 1
+    if c == CMD_NAV_DELAY:
+        return (_f32(p1), _i8(p2), _i8(p3), _i8(p4))
+    if c == CMD_CONDITION_DELAY:
+        return (_f32(p1), 0.0, 0.0, 0.0)
+    if c == CMD_CONDITION_YAW:
+        return (_f32(p1), _f32(p2), _i8(p3), _u8(p4))
+    if c == CMD_DO_JUMP:
+        return (_u16(p1), _i16(p2), 0.0, 0.0)
+    if c == CMD_DO_CHANGE_SPEED:
+        return (_u8(p1), _f32(p2), _f32(p3), 0.0)
+    if c == CMD_DO_SET_SERVO:
+        return (_u8(p1), _u16(p2), 0.0, 0.0)
+    if c == CMD_DO_SET_CAM_TRIGG_DIST:
+        return (_f32(p1), 0.0, 0.0, 0.0)
+    return None
+
+
+# Params that may be NaN per command (AP_Mission::sanity_check_params: param 4 of these).
+_NAN_OK_P4 = frozenset({CMD_NAV_WAYPOINT, CMD_NAV_LAND, CMD_NAV_TAKEOFF})
+
+
+def ardupilot_check(item: MissionItem) -> int:
+    """MAV_MISSION_RESULT ArduCopter answers for this uploaded item (0 = accepted).
+
+    Unknown commands are MAV_MISSION_UNSUPPORTED (3); NaN params where
+    ArduPilot does not allow them are INVALID_PARAM1..4 (6..9); bad positions
+    INVALID_PARAM5_X/6_Y/7 (10..12); frames other than global/mission
+    UNSUPPORTED_FRAME (2).
+    """
+    if _stored_params(item) is None:
+        return 3
+    for index, value in enumerate((item.p1, item.p2, item.p3, item.p4)):
+        if math.isnan(value) and not (index == 3 and item.command in _NAN_OK_P4):
+            return 6 + index
+    if item.command in STORED_IN_LOCATION:
+        if item.frame not in (FRAME_MISSION, FRAME_GLOBAL, FRAME_GLOBAL_INT, FRAME_GLOBAL_RELATIVE_ALT, FRAME_GLOBAL_RELATIVE_ALT_INT, FRAME_GLOBAL_TERRAIN_ALT, FRAME_GLOBAL_TERRAIN_ALT_INT):
+            return 2
+        if abs(item.x) > 900000000:
+            return 10
+        if abs(item.y) > 1800000000:
+            return 11
+        if math.isnan(item.z) or abs(item.z) >= 83000.0:
+            return 12
+    return 0
+
+
+def ardupilot_readback(item: MissionItem) -> MissionItem | None:
+    """The item as ArduCopter 4.7 stores it and reads it back, or ``None`` if not modelled.
+
+    Location commands keep x/y exactly, z is truncated to whole centimetres
+    (``int32(z * 100.0f)``), relative frames read back as 3 (terrain as 10)
+    and absolute ones as 0. Location-less commands read back in frame 0 with
+    x = y = z = 0. Params keep only what fits the stored C type (a 1.5 s hold
+    reads back as 1 s; NAV_WAYPOINT's yaw in param 4 reads back as 0).
+    ``autocontinue`` always reads back 1. Checked against the recorded
+    SITL read-back in the tests.
+    """
+    import numpy as np
+
+    params = _stored_params(item)
+    if params is None:
+        return None
+    if item.command in STORED_IN_LOCATION:
+        if item.frame in (FRAME_GLOBAL_RELATIVE_ALT, FRAME_GLOBAL_RELATIVE_ALT_INT):
+            frame = FRAME_GLOBAL_RELATIVE_ALT
+        elif item.frame in (FRAME_GLOBAL_TERRAIN_ALT, FRAME_GLOBAL_TERRAIN_ALT_INT):
+            frame = FRAME_GLOBAL_TERRAIN_ALT
+        else:
+            frame = FRAME_GLOBAL
+        alt_cm = int(np.trunc(np.float32(item.z) * np.float32(100.0)))
+        z = float(np.float32(alt_cm) / np.float32(100.0))
+        x, y = item.x, item.y
+    else:
+        frame, x, y, z = FRAME_GLOBAL, 0, 0, 0.0
+    return MissionItem(seq=item.seq, frame=frame, command=item.command, p1=params[0], p2=params[1], p3=params[2], p4=params[3], x=x, y=y, z=z, autocontinue=True)
+
+
+def storage_changes(items: list[MissionItem] | tuple[MissionItem, ...]) -> list[str]:
+    """Where ArduCopter will store an item differently from the file (expected, not errors).
+
+    E.g. ``seq 5: p4 144.37 -> 0`` for NAV_WAYPOINT's yaw. Frame renaming and
+    seq 0 (home) are not listed.
+    """
+    notes = []
+    for item in items[1:]:
+        stored = ardupilot_readback(item)
+        if stored is None:
+            continue
+        for name in ("p1", "p2", "p3", "p4", "z"):
+            a, b = getattr(item, name), getattr(stored, name)
+            if not (math.isnan(a) and b == 0.0) and _f32(a) != _f32(b):
+                notes.append(f"seq {item.seq}: {name} {a:g} -> {b:g}")
+            elif math.isnan(a):
+                notes.append(f"seq {item.seq}: {name} nan -> {b:g}")
+    return notes
+
+
 def _same_param(sent: float, back: float) -> bool:
     import numpy as np
 
     if math.isnan(sent):
-        return True  # "unset": the autopilot may store anything (ArduPilot reads back 0)
+        return True  # "unset": the autopilot may store anything
     return bool(np.float32(sent) == np.float32(back))
 
 
 def compare_readback(sent: list[MissionItem] | tuple[MissionItem, ...], back: list[MissionItem] | tuple[MissionItem, ...]) -> list[str]:
     """Differences between an uploaded mission and the vehicle's read-back.
 
-    ArduPilot's read-back rules (README "Read-back frames and home") are not
-    differences: seq 0 is replaced by the vehicle's own home; ``_INT`` frames
-    come back as their float twins (6 -> 3); commands stored without a location
-    (DO_CHANGE_SPEED, RTL, ...) come back in frame 0. Everything else must match
-    exactly: params as float32, positions as 1e-7 degree integers.
+    Each sent item is first turned into what ArduCopter stores
+    (:func:`ardupilot_readback`: ``_INT`` frames read back as their float twins,
+    location-less commands such as DO_CHANGE_SPEED and RTL in frame 0, params
+    in their stored C types), then compared with the read-back exactly: params
+    and z as float32, positions as 1e-7 degree integers. Seq 0 is skipped: the
+    vehicle replaces it with its own home. Commands not modelled are compared
+    as sent, with the frame rules only.
 
     Returns
     -------
@@ -431,19 +582,27 @@ def compare_readback(sent: list[MissionItem] | tuple[MissionItem, ...], back: li
     problems: list[str] = []
     if len(sent) != len(back):
         return [f"vehicle holds {len(back)} items, {len(sent)} were uploaded"]
-    for a, b in zip(sent[1:], back[1:]):
-        where = f"seq {a.seq}"
-        if b.seq != a.seq:
+    for a_sent, b in zip(sent[1:], back[1:]):
+        where = f"seq {a_sent.seq}"
+        if b.seq != a_sent.seq:
             problems.append(f"{where}: read back as seq {b.seq}")
             continue
-        if a.command != b.command:
-            problems.append(f"{where}: command {a.command} read back as {b.command}")
+        if a_sent.command != b.command:
+            problems.append(f"{where}: command {a_sent.command} read back as {b.command}")
             continue
-        fa = FLOAT_FRAME_OF.get(a.frame, a.frame)
-        fb = FLOAT_FRAME_OF.get(b.frame, b.frame)
-        frame_ok = fa == fb or (b.frame == FRAME_GLOBAL and (a.command in NON_LOCATION_COMMANDS or a.frame == FRAME_MISSION))
+        expected = ardupilot_readback(a_sent)
+        if expected is not None:
+            a = expected
+            frame_ok = a.frame == b.frame
+            check_autocontinue = False
+        else:
+            a = a_sent
+            fa = FLOAT_FRAME_OF.get(a.frame, a.frame)
+            fb = FLOAT_FRAME_OF.get(b.frame, b.frame)
+            frame_ok = fa == fb or (b.frame == FRAME_GLOBAL and (a.command in NON_LOCATION_COMMANDS or a.frame == FRAME_MISSION))
+            check_autocontinue = True
         if not frame_ok:
-            problems.append(f"{where}: frame {a.frame} read back as {b.frame}")
+            problems.append(f"{where}: frame {a_sent.frame} read back as {b.frame} (expected {a.frame})")
         for name in ("p1", "p2", "p3", "p4"):
             if not _same_param(getattr(a, name), getattr(b, name)):
                 problems.append(f"{where}: {name} {getattr(a, name)!r} read back as {getattr(b, name)!r}")
@@ -451,6 +610,6 @@ def compare_readback(sent: list[MissionItem] | tuple[MissionItem, ...], back: li
             problems.append(f"{where}: position ({a.x}, {a.y}) read back as ({b.x}, {b.y}) [1e-7 deg]")
         if not _same_param(a.z, b.z):
             problems.append(f"{where}: z {a.z!r} read back as {b.z!r}")
-        if a.autocontinue != b.autocontinue:
+        if check_autocontinue and a.autocontinue != b.autocontinue:
             problems.append(f"{where}: autocontinue {a.autocontinue} read back as {b.autocontinue}")
     return problems

@@ -78,29 +78,6 @@ class CopterParams:
     drift_tau_s: float = 2.0
 
 
-# Commands the simulated mission store accepts; anything else is MAV_MISSION_UNSUPPORTED.
-SUPPORTED_MISSION_COMMANDS = frozenset(
-    {
-        mf.CMD_NAV_WAYPOINT,
-        mf.CMD_NAV_LOITER_TIME,
-        mf.CMD_NAV_RETURN_TO_LAUNCH,
-        mf.CMD_NAV_LAND,
-        mf.CMD_NAV_TAKEOFF,
-        mf.CMD_NAV_DELAY,
-        mf.CMD_CONDITION_DELAY,
-        mf.CMD_DO_JUMP,
-        mf.CMD_DO_CHANGE_SPEED,
-        mf.CMD_DO_SET_HOME,
-        mf.CMD_DO_SET_SERVO,
-        mf.CMD_DO_SET_ROI_LOCATION,
-        mf.CMD_DO_SET_ROI_NONE,
-        mf.CMD_DO_SET_ROI,
-        mf.CMD_DO_DIGICAM_CONTROL,
-        mf.CMD_DO_SET_CAM_TRIGG_DIST,
-    }
-)
-
-
 def _wrap_deg(a: float) -> float:
     """Angle wrapped to [-180, 180) degrees."""
     return (a + 180.0) % 360.0 - 180.0
@@ -155,6 +132,7 @@ class CopterModel:
         self.ready = False  # pre-arm checks pass (the shell sets it after boot)
         self.speed_mps = params.wp_speed_mps
         self.roi: np.ndarray | None = None
+        self.yaw_fixed_deg: float | None = None  # CONDITION_YAW target, until the next waypoint starts
         self.items: list[MissionItem] = []
         self.current_seq = 0
         self.mission_state = ap.MISSION_STATE_NO_MISSION
@@ -335,7 +313,12 @@ class CopterModel:
         elif item.command in (mf.CMD_DO_SET_ROI, mf.CMD_DO_SET_ROI_LOCATION):
             target = self.to_enu(item)
             self.roi = None if target is None else np.asarray(target, float)
+            self.yaw_fixed_deg = None
         elif item.command == mf.CMD_DO_SET_ROI_NONE:
+            self.roi = None
+        elif item.command == mf.CMD_CONDITION_YAW:
+            base = self.heading_deg if item.p4 >= 1 else 0.0
+            self.yaw_fixed_deg = (base + float(item.p1)) % 360.0
             self.roi = None
         self.reached.append(index)  # DO items are reported (README: seq 2 and 3 at 49.56 s)
 
@@ -347,6 +330,7 @@ class CopterModel:
             self._deferred_texts.append((ap.SEVERITY_INFO, f"Mission: {index} {self._name(item)}"))  # ArduCopter prints it twice
             self._start_takeoff(self._item_alt(item), seq=index)
         elif item.command in (mf.CMD_NAV_WAYPOINT, mf.CMD_NAV_LOITER_TIME):
+            self.yaw_fixed_deg = None  # ArduCopter resets a fixed yaw at each waypoint (an ROI stays)
             hold = item.hold_s if item.command == mf.CMD_NAV_WAYPOINT else max(0.0, item.p1)
             self.nav = _Nav(phase="goto", target=self._item_target(item), hold_s=hold, seq=index, kind="waypoint")
         elif item.command == mf.CMD_NAV_RETURN_TO_LAUNCH:
@@ -466,7 +450,9 @@ class CopterModel:
             return
         here = self.position
         desired = None
-        if self.roi is not None and self.nav.kind != "rtl":
+        if self.yaw_fixed_deg is not None and self.nav.kind != "rtl":
+            desired = self.yaw_fixed_deg
+        elif self.roi is not None and self.nav.kind != "rtl":
             if float(np.hypot(*(self.roi[:2] - here[:2]))) > 0.3:
                 desired = bearing_deg(here, self.roi)
         elif self.nav.phase == "goto" and float(np.hypot(*(self.nav.target[:2] - self.pos[:2]))) > 1.0:

@@ -6,7 +6,9 @@ an answer, cancelled after 8 s of silence, closed by MISSION_ACK. Refused with
 MISSION_ACK NO_SPACE before the vehicle is ready (just after boot) and for more
 items than it can hold. Items are stored as ArduPilot stores them: ``_INT``
 frames as their float twins (6 -> 3), location-less commands in frame 0, and
-seq 0 is always the vehicle's own home.
+seq 0 is always the vehicle's own home. Storage follows
+:func:`dronecal_field.mavlink.missionfile.ardupilot_readback` (what ArduCopter
+keeps of each command, checked against the recorded read-back).
 
 Download: MISSION_REQUEST_LIST -> MISSION_COUNT; MISSION_REQUEST_INT ->
 MISSION_ITEM_INT; MISSION_REQUEST -> MISSION_ITEM.
@@ -15,25 +17,15 @@ MISSION_ITEM_INT; MISSION_REQUEST -> MISSION_ITEM.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink import missionfile as mf
-from dronecal_field.mavlink.missionfile import MissionItem
-from dronecal_field.sim.vehicle_flight import SUPPORTED_MISSION_COMMANDS
+from dronecal_field.mavlink.missionfile import MissionItem, ardupilot_check, ardupilot_readback
 
-SUPPORTED_FRAMES = frozenset({0, 2, 3, 5, 6, 10, 11})
 REQUEST_RESEND_S = 1.0  # ArduPilot: wp_recv_timeout_ms 1000
 UPLOAD_TIMEOUT_S = 8.0  # ArduPilot: upload_timeout_ms 8000
-
-
-def stored_form(item: MissionItem) -> MissionItem:
-    """An uploaded item as ArduPilot keeps it (and so reads it back)."""
-    frame = mf.FLOAT_FRAME_OF.get(item.frame, item.frame)
-    if item.command in mf.NON_LOCATION_COMMANDS or frame == mf.FRAME_MISSION:
-        frame = mf.FRAME_GLOBAL
-    return replace(item, frame=frame)
 
 
 @dataclass
@@ -142,15 +134,15 @@ class MissionServer:
             if msg.seq != up.next_seq:
                 return True  # ArduPilot ignores it; the re-request asks again
             item = _item_from_message(msg)
-            if item.command not in SUPPORTED_MISSION_COMMANDS:
+            # seq 0 is home: ArduPilot keeps its own, whatever was sent
+            result = ardupilot_check(item) if item.seq > 0 else ap.MAV_MISSION_ACCEPTED
+            if result != ap.MAV_MISSION_ACCEPTED:
                 self.upload = None
-                self._ack(link, sysid, compid, ap.MAV_MISSION_UNSUPPORTED)
+                self._ack(link, sysid, compid, result)
                 return True
-            if item.frame not in SUPPORTED_FRAMES:
-                self.upload = None
-                self._ack(link, sysid, compid, ap.MAV_MISSION_UNSUPPORTED_FRAME)
-                return True
-            up.items.append(stored_form(item))
+            stored = ardupilot_readback(item) if item.seq > 0 else item
+            assert stored is not None  # ardupilot_check accepted it, so it is modelled
+            up.items.append(stored)
             up.next_seq += 1
             if up.next_seq < up.count:
                 self._request(up, now_s)
