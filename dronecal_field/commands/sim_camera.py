@@ -56,7 +56,9 @@ def register(sims: argparse._SubParsersAction) -> None:
     parser.add_argument("--vehicle-sysid", type=int, help="follow this MAVLink system id (default: the first that reports a position)")
     parser.add_argument("--duration-s", type=float, help="stop after this many seconds (default: run until Ctrl-C)")
     site = parser.add_argument_group("truth camera from a site (with --write-truth, when --camera is absent)")
-    site.add_argument("--site-origin", metavar="LAT,LON,H", help="pole foot: WGS84 degrees, height in the vehicle's datum (m)")
+    site.add_argument("--site-lat", type=float, help="pole foot latitude, WGS84 degrees")
+    site.add_argument("--site-lon", type=float, help="pole foot longitude, WGS84 degrees")
+    site.add_argument("--site-h", type=float, help="pole foot height, metres, in the datum of the vehicle's heights (see --altitude-datum)")
     site.add_argument("--site-mount-height", type=float, default=3.0, help="camera height above the pole foot, m (default %(default)s)")
     site.add_argument("--site-azimuth", type=float, default=0.0, help="view direction, degrees clockwise from north (default %(default)s)")
     site.add_argument("--site-tilt", type=float, default=30.0, help="view direction below horizontal, degrees (default %(default)s)")
@@ -74,13 +76,15 @@ def _truth_camera(args: argparse.Namespace):
 
     if args.camera:
         camera = read_camera(args.camera)
-    elif args.site_origin:
+    elif args.site_lat is not None or args.site_lon is not None or args.site_h is not None:
+        if args.site_lat is None or args.site_lon is None or args.site_h is None:
+            raise InputError("a site needs all of --site-lat, --site-lon and --site-h")
         try:
             width, height = (int(v) for v in args.site_image_size.lower().split("x"))
         except ValueError:
             raise InputError(f"--site-image-size {args.site_image_size!r} must be WIDTHxHEIGHT, e.g. 1280x960") from None
         camera = make_truth_camera(
-            _floats(args.site_origin, 3, "--site-origin"),
+            (args.site_lat, args.site_lon, args.site_h),
             mount_height_m=args.site_mount_height,
             azimuth_deg=args.site_azimuth,
             tilt_deg=args.site_tilt,
@@ -90,7 +94,7 @@ def _truth_camera(args: argparse.Namespace):
             distortion=Distortion.from_array(_floats(args.site_distortion, 5, "--site-distortion")),
         )
     else:
-        raise InputError("no truth camera: pass --camera truth.yaml, or --site-origin LAT,LON,H (and --write-truth to keep it)")
+        raise InputError("no truth camera: pass --camera truth.yaml, or --site-lat/--site-lon/--site-h (and --write-truth to keep it)")
     if args.write_truth:
         write_camera(args.write_truth, camera, comment="dronecal-field sim camera: ground truth")
     return camera
