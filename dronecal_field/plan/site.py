@@ -178,7 +178,7 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("min_marker_px", _F("min_marker_px"), 20.0, "smallest marker side in the image that the detector reads, px", "PX", "marker"),
     # limits and flight
     OptionSpec("min_agl", _F("min_agl"), 1.0, "lowest drone height above ground, m", "M", "limits"),
-    OptionSpec("max_agl", _F("max_agl"), None, "highest drone height above ground, m (default: none)", "M", "limits"),
+    OptionSpec("max_agl", _F("max_agl"), None, "highest drone height above ground, m (default: 3 m above the camera)", "M", "limits"),
     OptionSpec("max_range", _F("max_range"), None, "largest horizontal distance of the drone from the pole, m (a wall, a road)", "M", "limits"),
     OptionSpec("keep_out", _F("keep_out"), 2.0, "no-fly radius around the pole, m", "M", "limits"),
     OptionSpec("geofence", parse_polygon, None, "area the drone must stay in: 'lat,lon;lat,lon;...' (site file: [[lat, lon], ...])", "POLY", "limits"),

@@ -156,6 +156,8 @@ def request_from_options(opts: dict[str, Any]) -> PlanRequest:
     limits = Limits(
         min_agl_m=min_agl, max_agl_m=max_agl, max_range_m=max_range, keep_out_m=keep_out, marker_size_m=size,
         min_marker_px=marker.min_px, marker_offset_frd_m=marker.offset_frd_m, geofence_xy=geofence_xy,
+        # without --max-agl, fly no higher than 3 m above the camera: above that a pole camera sees sky
+        max_search_height_m=mount + 3.0,
     )
     takeoff_site = None
     if opts.get("takeoff") is not None:
@@ -233,7 +235,7 @@ def _no_plan_error(req: PlanRequest, scores: tuple[StrategyScore, ...]) -> PlanE
         reasons = ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in screen.reasons.items())
         return PlanError(f"every point the camera sees is out of bounds ({reasons}): relax --min-agl/--max-agl/--max-range/--keep-out/--geofence")
     needed = max((s.screen.needed_marker_size_m(req.limits) or 0.0) for s in scores)
-    if needed > 0 and best.problem and "points" in best.problem:
+    if needed > 0:
         if needed > MAX_PRACTICAL_MARKER_M:
             return PlanError(
                 f"a marker {req.limits.min_marker_px:g} px wide from this camera needs {needed:.2f} m, more than a drone can carry "
@@ -280,6 +282,35 @@ def footprint_site(camera_site: Camera, n_side: int = 24, range_m: float = FOOTP
     return np.asarray(out)
 
 
+def _check_sees_ground(req: PlanRequest, cam_site: Camera) -> None:
+    """A camera whose lowest image row is at or above the horizon looks at the sky: no ground, no plan."""
+    w, h = cam_site.width, cam_site.height
+    bottom = np.array([[[0.0, h - 1.0], [(w - 1) / 2.0, h - 1.0], [w - 1.0, h - 1.0]]])
+    K, D, R, _ = cam_site.batch_arrays()
+    rays = pixel_rays_batch(K, D, R, bottom)[0]
+    if np.all(rays[:, 2] >= -1e-3):
+        up = -req.site.tilt_deg
+        raise PlanError(
+            f"the camera is tilted {up:g} deg up and its image holds no ground: the marker must be flown in front of a camera "
+            "that sees the ground; check --tilt (degrees BELOW horizontal, positive looking down)"
+        )
+
+
+def _json_safe(x: Any) -> Any:
+    """NaN/inf -> None, numpy scalars -> Python, recursively (JSON has no NaN)."""
+    if isinstance(x, dict):
+        return {str(k): _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(float(x)) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.ndarray):
+        return _json_safe(x.tolist())
+    return x
+
+
 def make_plan(req: PlanRequest) -> PlanResult:
     """Evaluate the candidates for this camera, pick one, and build the mission and the report.
 
@@ -287,6 +318,7 @@ def make_plan(req: PlanRequest) -> PlanResult:
     """
     cam_site = guess_camera(req.site, req.lens, frame="site")
     cam_enu = guess_camera(req.site, req.lens, frame="enu")
+    _check_sees_ground(req, cam_site)
     ev = req.evaluation
     base = recommended_strategy(cam_site)
     strategies = list(alternatives(base))
@@ -338,7 +370,7 @@ def make_plan(req: PlanRequest) -> PlanResult:
         gf = MplPath(np.asarray(req.limits.geofence_xy))
         if not gf.contains_point(route.takeoff_site[:2]):
             warnings.append("the take-off point is outside --geofence")
-    summary = _summary(req, cam_enu, cam_site, chosen, scores, route, mission, fence, warnings, battery_pct)
+    summary = _json_safe(_summary(req, cam_enu, cam_site, chosen, scores, route, mission, fence, warnings, battery_pct))
     return PlanResult(request=req, camera_enu=cam_enu, camera_site=cam_site, chosen=chosen, candidates=scores, route=route,
                       mission=mission, fence_site=fence, footprint_site=footprint, summary=summary, warnings=tuple(warnings))
 

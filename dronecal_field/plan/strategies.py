@@ -306,7 +306,8 @@ def choose_heights(strategy: Strategy, camera: Camera, limits: Limits) -> tuple[
     zs = np.round(np.arange(z_lo, z_top + 1e-9, limits.height_step_m), 3)
     pts = np.concatenate([np.column_stack([xy, np.full(len(xy), z)]) for z in zs])
     s = screen_points(camera, pts, limits)
-    counts = (s["in_view"] & s["reachable"] & s["big_enough"]).reshape(len(zs), len(xy)).sum(axis=1)
+    # the marker-size rule is left out here so a too-small marker is reported as such, not as "nothing seen"
+    counts = (s["in_view"] & s["reachable"]).reshape(len(zs), len(xy)).sum(axis=1)
     if counts.max() == 0:
         return ()
     good = np.nonzero(counts >= max(MIN_POINTS_PER_LEVEL, 0.25 * counts.max()))[0]

@@ -1,0 +1,260 @@
+"""plan end to end: run the command, load every written file back, and the error exits."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pytest
+
+from dronecal_field.camerafile import read_camera
+from dronecal_field.cli import main
+from dronecal_field.geodesy import EnuOrigin, geodetic_to_enu
+from dronecal_field.plan.mission import parse_waypoints
+from dronecal_field.plan.schema import QGC_PLAN_SCHEMA
+
+REPO = Path(__file__).resolve().parents[1]
+MISSIONS = REPO / "missions"
+FAST = ["--trials", "30"]
+
+
+def run_plan(tmp_path: Path, *args: str, name: str = "out") -> tuple[int, Path]:
+    out = tmp_path / name
+    rc = main(["plan", *args, "--out", str(out), *FAST])
+    return rc, out
+
+
+@pytest.fixture(scope="module")
+def distorted(tmp_path_factory) -> Path:
+    tmp = tmp_path_factory.mktemp("plan")
+    rc, out = run_plan(tmp, "--site", str(MISSIONS / "paper-distorted.toml"))
+    assert rc == 0
+    return out
+
+
+def nav_items(plan: dict, command: int) -> list[dict]:
+    return [it for it in plan["mission"]["items"] if it["command"] == command]
+
+
+def test_qgc_plan_validates_and_follows_the_ardupilot_rules(distorted):
+    plan = json.loads((distorted / "mission.plan").read_text())
+    jsonschema.validate(plan, QGC_PLAN_SCHEMA)
+    items = plan["mission"]["items"]
+    assert [it["command"] for it in items[:3]] == [22, 178, 201]
+    assert items[-1]["command"] == 21 and items[-2]["command"] == 16  # fly above the take-off point, land there
+    assert items[1]["params"][:3] == [1.0, 1.5, -1.0]
+    summary = json.loads((distorted / "plan.json").read_text())
+    grid_wps = [it for it in nav_items(plan, 16) if it["params"][0] > 0]
+    assert len(grid_wps) == summary["points"] >= 30
+    for it in nav_items(plan, 16) + nav_items(plan, 22):
+        assert it["frame"] == 3 and it["params"][6] > 0.05  # altitude 0 would mean 'here'
+        assert it["params"][0] == int(it["params"][0])  # whole-second holds
+    assert [it["doJumpId"] for it in items] == list(range(1, len(items) + 1))
+    # ROI at the camera: the pole's lat/lon, mount height above home
+    roi = items[2]
+    assert roi["params"][0] == 3 and roi["params"][4:6] == pytest.approx([-35.363261, 149.165230], abs=1e-9)
+    assert roi["params"][6] == pytest.approx(2.0, abs=1e-3)
+    assert plan["mission"]["plannedHomePosition"][:2] == pytest.approx([summary["home"]["lat_deg"], summary["home"]["lon_deg"]])
+    # the fence contains every waypoint and excludes the pole
+    from matplotlib.path import Path as MplPath
+
+    fence = MplPath(np.array(plan["geoFence"]["polygons"][0]["polygon"]))
+    wps = np.array([it["params"][4:6] for it in nav_items(plan, 16)])
+    assert fence.contains_points(wps).all()
+    assert plan["geoFence"]["circles"][0]["inclusion"] is False and plan["geoFence"]["circles"][0]["circle"]["radius"] == 2.0
+
+
+def test_waypoints_round_trip_to_the_grid_within_a_millimetre(distorted):
+    """ENU <-> WGS84: the .plan positions come back to the planned drone positions within 1 mm."""
+    plan = json.loads((distorted / "mission.plan").read_text())
+    summary = json.loads((distorted / "plan.json").read_text())
+    o = summary["enu_origin"]
+    origin = EnuOrigin(lat_deg=o["lat_deg"], lon_deg=o["lon_deg"], h_m=o["h_m"])
+    home_h = summary["home"]["h_m"]
+    by_seq = {it["doJumpId"]: it for it in plan["mission"]["items"]}
+    errs = []
+    for g in summary["grid"]:
+        it = by_seq[g["mission_seq"]]
+        lat, lon, alt = it["params"][4:7]
+        enu = geodetic_to_enu(lat, lon, home_h + alt, origin)[0]
+        errs.append(np.linalg.norm(enu - np.array(g["drone_enu_m"])))
+    assert max(errs) < 1e-3
+    # and the site frame: X along azimuth 0 = north, Y left = west
+    g0 = summary["grid"][0]
+    assert g0["drone_enu_m"][1] == pytest.approx(g0["drone_site_m"][0], abs=1e-9)
+    assert g0["drone_enu_m"][0] == pytest.approx(-g0["drone_site_m"][1], abs=1e-9)
+
+
+def test_mission_planner_file_line_by_line(distorted):
+    text = (distorted / "mission.waypoints").read_text()
+    lines = text.splitlines()
+    assert lines[0] == "QGC WPL 110"
+    assert all(len(ln.split("\t")) == 12 for ln in lines[1:])
+    rows = parse_waypoints(text)
+    plan = json.loads((distorted / "mission.plan").read_text())
+    items = plan["mission"]["items"]
+    assert [r["seq"] for r in rows] == list(range(len(items) + 1))
+    home = rows[0]
+    assert (home["current"], home["frame"], home["command"]) == (1, 0, 16)
+    assert home["params"][4:7] == pytest.approx(plan["mission"]["plannedHomePosition"], abs=1e-6)
+    for row, it in zip(rows[1:], items):
+        assert (row["command"], row["frame"], row["current"], row["autocontinue"]) == (it["command"], it["frame"], 0, 1)
+        assert row["params"][:4] == pytest.approx(it["params"][:4], abs=1e-6)
+        assert row["params"][4:6] == pytest.approx(it["params"][4:6], abs=6e-8)  # 1e-7 deg, about 1 cm
+        assert row["params"][6] == pytest.approx(it["params"][6], abs=1e-6)
+
+
+def test_same_structure_as_the_accepted_sitl_mission(distorted):
+    """Our item sequence follows shared/replays/arducopter-sitl/calib-grid.waypoints (an accepted upload)."""
+    ref = parse_waypoints((REPO.parent / "shared" / "replays" / "arducopter-sitl" / "calib-grid.waypoints").read_text())
+    ours = parse_waypoints((distorted / "mission.waypoints").read_text())
+    for r, o in zip(ref[:4], ours[:4]):
+        assert (r["command"], r["frame"]) == (o["command"], o["frame"])
+    assert ref[2]["params"][:3] == ours[2]["params"][:3] == [1.0, 1.5, -1.0]
+    assert ref[3]["params"][0] == ours[3]["params"][0] == 3.0
+    assert {(r["command"], r["frame"]) for r in ref[4:-1]} == {(16, 3)} == {(o["command"], o["frame"]) for o in ours[4:-1]}
+
+
+def test_geojson_structure(distorted):
+    gj = json.loads((distorted / "mission.geojson").read_text())
+    assert gj["type"] == "FeatureCollection" and "ellipsoidal" in gj["description"]
+    kinds = [f["properties"]["kind"] for f in gj["features"]]
+    summary = json.loads((distorted / "plan.json").read_text())
+    assert kinds.count("grid") == summary["points"]
+    assert {"camera", "takeoff", "path", "geofence", "keep_out", "footprint"} <= set(kinds)
+    for f in gj["features"]:
+        g = f["geometry"]
+        assert f["type"] == "Feature" and isinstance(f["properties"], dict)
+        if g["type"] == "Point":
+            rows = [g["coordinates"]]
+        elif g["type"] == "LineString":
+            rows = g["coordinates"]
+            assert len(rows) >= 2
+        else:
+            assert g["type"] == "Polygon" and len(g["coordinates"]) == 1
+            rows = g["coordinates"][0]
+            assert len(rows) >= 4 and rows[0] == rows[-1]  # closed ring
+            ring = np.array(rows)[:, :2]
+            area2 = np.sum(ring[:-1, 0] * ring[1:, 1] - ring[1:, 0] * ring[:-1, 1])
+            assert area2 > 0  # counter-clockwise exterior (RFC 7946)
+        for r in rows:
+            assert 2 <= len(r) <= 3
+            assert 149.16 < r[0] < 149.17 and -35.37 < r[1] < -35.36  # [lon, lat], near the site
+    path = next(f for f in gj["features"] if f["properties"]["kind"] == "path")
+    assert path["geometry"]["coordinates"][0][:2] == path["geometry"]["coordinates"][-1][:2]  # lands where it took off
+
+
+def test_points_project_inside_the_guessed_image(distorted):
+    cam = read_camera(distorted / "camera_guess.yaml")
+    summary = json.loads((distorted / "plan.json").read_text())
+    assert cam.enu_origin == pytest.approx((-35.363261, 149.165230, 584.0))
+    assert cam.distortion.k1 == -0.25 and cam.intrinsics.fx == 1110.0
+    R = np.array(summary["site_frame"]["R_enu_from_site"])
+    markers_enu = np.array([g["marker_site_m"] for g in summary["grid"]]) @ R.T
+    uv = cam.project(markers_enu)
+    assert np.all(uv[:, 0] > 0) and np.all(uv[:, 0] < 1279) and np.all(uv[:, 1] > 0) and np.all(uv[:, 1] < 959)
+    assert np.allclose(uv, np.array([g["pixel"] for g in summary["grid"]]), atol=0.06)
+    assert min(g["marker_px"] for g in summary["grid"]) >= 20.0
+
+
+def test_summary_and_preview(distorted):
+    s = json.loads((distorted / "plan.json").read_text())
+    assert s["altitude_frame"] == "relative" and "relative to home" in s["altitude_frame_text"]
+    assert s["strategy"]["candidate"] == "far-y1-z2" and len(s["candidates"]) == 6
+    u = s["uncertainty"]
+    assert 1.0 < u["rms_mean_px"] < 10.0 and u["rms_p95_px"] >= u["rms_mean_px"] and u["ground_error_15m_cm"] > 0
+    f = s["flight"]
+    assert 0 < f["battery_pct"] == pytest.approx(100 * f["flight_time_s"] / 1200.0, abs=0.1)
+    assert f["hover_s"] == 3.0  # 25 fps: 1 s settle + 40 frames, rounded up
+    import matplotlib.image
+
+    img = matplotlib.image.imread(distorted / "preview.png")
+    assert img.shape[0] == 640 and img.shape[1] == 1400
+    assert not list(distorted.parent.glob(".out.tmp-*"))
+
+
+def test_cli_flags_amsl_condition_yaw_rtl_and_takeoff(tmp_path):
+    rc, out = run_plan(
+        tmp_path, "--lat", "-35.363261", "--lon", "149.165230", "--ground-alt", "604.5", "--geoid-separation", "20.5",
+        "--mount-height", "4", "--azimuth", "90", "--tilt", "25", "--image-size", "1920x1080", "--hfov", "90",
+        "--alt-frame", "amsl", "--yaw-mode", "condition-yaw", "--end", "rtl", "--takeoff=-35.363330,149.165290",
+        "--hover", "2.5",
+    )
+    assert rc == 0
+    plan = json.loads((out / "mission.plan").read_text())
+    jsonschema.validate(plan, QGC_PLAN_SCHEMA)
+    items = plan["mission"]["items"]
+    assert plan["mission"]["globalPlanAltitudeMode"] == 2 and plan["mission"]["plannedHomePosition"][2] == pytest.approx(584.0, abs=1e-3)
+    assert items[-1]["command"] == 20 and all(it["command"] != 201 for it in items)
+    wps = [it for it in items if it["command"] == 16]
+    assert all(it["frame"] == 0 and it["params"][6] > 584.5 for it in wps)  # AMSL = h - N
+    assert all(it["params"][0] == 3.0 for it in wps)  # 2.5 s rounded up to whole seconds
+    # a CONDITION_YAW follows each grid waypoint, turning the nose to the camera (bearing from the drone to the pole)
+    for wp, nxt in zip(items, items[1:]):
+        if wp["command"] == 16 and wp["params"][0] > 0:
+            assert nxt["command"] == 115
+            lat, lon = wp["params"][4:6]
+            e, n, _ = geodetic_to_enu(lat, lon, 600.0, EnuOrigin(-35.363261, 149.165230, 600.0))[0]
+            assert nxt["params"][0] == pytest.approx(np.degrees(np.arctan2(-e, -n)) % 360, abs=0.05)
+    home = parse_waypoints((out / "mission.waypoints").read_text())[0]
+    assert home["params"][4:6] == pytest.approx([-35.363330, 149.165290], abs=1e-7)
+
+
+def test_optimize_respects_the_flight_time_budget(tmp_path, capsys):
+    rc, out = run_plan(tmp_path, "--site", str(MISSIONS / "paper-pinhole.toml"), "--optimize", "--max-flight-time", "7")
+    assert rc == 0
+    s = json.loads((out / "plan.json").read_text())
+    assert len(s["candidates"]) == 18 and s["strategy"]["optimized"]
+    assert s["flight"]["flight_time_s"] <= 7 * 60
+    usable = [c for c in s["candidates"] if c["problem"] is None and c["flight_time_s"] <= 420]
+    assert s["strategy"]["ground_error_15m_cm"] == min(c["ground_error_15m_cm"] for c in usable)
+    printed = capsys.readouterr().out
+    assert "candidate" in printed and "ground@15m" in printed and s["strategy"]["candidate"] + " " in printed
+    rc, _ = run_plan(tmp_path, "--site", str(MISSIONS / "paper-pinhole.toml"), "--optimize", "--max-flight-time", "1", name="tight")
+    assert rc == 2
+    assert "--max-flight-time" in capsys.readouterr().err
+
+
+BASE = ["--lat", "-35.363261", "--lon", "149.165230", "--ground-alt", "584", "--mount-height", "4", "--azimuth", "0",
+        "--tilt", "25", "--image-size", "1920x1080", "--focal-px", "1400"]
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--tilt", "-60"], "tilted 60 deg up"),
+        (["--max-range", "1.5"], "--max-range"),
+        (["--min-agl", "3", "--max-agl", "2"], "--max-agl"),
+        (["--marker-size", "0.03"], "--marker-size"),
+        (["--focal-px", "700", "--marker-size", "0.05", "--min-marker-px", "60"], "more than a drone can carry"),
+        (["--tilt", "5", "--max-agl", "1.5", "--max-range", "3"], "sees no reachable volume"),
+        (["--takeoff=-35.363261,149.165240"], "keep-out"),
+        (["--alt-frame", "amsl"], "--geoid-separation"),
+    ],
+)
+def test_errors_exit_2_with_the_fix_and_write_nothing(tmp_path, capsys, extra, message):
+    args = BASE[:]
+    for k in range(0, len(extra), 2):  # later flags override the base ones
+        if extra[k] in args:
+            args[args.index(extra[k]) + 1] = extra[k + 1]
+        else:
+            args += extra[k : k + 2]  # ('--flag=value' arrives alone)
+    rc, out = run_plan(tmp_path, *args)
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert message in err and err.count("\n") == 1
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_ground_amsl_needs_the_geoid_and_out_must_be_a_plan_folder(tmp_path, capsys):
+    args = [a for a in BASE if a not in ("--ground-alt", "584")]
+    rc, _ = run_plan(tmp_path, *args, "--ground-amsl", "564")
+    assert rc == 2 and "--geoid-separation" in capsys.readouterr().err
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("keep me")
+    rc, _ = run_plan(tmp_path, *BASE, name="other")
+    assert rc == 2 and "not a plan folder" in capsys.readouterr().err
+    assert (other / "notes.txt").read_text() == "keep me"
