@@ -227,11 +227,13 @@ def detect_led(
         if sub.size == 0:
             return FrameResult(detection=None)
     blurred = cv2.GaussianBlur(sub, (3, 3), 0)
-    peak = float(blurred.max())
+    # A distant LED is a pixel or two: test the raw peak (it saturates), but
+    # segment on the blurred image so single hot pixels do not form blobs.
+    peak = float(sub.max())
     background = float(np.median(blurred))
     if peak < min_peak or peak - background < min_contrast:
         return FrameResult(detection=None)
-    threshold = 0.5 * (peak + background)
+    threshold = 0.5 * (float(blurred.max()) + background)
     mask = (blurred > threshold).astype(np.uint8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     best_label, best_score = -1, -np.inf

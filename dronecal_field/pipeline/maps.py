@@ -31,13 +31,15 @@ from dronecal_field.core.camera import (
 MAX_GROUND_RANGE_M = 200.0
 
 
-def choose_model(uv_px: np.ndarray, width: int, height: int) -> tuple[str, str]:
-    """(model name, reason) for points observed at pixels (N, 2).
+def choose_model(uv_px: np.ndarray, width: int, height: int) -> tuple[CalibrationModel, str]:
+    """(model, reason) for points observed at pixels (N, 2).
 
-    The engine's ``auto`` rule bounds the model by the point count (4
-    observations per free parameter); the radius the points reach bounds it
-    further, because a distortion term is only determined where it is large.
+    The engine's ``auto`` rule bounds the model by the point count; the
+    radius the points reach bounds the distortion further, because a
+    distortion term is only determined where it is large.
     """
+    from dataclasses import replace
+
     uv = np.asarray(uv_px, float)
     n = len(uv)
     by_count = resolve_model("auto", n)
@@ -52,10 +54,10 @@ def choose_model(uv_px: np.ndarray, width: int, height: int) -> tuple[str, str]:
         cap, why = "k1", f"points reach {r_max:.0%} of the half-diagonal: only k1 is observable"
     else:
         cap, why = "k1k2p1p2", f"points reach {r_max:.0%} of the half-diagonal"
-    if by_count.fix_principal_point:
-        return by_count.name, f"{n} points: too few for a principal point; {why}"
-    name = order[min(order.index(by_count.distortion), order.index(cap))]
-    return name, f"{n} points allow {by_count.distortion}; {why}"
+    allowed = by_count.distortion if by_count.distortion in order else "k1k2p1p2"
+    name = order[min(order.index(allowed), order.index(cap))]
+    model = replace(by_count, distortion=name)
+    return model, f"{n} points allow {by_count.name}; {why}"
 
 
 def parameter_covariance(

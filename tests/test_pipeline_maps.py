@@ -1,0 +1,70 @@
+"""Model choice, measured-sigma covariance, uncertainty maps and the ground homography."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from contract_writer import pole_camera
+from dronecal_field.core.calibrate import CalibrationModel, resolve_model
+from dronecal_field.core.uncertainty import monte_carlo
+from dronecal_field.pipeline.maps import choose_model, ground_homography, parameter_covariance, uncertainty_maps
+
+
+def _grid_points(n_side=4):
+    e, n, u = np.meshgrid(np.linspace(-3, 3, n_side), np.linspace(6, 12, n_side), [1.5, 3.5])
+    return np.c_[e.ravel(), n.ravel(), u.ravel()]
+
+
+def test_ground_homography_maps_ground_points_to_their_pixels():
+    camera = pole_camera()
+    g = np.c_[np.random.default_rng(0).uniform(-5, 5, 30), np.random.default_rng(1).uniform(5, 30, 30), np.zeros(30)]
+    H = ground_homography(camera)
+    q = np.c_[g[:, :2], np.ones(30)] @ H.T
+    assert np.abs(q[:, :2] / q[:, 2:] - camera.project(g)).max() < 1e-8
+    back = np.c_[camera.project(g), np.ones(30)] @ np.linalg.inv(H).T
+    assert np.abs(back[:, :2] / back[:, 2:] - g[:, :2]).max() < 1e-8
+
+
+def test_model_follows_count_and_spread():
+    w, h = 640, 480
+    centre = np.array([319.5, 239.5])
+    rng = np.random.default_rng(0)
+    near_centre = centre + rng.uniform(-60, 60, (30, 2))
+    assert choose_model(near_centre, w, h)[0].distortion == "none"
+    wide = np.c_[rng.uniform(0, w, 30), rng.uniform(0, h, 30)]
+    assert choose_model(wide, w, h)[0] == resolve_model("auto", 30) == CalibrationModel(distortion="k1k2p1p2")
+    # Few points: the engine's count rule wins, with its fixed parameters.
+    for n in (6, 10):
+        assert choose_model(wide[:n], w, h)[0] == resolve_model("auto", n)
+    middle = centre + np.c_[rng.uniform(-140, 140, 30), rng.uniform(-100, 100, 30)]
+    model, reason = choose_model(middle, w, h)
+    assert model.distortion == "k1" and "half-diagonal" in reason
+
+
+def test_measured_sigma_covariance_agrees_with_the_monte_carlo():
+    camera = pole_camera(distortion=(-0.1, 0.0, 0.0, 0.0, 0.0))
+    X = _grid_points()
+    s3 = np.tile([0.01, 0.01, 0.015], (len(X), 1))
+    s2 = np.full(len(X), 0.5)
+    cov = parameter_covariance(camera, X, s3, s2, "k1")
+    mc = monte_carlo(camera, X, trials=300, sigma_3d=s3, sigma_2d=s2, seed=1, model="k1")
+    for k, name in enumerate(("fx", "fy", "cx", "cy", "k1")):
+        lin = np.sqrt(cov[k, k])
+        assert 0.75 < mc.param_std[name] / lin < 1.33, (name, mc.param_std[name], lin)
+    assert cov[5, 5] == 0.0  # k2 fixed by the model
+
+
+def test_uncertainty_maps_grow_away_from_the_points_and_vanish_without_noise():
+    camera = pole_camera()
+    X = _grid_points()
+    cov = parameter_covariance(camera, X, np.full((len(X), 3), 0.01), np.full(len(X), 0.5), "none")
+    maps = uncertainty_maps(camera, cov, nu=16, nv=12, samples=200)
+    assert maps.projection_px.shape == (12, 16)
+    # The sky (top rows) has no ground; the bottom rows all do.
+    assert np.isnan(maps.ground_cm[0]).all() and np.isfinite(maps.ground_cm[-1]).all()
+    # Extrapolating to the image corners is worse than in the sampled middle.
+    assert maps.projection_px[-1, 0] > maps.projection_px[6, 8]
+    s = maps.summary()
+    assert 0 < s["ground_cm_median"] < 50 and 0.3 < s["ground_fraction_of_image"] < 0.9
+    zero = uncertainty_maps(camera, np.zeros((15, 15)), nu=8, nv=6, samples=20)
+    assert np.nanmax(zero.projection_px) < 1e-9 and np.nanmax(zero.ground_cm) < 1e-9

@@ -1,0 +1,110 @@
+"""Per-waypoint points: lever arm, attitude interpolation, robust centres, sigmas, drop reasons."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from dronecal_field.pipeline.hover import HoverWindow
+from dronecal_field.pipeline.points import (
+    PointOptions,
+    attitude_at,
+    drop_outlying_scatter,
+    enu_from_frd,
+    lever_arm_enu,
+    robust_centre,
+    window_point,
+)
+from dronecal_field.sim.scene import R_enu_from_frd as sim_R_enu_from_frd
+
+S = 1_000_000_000
+
+
+def test_body_to_enu_matches_scipy_and_the_simulator():
+    rpy = np.random.default_rng(0).uniform(-3, 3, (40, 3))
+    ned = Rotation.from_euler("ZYX", rpy[:, ::-1]).as_matrix()
+    enu = np.array([[0, 1, 0], [1, 0, 0], [0, 0, -1.0]]) @ ned
+    assert np.abs(enu_from_frd(rpy) - enu).max() < 1e-12
+    assert np.abs(enu_from_frd(rpy) - sim_R_enu_from_frd(rpy[:, 0], rpy[:, 1], rpy[:, 2])).max() < 1e-12
+
+
+@pytest.mark.parametrize(
+    "yaw_deg, expected",
+    [(0.0, [0.0, 0.3, -0.1]), (90.0, [0.3, 0.0, -0.1]), (180.0, [0.0, -0.3, -0.1]), (-90.0, [-0.3, 0.0, -0.1])],
+)
+def test_lever_arm_forward_and_down_in_enu(yaw_deg, expected):
+    # 0.3 m forward, 0.1 m down of the antenna: north when facing north, east when facing east.
+    arm = lever_arm_enu(np.array([0.3, 0.0, 0.1]), np.array([[0.0, 0.0, np.radians(yaw_deg)]]))
+    assert np.allclose(arm[0], expected, atol=1e-12)
+
+
+def test_attitude_interpolation_unwraps_yaw_across_north():
+    t = np.array([0, 1 * S], np.int64)
+    rpy = np.array([[0.0, 0.0, np.radians(179.0)], [0.1, 0.0, np.radians(-179.0)]])
+    mid = attitude_at(np.array([S // 2]), t, rpy)[0]
+    assert abs(abs(np.degrees(mid[2])) - 180.0) < 1e-9  # through 180, not through 0
+    assert abs(mid[0] - 0.05) < 1e-12
+
+
+def test_robust_centre_ignores_a_few_wild_samples():
+    rng = np.random.default_rng(3)
+    v = rng.normal([1.0, 2.0, 3.0], 0.01, (60, 3))
+    v[:5] += 5.0
+    med, std = robust_centre(v)
+    assert np.abs(med - [1, 2, 3]).max() < 0.01
+    assert np.all((std > 0.007) & (std < 0.016))
+
+
+def _window_data(n_fix=15, n_det=20, fix_type="rtk_fixed", seed=0):
+    rng = np.random.default_rng(seed)
+    w = HoverWindow(index=0, start_ns=0, end_ns=3 * S, source="event", seq=5)
+    fix_t = np.linspace(0, 3 * S, n_fix).astype(np.int64)
+    xyz = np.array([1.0, 8.0, 2.5]) + rng.normal(0, 0.01, (n_fix, 3))
+    sig = np.full((n_fix, 3), 0.008)
+    types = [fix_type] * n_fix
+    det_t = np.linspace(0, 3 * S, n_det).astype(np.int64) + 500_000_000  # camera stamps 0.5 s late
+    uv = np.array([320.0, 200.0]) + rng.normal(0, 0.3, (n_det, 2))
+    return w, fix_t, xyz, sig, types, det_t, uv
+
+
+def test_window_point_uses_the_settled_part_and_the_camera_offset():
+    w, fix_t, xyz, sig, types, det_t, uv = _window_data()
+    p = window_point(w, w.stable(1.0, 0.2), fix_t, xyz, sig, types, det_t, uv, 500_000_000, PointOptions())
+    assert p.used and p.dropped is None
+    assert p.n_fixes == 9 and p.n_detections == 11  # fixes at 1.07..2.79 s, frames at 1.11..2.68 s
+    assert np.abs(p.marker_enu_m - [1.0, 8.0, 2.5]).max() < 0.012
+    assert np.abs(p.uv_px - [320, 200]).max() < 0.3
+    # Sigma: the larger of the measured scatter and the receiver's own figure.
+    assert np.all(p.sigma_enu_m >= 0.008)
+    assert 0.1 <= p.sigma_px < 0.6
+
+
+def test_window_point_drop_reasons():
+    w, fix_t, xyz, sig, types, det_t, uv = _window_data(fix_type="rtk_float")
+    stable = w.stable(1.0, 0.2)
+    p = window_point(w, stable, fix_t, xyz, sig, types, det_t, uv, 500_000_000, PointOptions())
+    assert not p.used and "rtk_float is worse than --min-fix rtk_fixed" in p.dropped
+    p = window_point(w, stable, fix_t, xyz, sig, types, det_t, uv, 500_000_000, PointOptions(min_fix="rtk_float"))
+    assert p.used
+    p = window_point(w, stable, fix_t[:3], xyz[:3], sig[:3], types[:3], det_t, uv, 500_000_000, PointOptions())
+    assert not p.used and "dropout" in p.dropped and p.n_fixes == 0
+    p = window_point(w, stable, fix_t, xyz, sig, ["rtk_fixed"] * len(fix_t), det_t[:4], uv[:4], 500_000_000, PointOptions())
+    assert not p.used and "detections" in p.dropped
+
+
+def test_outlying_scatter_is_dropped_in_metres_at_the_marker():
+    points = []
+    for k in range(8):
+        w, fix_t, xyz, sig, types, det_t, uv = _window_data(seed=k)
+        if k == 5:
+            uv = uv + np.random.default_rng(9).normal(0, 6.0, uv.shape)  # a detector flipping between corners
+        sizes = np.full(len(det_t), 25.0 if k != 2 else 80.0)
+        if k == 2:
+            uv = np.array([320.0, 200.0]) + (uv - uv.mean(0)) * 3.0  # near: 3x the pixels, same metres
+        p = window_point(w, w.stable(1.0, 0.2), fix_t, xyz, sig, types, det_t, uv, 500_000_000, PointOptions(), sizes, 0.4)
+        points.append(p)
+    out = drop_outlying_scatter(points, PointOptions())
+    dropped = [k for k, p in enumerate(out) if not p.used]
+    assert dropped == [5]
+    assert "image scatter" in out[5].dropped
