@@ -57,7 +57,7 @@ def parse_serve_url(url: str) -> ServeAddress:
     return ServeAddress(host=parts.hostname, port=port, path=parts.path or "/stream.mjpg")
 
 
-def open_mavlink_listener(connect: str):
+def open_mavlink_listener(connect: str) -> "mavutil.mavfile":  # noqa: F821 (pymavlink, imported lazily)
     """A pymavlink connection for ``connect``, whose scheme must be explicit.
 
     ``udpin:HOST:PORT`` (or ``udp:``) listens for a vehicle sending to us,
@@ -91,6 +91,7 @@ class FrameHub:
         self._closed = False
 
     def publish(self, jpeg: bytes, headers: dict[str, str]) -> None:
+        """Make ``jpeg`` (with its part headers) the latest frame and wake the clients."""
         with self._cond:
             self._seq += 1
             self._jpeg, self._headers = jpeg, headers
@@ -105,24 +106,29 @@ class FrameHub:
             return self._seq, self._jpeg, self._headers
 
     def watch(self, delta: int) -> None:
+        """A client starts (+1) or stops (-1) watching; frames are made only while someone watches."""
         with self._cond:
             self._watchers += delta
             self._cond.notify_all()
 
     def wait_for_watchers(self, timeout_s: float) -> bool:
+        """True once someone watches; False on timeout or close."""
         with self._cond:
             return self._cond.wait_for(lambda: self._closed or self._watchers > 0, timeout=timeout_s) and not self._closed
 
     @property
     def seq(self) -> int:
+        """Number of the latest frame (0 before the first)."""
         with self._cond:
             return self._seq
 
     @property
     def closed(self) -> bool:
+        """True after ``close``."""
         return self._closed
 
     def close(self) -> None:
+        """Release every waiting client and stop the stream."""
         with self._cond:
             self._closed = True
             self._cond.notify_all()
