@@ -258,3 +258,39 @@ def test_ground_amsl_needs_the_geoid_and_out_must_be_a_plan_folder(tmp_path, cap
     rc, _ = run_plan(tmp_path, *BASE, name="other")
     assert rc == 2 and "not a plan folder" in capsys.readouterr().err
     assert (other / "notes.txt").read_text() == "keep me"
+
+
+def test_geofence_keeps_every_waypoint_inside(tmp_path):
+    from matplotlib.path import Path as MplPath
+
+    from dronecal_field.geodesy import enu_to_geodetic
+
+    origin = EnuOrigin(-35.363261, 149.165230, 584.0)
+    corners_en = np.array([[-1.5, -8.0, 0.0], [9.0, -8.0, 0.0], [9.0, 12.0, 0.0], [-1.5, 12.0, 0.0]])  # cuts the west of the grid
+    ll = enu_to_geodetic(corners_en, origin)[:, :2]
+    fence_arg = ";".join(f"{a:.8f},{b:.8f}" for a, b in ll)
+    rc, out = run_plan(tmp_path, "--site", str(MISSIONS / "paper-pinhole.toml"), f"--geofence={fence_arg}")
+    assert rc == 0
+    s = json.loads((out / "plan.json").read_text())
+    assert s["strategy"]["dropped"]["outside_geofence"] > 0
+    east = np.array([g["drone_enu_m"][0] for g in s["grid"]])
+    assert east.min() >= -1.5 and len(east) >= 12
+    plan = json.loads((out / "mission.plan").read_text())
+    user = MplPath(ll)
+    wps = np.array([it["params"][4:6] for it in plan["mission"]["items"] if it["command"] == 16])
+    assert user.contains_points(wps).all()
+
+
+@pytest.mark.parametrize("site", ["paper-pinhole", "paper-distorted", "security-4k"])
+def test_committed_mission_folders_are_current(tmp_path, site):
+    """missions/<site>/ is what the site file gives today (golden files; regenerate with plan --site ... --out missions/<site>)."""
+    rc, out = run_plan(tmp_path, "--site", str(MISSIONS / f"{site}.toml"))
+    assert rc == 0
+    fresh = parse_waypoints((out / "mission.waypoints").read_text())
+    golden = parse_waypoints((MISSIONS / site / "mission.waypoints").read_text())
+    assert len(fresh) == len(golden) >= 30
+    for f, g in zip(fresh, golden):
+        assert (f["command"], f["frame"]) == (g["command"], g["frame"])
+        assert f["params"] == pytest.approx(g["params"], abs=2e-6)
+    assert set(p.name for p in (MISSIONS / site).iterdir()) == {
+        "mission.plan", "mission.waypoints", "mission.geojson", "preview.png", "plan.json", "camera_guess.yaml"}

@@ -532,6 +532,9 @@ def write_plan(result: PlanResult, out_dir: str | os.PathLike) -> list[Path]:
     plan = msn.qgc_plan(mission, np.asarray(result.summary["fence"]["inclusion_polygon_latlon"]), ko, req.flight.speed_m_s)
     validate_plan(plan)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the plan folder is an ordinary one
     try:
         (tmp / "mission.plan").write_text(msn.dumps(plan), encoding="utf-8")
         (tmp / "mission.waypoints").write_text(msn.waypoints_text(mission), encoding="utf-8")
