@@ -1,0 +1,140 @@
+"""``dronecal-field survey``: the paper's camera-by-path study (section IV.B) on Dask.
+
+Builds a seeded Latin Hypercube of cameras (focal 2-15 mm, width 700-4000 px,
+height 3/4 of it, elevation 2-5 m, tilt 0-90 deg, distortion none or
+medium), samples every strategy's 3D points each camera sees, runs the
+engine's batched Monte-Carlo on each (camera, strategy) and stores one row
+per pair in a parquet dataset directory (--out). A killed survey resumes
+where it stopped when re-run with the same flags; no row is computed twice.
+
+  dronecal-field survey --cameras 5000 --trials 500 --strategies paper --out results.parquet
+  dronecal-field survey --scheduler tcp://10.0.0.5:8786 --out results.parquet   # same job, a cluster
+  dronecal-field survey report results.parquet --report-dir survey-report
+
+--strategies: paper (the six strategies of the paper's comparisons), all
+(18), recommended (far-y1-z2), or names like far-y1-z2,near-y0.5-z3
+(X range near 0-4 m / far 4-8 m / full 0-8 m, Y step in m, heights).
+Assumptions the paper leaves open (pixel pitch, heights, "medium"
+distortion) are flags here and explained in docs/survey.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "survey",
+        help="the paper's camera-by-path study on Dask; 'survey report' for its findings and figures",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("action", nargs="?", choices=("run", "report", "export"), default="run",
+                   help="run (default) the survey, report on results, or export results to one parquet file")
+    p.add_argument("results", nargs="?", help="results directory or file (report, export)")
+    g = p.add_argument_group("survey")
+    g.add_argument("--cameras", type=int, default=5000, help="cameras in the Latin Hypercube (default 5000, as the paper)")
+    g.add_argument("--trials", type=int, default=500, help="Monte-Carlo trials per (camera, strategy) (default 500)")
+    g.add_argument("--strategies", default="paper", help="paper, all, recommended or comma-separated names (default paper)")
+    g.add_argument("--out", default="results.parquet", help="results directory (parquet dataset; resumed if it exists)")
+    g.add_argument("--seed", type=int, default=0, help="seed of the camera design and of the Monte-Carlo (default 0)")
+    g.add_argument("--sigma-3d", default="0.01,0.01,0.015", help="GNSS/altimeter sigma X,Y,Z in m (default 0.01,0.01,0.015)")
+    g.add_argument("--sigma-2d", type=float, default=2.0, help="detection sigma in px (default 2)")
+    g.add_argument("--model", default="default", help="calibration model re-estimated per trial (default: k3 fixed)")
+    g.add_argument("--pixel-pitch-um", type=float, default=7.5, help="sensor pixel size turning focal mm into px (default 7.5 um)")
+    g.add_argument("--heights", default="paper", choices=("paper", "plan"),
+                   help="paper: levels every 0.5 m from 0.5 m; plan: the levels `plan` would fly (default paper)")
+    g.add_argument("--batch-size", type=int, default=10, help="(camera, strategy) pairs per task and per stored part (default 10)")
+    g.add_argument("--scheduler", help="address of a running Dask scheduler (tcp://HOST:8786); default: a local cluster")
+    g.add_argument("--workers", type=int, help="local worker processes (default: one per core; 0 = no Dask, this process)")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    g.add_argument("--json", action="store_true", help="print the run report as one JSON object")
+    r = p.add_argument_group("report")
+    r.add_argument("--report-dir", help="where report writes figures and index.html (default: <results>-report)")
+    r.add_argument("--fig10-trials", type=int, help="Monte-Carlo trials for Figure 10 (default: the survey's)")
+    r.add_argument("--to", help="export: the single parquet file to write")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.action == "report":
+        return _report(args)
+    if args.action == "export":
+        return _export(args)
+    return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from dronecal_field.cluster import dask_client
+    from dronecal_field.commands.uncertainty import parse_sigma_3d
+    from dronecal_field.errors import InputError
+    from dronecal_field.survey.catalogue import catalogue, sampler_from_name
+    from dronecal_field.survey.design import DesignSpace
+    from dronecal_field.survey.evaluate import MonteCarloSettings
+    from dronecal_field.survey.runner import SurveyConfig, run_survey
+
+    if args.results:
+        raise InputError(f"unexpected argument {args.results!r}: the survey writes to --out; use `survey report {args.results}` to read results")
+    if args.trials < 2:
+        raise InputError(f"--trials {args.trials} is too few for statistics: use at least 2 (the paper uses 500)")
+    if args.sigma_2d < 0:
+        raise InputError(f"--sigma-2d {args.sigma_2d} is negative: give a pixel standard deviation >= 0")
+    config = SurveyConfig(
+        n_cameras=args.cameras,
+        design_seed=args.seed,
+        space=DesignSpace(pixel_pitch_um=args.pixel_pitch_um),
+        sampler=sampler_from_name(args.heights),
+        settings=MonteCarloSettings(trials=args.trials, sigma_3d=parse_sigma_3d(args.sigma_3d), sigma_2d=args.sigma_2d, model=args.model, seed=args.seed),
+    )
+    strategies = catalogue(args.strategies)
+    with dask_client(args.scheduler, args.workers) as client:
+        report = run_survey(config, strategies, args.out, client, batch_size=args.batch_size, progress=not args.no_progress)
+    if args.json:
+        json.dump(report.to_dict(), sys.stdout)
+        print()
+        return 0
+    print(
+        f"survey {report.out}: {report.total_rows} rows ({report.already_done} already stored, {report.computed} computed: "
+        f"{report.degenerate} degenerate, {report.failed} failed) in {report.wall_s:.1f} s on {report.workers} worker(s), "
+        f"{report.rows_per_s:.1f} rows/s"
+    )
+    return 0
+
+
+def _results_arg(args: argparse.Namespace) -> str:
+    from dronecal_field.errors import InputError
+
+    if not args.results:
+        raise InputError(f"survey {args.action} needs the results: dronecal-field survey {args.action} results.parquet")
+    return args.results
+
+
+def _report(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from dronecal_field.survey.report import write_report
+
+    results = _results_arg(args)
+    out_dir = args.report_dir or str(Path(results).with_suffix("")) + "-report"
+    files = write_report(results, out_dir, fig10_trials=args.fig10_trials)
+    if args.json:
+        print(files.json.read_text())
+        return 0
+    print(files.text)
+    print(f"report: {files.html} ({', '.join(p.name for p in files.figures.values())})")
+    return 0
+
+
+def _export(args: argparse.Namespace) -> int:
+    from dronecal_field.errors import InputError
+    from dronecal_field.survey.store import export_results
+
+    results = _results_arg(args)
+    if not args.to:
+        raise InputError("survey export needs --to FILE.parquet")
+    dest = export_results(results, args.to)
+    print(f"exported {results} -> {dest}")
+    return 0
