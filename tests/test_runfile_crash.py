@@ -146,3 +146,30 @@ def test_sigkill_mid_recording_keeps_all_but_the_last_second(tmp_path):
     print(f"SIGKILL after {last_i + 1} frames: {n} recovered, {lost_s:.2f} s lost")
     assert lost_s <= 2.0, lost_s
     assert n >= 100
+
+
+def test_background_flush_without_further_writes(tmp_path):
+    """An open recording whose writes pause still has its last chunk on disk, readable while open."""
+    import time
+
+    path = tmp_path / "paused.mcap"
+    jpeg = _jpegs(1)[0]
+    w = RunWriter(path, _meta(), max_chunk_age_s=0.2)
+    try:
+        w.write_frame(Frame(timestamp_ns=T0, format="jpeg", data=jpeg))
+        w.write_fix(GnssFix(timestamp_ns=T0, lat_deg=-35.0, lon_deg=149.0, alt_m=600.0))
+        frames: list[Frame] = []
+        deadline = time.monotonic() + 10.0
+        while not frames and time.monotonic() < deadline:
+            time.sleep(0.05)
+            try:
+                with open_run(path) as run:  # the live file: no summary yet
+                    assert run.truncated
+                    frames = list(run.iter_frames())
+            except ContractError:
+                continue  # the first chunk is not closed yet
+        assert [(f.timestamp_ns, f.data) for f in frames] == [(T0, jpeg)]
+    finally:
+        w.close()
+    with open_run(path) as run:
+        assert not run.truncated and run.units_total == 1
