@@ -219,3 +219,26 @@ def test_route_takes_off_beside_the_grid_and_lands_there():
     tight = ((3.5, -3.5), (8.5, -3.5), (8.5, 3.5), (3.5, 3.5))  # a geofence with no room beside the grid
     with pytest.raises(PlanError, match="--takeoff"):
         plan_route(pts, pts, Limits(keep_out_m=2.0, geofence_xy=tight), FlightModel())
+
+
+def test_every_flag_is_documented():
+    from dronecal_field.plan.site import OPTIONS
+
+    doc = (REPO / "docs" / "plan.md").read_text()
+    missing = [o.flag for o in OPTIONS if f"`{o.flag}`" not in doc and f"{o.flag}`" not in doc]
+    assert missing == []
+    assert len(OPTIONS) == 43
+
+
+@pytest.mark.parametrize("origin", [(-35.363261, 149.165230, 584.0), (0.0, 0.0, 0.0), (64.1, -21.9, 40.0), (-0.5, 179.9999, 10.0)])
+def test_site_enu_wgs84_round_trip_within_a_millimetre(origin):
+    from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic, geodetic_to_enu
+    from dronecal_field.plan.site import latlon_to_site
+
+    site = CameraSite(lat_deg=origin[0], lon_deg=origin[1], ground_h_m=origin[2], mount_height_m=3.0, azimuth_deg=123.0, tilt_deg=20.0)
+    rng = np.random.default_rng(3)
+    pts_site = rng.uniform([-50, -50, 0], [50, 50, 20], size=(200, 3))
+    geo = enu_to_geodetic(pts_site @ site.R_enu_from_site.T, site.origin)
+    back = latlon_to_site(site, geo[:, :2], geo[:, 2])
+    assert np.abs(back - pts_site).max() < 1e-3
+    assert np.abs(geodetic_to_enu(geo[:, 0], geo[:, 1], geo[:, 2], EnuOrigin(*origin)) @ site.R_enu_from_site - pts_site).max() < 1e-3

@@ -7,6 +7,8 @@ paper's alternatives with the engine's Monte-Carlo, orders the points for the
 shortest flight, and writes mission.plan (QGroundControl), mission.waypoints
 (Mission Planner), mission.geojson, preview.png, plan.json and
 camera_guess.yaml into --out. See docs/plan.md for the field procedure.
+
+Negative coordinates need '=': --lat=-35.3633 --takeoff=-35.3634,149.1653.
 """
 
 from __future__ import annotations
