@@ -242,3 +242,16 @@ def test_site_enu_wgs84_round_trip_within_a_millimetre(origin):
     back = latlon_to_site(site, geo[:, :2], geo[:, 2])
     assert np.abs(back - pts_site).max() < 1e-3
     assert np.abs(geodetic_to_enu(geo[:, 0], geo[:, 1], geo[:, 2], EnuOrigin(*origin)) @ site.R_enu_from_site - pts_site).max() < 1e-3
+
+
+def test_every_leg_of_a_near_route_clears_the_keep_out():
+    X, Y, Z = np.meshgrid(np.arange(0.0, 5.0), np.arange(-3.0, 4.0), [1.0, 2.0], indexing="ij")
+    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
+    pts = pts[np.hypot(pts[:, 0], pts[:, 1]) >= 2.0]  # what the screening keeps
+    r = plan_route(pts, pts, Limits(keep_out_m=2.0), FlightModel())
+    path = np.vstack([r.takeoff_site + [0, 0, r.takeoff_alt_m], r.points])
+    t = np.linspace(0.0, 1.0, 100)[None, :, None]
+    seg = path[:-1, None, :2] + t * (path[1:, None, :2] - path[:-1, None, :2])
+    assert np.hypot(seg[..., 0], seg[..., 1]).min() >= 2.0 - 1e-9
+    assert r.kind.count("detour") >= 2  # rows at X = 0, 1 cross in front of the pole
+    assert (r.grid_index >= 0).sum() == len(pts)

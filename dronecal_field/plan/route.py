@@ -14,10 +14,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from dronecal_field.errors import PlanError
+
+if TYPE_CHECKING:  # strategies imports this module
+    from dronecal_field.plan.strategies import Limits
 
 
 @dataclass(frozen=True)
@@ -150,7 +154,7 @@ class Route:
         return self.grid_index[self.grid_index >= 0]
 
 
-def default_takeoff(vehicle: np.ndarray, order: np.ndarray, limits, clearance_m: float = 3.0) -> np.ndarray:
+def default_takeoff(vehicle: np.ndarray, order: np.ndarray, limits: Limits, clearance_m: float = 3.0) -> np.ndarray:
     """A take-off / landing point on the ground beside the grid, away from the pole (site frame (3,)).
 
     Tried in turn: beyond the first point along its row (so the first leg is a
@@ -175,7 +179,7 @@ def default_takeoff(vehicle: np.ndarray, order: np.ndarray, limits, clearance_m:
     raise PlanError("no take-off point beside the grid is outside the keep-out and inside the range/geofence: give --takeoff LAT,LON")
 
 
-def _allowed_ground(p: np.ndarray, limits) -> bool:
+def _allowed_ground(p: np.ndarray, limits: Limits) -> bool:
     r = float(np.hypot(p[0], p[1]))
     if r < limits.keep_out_m:
         return False
@@ -192,7 +196,7 @@ def _allowed_ground(p: np.ndarray, limits) -> bool:
 def plan_route(
     vehicle: np.ndarray,
     marker: np.ndarray,
-    limits,
+    limits: Limits,
     flight: FlightModel,
     takeoff_site: np.ndarray | None = None,
     end: str = "land",

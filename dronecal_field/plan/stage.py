@@ -391,6 +391,7 @@ def _summary(req, cam_enu, cam_site, chosen, scores, route, mission, fence, warn
     seq_of: dict[int, int] = {it.grid_index: seq for seq, it in enumerate(mission.items, start=1) if it.label.startswith("grid")}
     order = route.grid_order
     rank = {int(g): k for k, g in enumerate(order)}
+    marker_px = screen.marker_px[screen.keep]
     alt_written = (geo[:, 2] - mission.home_h_m) if req.alt_frame == "relative" else geo[:, 2] - (req.site.geoid_separation_m or 0.0)
     grid = [
         {
@@ -403,7 +404,7 @@ def _summary(req, cam_enu, cam_site, chosen, scores, route, mission, fence, warn
             "lat_deg": float(geo[i, 0]), "lon_deg": float(geo[i, 1]), "h_m": round(float(geo[i, 2]), 4),
             "alt_m": round(float(alt_written[i]), 3),
             "pixel": [round(float(uv[i, 0]), 1), round(float(uv[i, 1]), 1)],
-            "marker_px": round(float(screen.marker_px[screen.keep][i]), 1),
+            "marker_px": round(float(marker_px[i]), 1),
         }
         for i in range(len(pts))
     ]

@@ -28,6 +28,7 @@ import numpy as np
 
 from dronecal_field.core.camera import Camera
 from dronecal_field.errors import DronecalError
+from dronecal_field.plan.route import FlightModel, plan_route
 
 # The paper's X ranges (section IV.B): near 0-4 m, far 4-8 m, full 0-8 m.
 X_RANGES_M: dict[str, tuple[float, float]] = {"far": (4.0, 8.0), "near": (0.0, 4.0), "full": (0.0, 8.0)}
@@ -239,7 +240,6 @@ def screen_points(camera: Camera, marker_site: np.ndarray, limits: Limits) -> di
         uv_all = camera.project(np.where(front[:, None], allp, np.nan))
     w, h, m = camera.width, camera.height, limits.margin_px
     inside = front & before_fold & (uv_all[:, 0] >= m) & (uv_all[:, 0] <= w - 1 - m) & (uv_all[:, 1] >= m) & (uv_all[:, 1] <= h - 1 - m)
-    inside = np.nan_to_num(inside, nan=False).astype(bool)
     uv = uv_all[:M]
     cuv = uv_all[M:].reshape(M, 4, 2)
     sides = np.linalg.norm(cuv - np.roll(cuv, -1, axis=1), axis=2)
@@ -414,7 +414,7 @@ def evaluate_strategy(
     sigma_2d: float = 2.0,
     seed: int = 0,
     model: str = "default",
-    flight: "object | None" = None,
+    flight: FlightModel | None = None,
 ) -> StrategyScore:
     """Sample ``strategy`` on ``camera`` (site frame), time its flight and run the engine's Monte-Carlo.
 
@@ -433,8 +433,7 @@ def evaluate_strategy(
     -------
     StrategyScore; ``problem`` says why when the points cannot calibrate.
     """
-    from dronecal_field.core.uncertainty import monte_carlo
-    from dronecal_field.plan.route import FlightModel, plan_route
+    from dronecal_field.core.uncertainty import monte_carlo  # numba-compiled engine: load on first use
 
     screen = screen_grid(strategy, camera, limits)
     points = screen.points
