@@ -538,8 +538,8 @@ def ardupilot_readback(item: MissionItem) -> MissionItem | None:
 def storage_changes(items: list[MissionItem] | tuple[MissionItem, ...]) -> list[str]:
     """Where ArduCopter will store an item differently from the file (expected, not errors).
 
-    E.g. ``seq 5: p4 144.37 -> 0`` for NAV_WAYPOINT's yaw. Frame renaming and
-    seq 0 (home) are not listed.
+    E.g. ``seq 5: p4 144.37 -> 0`` for NAV_WAYPOINT's yaw. Frame renaming,
+    unset (NaN) params and seq 0 (home) are not listed.
     """
     notes = []
     for item in items[1:]:
@@ -548,10 +548,8 @@ def storage_changes(items: list[MissionItem] | tuple[MissionItem, ...]) -> list[
             continue
         for name in ("p1", "p2", "p3", "p4", "z"):
             a, b = getattr(item, name), getattr(stored, name)
-            if not (math.isnan(a) and b == 0.0) and _f32(a) != _f32(b):
+            if not math.isnan(a) and _f32(a) != _f32(b):  # NaN means "unset" anyway
                 notes.append(f"seq {item.seq}: {name} {a:g} -> {b:g}")
-            elif math.isnan(a):
-                notes.append(f"seq {item.seq}: {name} nan -> {b:g}")
     return notes
 
 
