@@ -193,7 +193,7 @@ def test_led_marker_needs_no_dictionary():
     assert back.altitude_datum == "msl" and back.camera_latency_s is None
 
 
-def _raw_writer_file(path, topics, metadata=True, compression="lz4", fix_schema=None):
+def _raw_writer_file(path, topics, metadata=True, compression="lz4", fix_schema=None, summary_channels=False):
     """A run written with mcap's Writer and the foxglove protobuf classes directly, not RunWriter."""
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
     from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
@@ -206,7 +206,8 @@ def _raw_writer_file(path, topics, metadata=True, compression="lz4", fix_schema=
             f,
             compression={"lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression],
             index_types=IndexType.CHUNK,  # no message/metadata/attachment indexes
-            repeat_channels=False,
+            repeat_channels=summary_channels,  # with channels but no schemas in the summary, or neither
+            repeat_schemas=False,
             use_statistics=False,
         )
         w.start()
@@ -245,10 +246,10 @@ def _raw_writer_file(path, topics, metadata=True, compression="lz4", fix_schema=
         w.finish()
 
 
-@pytest.mark.parametrize("compression", ["lz4", "none"])
-def test_reads_a_minimal_independent_writer(tmp_path, compression):
+@pytest.mark.parametrize("compression, summary_channels", [("lz4", False), ("none", False), ("lz4", True)])
+def test_reads_a_minimal_independent_writer(tmp_path, compression, summary_channels):
     path = tmp_path / "other.mcap"
-    _raw_writer_file(path, {"/gnss/fix", "/camera/image"}, compression=compression)
+    _raw_writer_file(path, {"/gnss/fix", "/camera/image"}, compression=compression, summary_channels=summary_channels)
     with open_run(path) as run:
         assert not run.truncated
         assert (run.metadata.width, run.metadata.height, run.metadata.marker.size_m) == (640, 480, 0.25)

@@ -787,6 +787,7 @@ def import_run(
         also attached to the run as ``import_report.json``.
     """
     import json
+    from dataclasses import asdict
 
     from dronecal_field.runfile.writer import RunWriter
     from dronecal_field.video import read_video_file, video_creation_time_ns
@@ -877,7 +878,7 @@ def import_run(
             hovers=len(log.hovers),
             altitude_datum=log.altitude_datum,
             position_source=log.position_source,
-            clocks=[c.__dict__.copy() for c in log.clocks],
+            clocks=[asdict(c) for c in log.clocks],
             host_seconds_per_vehicle_second=log.host_seconds_per_vehicle_second,
             time_range_ns=(t_min, t_max) if t_min is not None else None,
             warnings=warnings,

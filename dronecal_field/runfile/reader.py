@@ -307,6 +307,8 @@ class Run:
             return False
         if summary is None or not summary.chunk_indexes or not summary.channels:
             return False
+        if any(ch.schema_id and ch.schema_id not in summary.schemas for ch in summary.channels.values()):
+            return False  # channels without their schemas: the data section has both
         for sid, s in summary.schemas.items():
             self._schemas[sid] = (s.name, s.encoding)
         for ch in summary.channels.values():
