@@ -186,7 +186,7 @@ def send_mission(
                     ready = _vehicle_ready(link)
                     if ready:
                         retries_after_ready += 1
-                    if (not ready or retries_after_ready <= 2) and time.monotonic() < ready_deadline:
+                    if (not ready or retries_after_ready <= 1) and time.monotonic() < ready_deadline:
                         # right after boot the mission store is not ready yet (ArduCopter): wait, retry
                         no_space += 1
                         time.sleep(no_space_wait_s)
@@ -201,8 +201,9 @@ def send_mission(
                     )
                 if msg.type == ap.MAV_MISSION_OPERATION_CANCELLED and not requested:
                     continue
-                where = f" at item {last_sent + 1 if last_sent + 1 < n else last_sent}"
-                bad = items[min(last_sent + 1, n - 1)]
+                # the vehicle answers the item it could not take, so the culprit is the last one sent
+                bad = items[max(last_sent, 0)]
+                where = f" at item {bad.seq}"
                 raise MissionRejectedError(
                     f"vehicle refused the mission: {_mission_result_name(msg.type)}{where} (command {bad.command}, frame {bad.frame}); fix that item in the plan"
                 )
