@@ -136,7 +136,7 @@ def map_with_progress(
     initial: int = 0,
     desc: str = "tasks",
     unit: str = "task",
-    unit_scale: float = 1.0,
+    weight: Callable[[T], int] | None = None,
     max_in_flight: int | None = None,
     progress: bool | IO[str] = False,
 ) -> Iterator[tuple[int, R]]:
@@ -154,10 +154,12 @@ def map_with_progress(
     client : ``distributed.Client`` or None (run in this process, in order)
     fn : module-level function (workers import it by name), one item -> result
     items : the work
-    total : number of items, for the bar's ETA (default ``len(items)`` if it has one)
+    total : work to do in bar units, for the ETA (default: the items' summed
+        weight when ``items`` has a length, else unknown)
     initial : work already done before this call (a resumed job), in bar units
     desc, unit : progress bar label and unit
-    unit_scale : bar units per item (e.g. 20 when each item is a batch of 20 rows)
+    weight : bar units of an item, evaluated here (e.g. ``len`` when each
+        item is a batch of rows); default 1
     max_in_flight : cap on submitted, unfinished tasks
     progress : False for silence, True for a tqdm bar (rate, ETA) on stderr,
         or an open text stream to draw it on
@@ -168,9 +170,10 @@ def map_with_progress(
     """
     from tqdm import tqdm
 
+    size = weight or (lambda item: 1)
     if total is None and hasattr(items, "__len__"):
-        total = len(items)  # type: ignore[arg-type]
-    bar_total = None if total is None else initial + total * unit_scale
+        total = sum(size(item) for item in items)  # type: ignore[union-attr]
+    bar_total = None if total is None else initial + total
     stream = progress if (progress is not False and progress is not True) else sys.stderr
     bar = tqdm(
         total=bar_total,
@@ -187,20 +190,21 @@ def map_with_progress(
         if client is None:
             for index, item in enumerate(items):
                 result = fn(item)
-                bar.update(unit_scale)
+                bar.update(size(item))
                 yield index, result
             return
-        yield from _map_distributed(client, fn, items, max_in_flight, bar, unit_scale)
+        yield from _map_distributed(client, fn, items, max_in_flight, bar, size)
     finally:
         bar.close()
 
 
-def _map_distributed(client: Any, fn: Callable, items: Iterable, max_in_flight: int | None, bar: Any, unit_scale: float) -> Iterator[tuple[int, Any]]:
+def _map_distributed(client: Any, fn: Callable, items: Iterable, max_in_flight: int | None, bar: Any, size: Callable) -> Iterator[tuple[int, Any]]:
     from distributed import as_completed
 
     limit = max_in_flight or max(2, 4 * worker_count(client))
     source = iter(enumerate(items))
     index_of: dict[Any, int] = {}
+    weight_of: dict[Any, int] = {}
     pending = as_completed()
 
     def submit_next() -> bool:
@@ -211,6 +215,7 @@ def _map_distributed(client: Any, fn: Callable, items: Iterable, max_in_flight: 
         # pure=False: every call is new work; a resubmitted item must not alias a cached result
         future = client.submit(fn, item, pure=False)
         index_of[future] = index
+        weight_of[future] = size(item)
         pending.add(future)
         return True
 
@@ -221,8 +226,8 @@ def _map_distributed(client: Any, fn: Callable, items: Iterable, max_in_flight: 
         for future in pending:
             result = future.result()  # re-raises the task's exception
             index = index_of.pop(future)
+            bar.update(weight_of.pop(future))
             future.release()
-            bar.update(unit_scale)
             submit_next()
             yield index, result
     finally:

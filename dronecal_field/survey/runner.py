@@ -137,8 +137,8 @@ def run_survey(
     t_start = time.perf_counter()
     items = [(g, config.settings) for g in groups]
     for _, rows in map_with_progress(
-        client, _evaluate_item, items, initial=already, total=len(items), desc="survey", unit="row",
-        unit_scale=batch_size, progress=progress,
+        client, _evaluate_item, items, initial=already, desc="survey", unit="row",
+        weight=_item_rows, progress=progress,
     ):
         # a batch is stored whole or not at all; keys are re-checked so a resubmitted task cannot duplicate
         rows = [r for r in rows if (r["camera_id"], r["strategy"]) not in done]
@@ -163,6 +163,10 @@ def run_survey(
         rows_per_s=computed / elapsed if elapsed > 0 and computed else 0.0,
         strategies=tuple(s.name for s in strategies),
     )
+
+
+def _item_rows(item: tuple[list[Case], MonteCarloSettings]) -> int:
+    return len(item[0])
 
 
 def _evaluate_item(item: tuple[list[Case], MonteCarloSettings]) -> list[dict]:
