@@ -251,9 +251,15 @@ class Renderer:
                 return image
             uv = self.camera.project(centre[None])[0]
             r_px = max(1.2, self.camera.intrinsics.fx * self.look.led_radius_m / self.camera.depth(centre[None])[0])
-            ys, xs = np.mgrid[0 : image.shape[0], 0 : image.shape[1]]
+            half = int(np.ceil(4 * r_px)) + 2
+            x0, y0 = max(int(uv[0]) - half, 0), max(int(uv[1]) - half, 0)
+            x1, y1 = min(int(uv[0]) + half + 1, image.shape[1]), min(int(uv[1]) + half + 1, image.shape[0])
+            if x1 <= x0 or y1 <= y0:
+                return image
+            ys, xs = np.mgrid[y0:y1, x0:x1]
             blob = 255.0 * np.exp(-((xs - uv[0]) ** 2 + (ys - uv[1]) ** 2) / (2 * (r_px / 1.5) ** 2))
-            return np.clip(np.maximum(image.astype(float), blob), 0, 255).astype(np.uint8)
+            image[y0:y1, x0:x1] = np.clip(np.maximum(image[y0:y1, x0:x1].astype(float), blob), 0, 255).astype(np.uint8)
+            return image
         corners = self.marker_corners_world(t_ns)
         if np.any(self.camera.depth(corners) <= 0):
             return image
@@ -341,6 +347,8 @@ class RunSpec:
     site_origin: EnuOrigin | None = None
     seed: int = 3
     chunk_size: int = 256 * 1024
+    renderer: str = "homography"  # or "sim": the simulator's exact ray-traced renderer (ArUco only)
+    fix_type: str = "rtk_fixed"
 
 
 def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook, spec: RunSpec) -> dict:
@@ -358,6 +366,9 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
 
     rng = np.random.default_rng(spec.seed)
     renderer = Renderer(camera=camera, flight=flight, look=look, dark=look.kind == "led")
+    render = renderer.render
+    if spec.renderer == "sim":
+        render = _sim_render(camera, flight, look, spec.seed)
     t_start, t_end = int(flight.t_ns[0]), int(flight.t_ns[-1])
     records: list[tuple[int, str, bytes]] = []  # (log_time_ns, topic, data), sorted later
 
@@ -369,7 +380,7 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
         keep &= ~((fix_t >= a) & (fix_t < b))
     fix_t = fix_t[keep]
     pos, _ = flight.at(fix_t)
-    fix_type = np.array(["rtk_fixed"] * len(fix_t), dtype=object)
+    fix_type = np.array([spec.fix_type] * len(fix_t), dtype=object)
     sigma = np.tile(np.array(spec.gnss_sigma_m, float), (len(fix_t), 1))
     for hold_index, kind in spec.degraded_holds.items():
         a, b, _ = flight.holds[hold_index]
@@ -396,7 +407,7 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
     n_corrupt = 0
     for k in range(n_frames):
         visible = not any(a <= capture[k] < b for a, b in spec.hidden)
-        data = encode_jpeg(renderer.render(int(capture[k]), visible=visible), spec.jpeg_quality)
+        data = encode_jpeg(render(int(capture[k]), visible=visible), spec.jpeg_quality)
         if spec.corrupt_every and k % spec.corrupt_every == spec.corrupt_every - 1:
             data = data[: len(data) // 2]
             n_corrupt += 1
@@ -489,6 +500,28 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
         "n_corrupt": n_corrupt,
         "renderer": renderer,
     }
+
+
+def _sim_render(camera: Camera, flight: Flight, look: MarkerLook, seed: int):
+    """A render(t_ns, visible) function using the simulator's ray-traced renderer (sensor noise included)."""
+    from dronecal_field.sim.render import FrameRenderer
+    from dronecal_field.sim.scene import MarkerSpec as SimMarker
+    from dronecal_field.sim.scene import VehiclePose
+
+    sim = FrameRenderer(
+        camera,
+        SimMarker(dictionary=look.dictionary, marker_id=look.marker_id, size_m=look.size_m, offset_frd_m=tuple(flight.offset_frd_m)),
+        noise_sigma_dn=2.0,
+        seed=seed,
+    )
+
+    def render(t_ns: int, visible: bool = True) -> np.ndarray:
+        if not visible:
+            return sim.render(None)
+        pos, rpy = flight.at(np.array([t_ns]))
+        return sim.render(VehiclePose(antenna_enu_m=pos[0], roll_rad=float(rpy[0, 0]), pitch_rad=float(rpy[0, 1]), yaw_rad=float(rpy[0, 2])))
+
+    return render
 
 
 def truncate(path: str | Path, fraction: float) -> Path:

@@ -60,6 +60,67 @@ def choose_model(uv_px: np.ndarray, width: int, height: int) -> tuple[Calibratio
     return model, f"{n} points allow {by_count.name}; {why}"
 
 
+def select_model(
+    points_world: np.ndarray,
+    pixels: np.ndarray,
+    width: int,
+    height: int,
+    loss: str = "huber",
+    loss_scale_px: float = 2.0,
+    significance: float = 0.01,
+):
+    """Calibrate with the richest distortion model the data support: (CalibrationResult, reason).
+
+    Climbs none -> k1 -> k1k2 -> k1k2p1p2 up to the cap of :func:`choose_model`
+    and keeps a richer model only when it lowers the residual sum of squares
+    significantly (an F-test at ``significance``). With few points a rich
+    model fits the noise: it halves the RMS while moving the principal point
+    by pixels, which the F-test refuses.
+
+    Parameters
+    ----------
+    points_world : (N, 3) metres, pixels : (N, 2)
+    """
+    from dataclasses import replace
+
+    from scipy import stats
+
+    from dronecal_field.core.calibrate import calibrate
+
+    cap, why = choose_model(pixels, width, height)
+    ladder = ("none", "k1", "k1k2", "k1k2p1p2")
+    ladder = ladder[: ladder.index(cap.distortion) + 1]
+    n_obs = 2 * len(points_world)
+
+    def fit(distortion: str):
+        return calibrate(points_world, pixels, width, height, model=replace(cap, distortion=distortion), loss=loss, loss_scale_px=loss_scale_px)
+
+    best = fit(ladder[0])
+    rejected = []
+    for name in ladder[1:]:
+        try:
+            candidate = fit(name)
+        except Exception:  # noqa: BLE001 - a richer model that does not converge is simply not chosen
+            rejected.append(f"{name} (no fit)")
+            continue
+        dp = candidate.model.n_free - best.model.n_free
+        dof = n_obs - candidate.model.n_free
+        rss_b = float(np.sum(best.residuals_px**2))
+        rss_c = float(np.sum(candidate.residuals_px**2))
+        if dof <= 0 or rss_c <= 0:
+            if rss_c < rss_b:
+                best = candidate
+            continue
+        F = ((rss_b - rss_c) / dp) / (rss_c / dof)
+        p = float(stats.f.sf(F, dp, dof)) if F > 0 else 1.0
+        if p < significance:
+            best = candidate
+        else:
+            rejected.append(f"{name} (p={p:.2g})")
+    reason = why + (f"; not significant: {', '.join(rejected)}" if rejected else "")
+    return best, reason
+
+
 def parameter_covariance(
     camera: Camera,
     points_world: np.ndarray,

@@ -330,7 +330,10 @@ def calibrate_run(path: str | os.PathLike, options: CalibrateOptions = Calibrate
     from dronecal_field.pipeline import maps
     from dronecal_field.runfile.reader import open_run
 
+    from dataclasses import replace
+
     path = Path(path)
+    point_options = replace(options.points, min_fix=options.min_fix)
     timings: dict[str, float] = {}
     warnings: list[str] = []
     tick = time.perf_counter()
@@ -413,12 +416,12 @@ def calibrate_run(path: str | os.PathLike, options: CalibrateOptions = Calibrate
     def build_points(marker_enu: np.ndarray) -> list[WaypointPoint]:
         pts = [
             window_point(
-                w, w.stable(options.points.settle_s, options.points.tail_s), fix_t, marker_enu, fix_sigma, fix_types,
-                det_t, det_uv, offset.offset_ns, options.points, det_size, marker_size_m,
+                w, w.stable(point_options.settle_s, point_options.tail_s), fix_t, marker_enu, fix_sigma, fix_types,
+                det_t, det_uv, offset.offset_ns, point_options, det_size, marker_size_m,
             )
             for w in windows
         ]
-        return drop_outlying_scatter(pts, options.points)
+        return drop_outlying_scatter(pts, point_options)
 
     def solve(pts: list[WaypointPoint]):
         used = [p for p in pts if p.used]
@@ -427,10 +430,10 @@ def calibrate_run(path: str | os.PathLike, options: CalibrateOptions = Calibrate
         X = np.array([p.marker_enu_m for p in used])
         uv = np.array([p.uv_px for p in used])
         if options.model == "auto":
-            model, reason = maps.choose_model(uv, md.width, md.height)
+            result, reason = maps.select_model(X, uv, md.width, md.height, options.loss, options.loss_scale_px)
         else:
-            model, reason = options.model, "--model given"
-        result = calibrate(X, uv, md.width, md.height, model=model, loss=options.loss, loss_scale_px=options.loss_scale_px)
+            reason = "--model given"
+            result = calibrate(X, uv, md.width, md.height, model=options.model, loss=options.loss, loss_scale_px=options.loss_scale_px)
         return result, reason
 
     points = build_points(marker)
