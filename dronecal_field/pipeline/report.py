@@ -258,18 +258,25 @@ def homography_yaml(report) -> str:
 
 
 def detections_csv(report) -> str:
-    """detections.csv: one row per detection, with its window and whether it fed the point."""
+    """detections.csv: one row per detection, the hover window it falls in (if any), and its use.
+
+    ``capture_ns`` is the frame stamp corrected by the estimated camera
+    offset (GNSS clock); ``window`` is the window containing that time.
+    """
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(["timestamp_ns", "capture_ns", "window", "seq", "kind", "u_px", "v_px", "size_px", "in_settled_part", "window_used"])
-    windows = {p.window.index: p for p in report.points}
     offset = report.offset.offset_ns
-    for d, g in zip(report.detections, report.detection_groups):
-        p = windows.get(g)
+    points = sorted(report.points, key=lambda p: p.window.start_ns)
+    starts = np.array([p.window.start_ns for p in points], np.int64)
+    for d in report.detections:
         capture = d.timestamp_ns - offset
+        k = int(np.searchsorted(starts, capture, side="right")) - 1
+        p = points[k] if k >= 0 and capture <= points[k].window.end_ns else None
         settled = bool(p is not None and p.stable_ns[0] <= capture <= p.stable_ns[1])
         writer.writerow([
-            d.timestamp_ns, capture, g, "" if p is None or p.window.seq is None else p.window.seq, d.kind,
+            d.timestamp_ns, capture, "" if p is None else p.window.index,
+            "" if p is None or p.window.seq is None else p.window.seq, d.kind,
             f"{d.u_px:.4f}", f"{d.v_px:.4f}", f"{d.size_px:.2f}", int(settled), int(bool(p is not None and p.used)),
         ])
     return buf.getvalue()
