@@ -140,3 +140,19 @@ def test_row_statistics_follow_the_residual_theory_for_image_noise():
     row3 = evaluate_camera(cam, pts, MonteCarloSettings(trials=300, sigma_2d=sigma), seed=5)
     assert row3["rms_mean"] > row["rms_mean"] * 1.05
     assert MonteCarloSettings(seed=1).case_seed(3) == MonteCarloSettings(seed=1).case_seed(3) != MonteCarloSettings(seed=1).case_seed(4)
+
+
+def test_score_strategies_ranks_candidates_of_a_known_camera_with_the_survey_rows():
+    from dronecal_field.survey.runner import score_strategies
+
+    sc = SurveyCamera(camera_id=0, focal_mm=6.0, width_px=1600, height_px=1200, elevation_m=3.5, tilt_deg=35.0, distorted=True)
+    settings = MonteCarloSettings(trials=40, seed=11)
+    strategies = catalogue("far-y1-z2,near-y1-z2,full-y0.5-z2")
+    rows = score_strategies(sc.camera(), strategies, PaperLattice(), settings)
+    assert [r["strategy"] for r in rows] == [s.name for s in strategies]
+    assert all(r["status"] == "ok" for r in rows)
+    # the same numbers as the survey's row for this camera when the seeds match
+    case_row = evaluate_case(Case(camera=sc, strategy=strategies[0]), MonteCarloSettings(trials=40, seed=11))
+    again = score_strategies(sc.camera(), strategies[:1], PaperLattice(), MonteCarloSettings(trials=40, seed=settings.case_seed(0)))
+    assert again[0]["rms_mean"] == pytest.approx(case_row["rms_mean"], rel=1e-12)
+    assert rows[0]["n_points"] == case_row["n_points"] > 12

@@ -1,9 +1,10 @@
 """One (camera, strategy) of the survey: sample its points, run the engine's Monte-Carlo, make a row.
 
 Pure computation (no files, no cluster): ``evaluate_case`` is what a Dask
-worker runs, ``evaluate_batch`` a list of them in one task. ``plan
---optimize`` scores its candidates with the same functions (a camera given
-as ``Camera`` instead of a design row: see :func:`evaluate_camera`).
+worker runs, ``evaluate_batch`` a list of them in one task.
+``evaluate_strategy_row`` scores a strategy on any known camera; ``plan
+--optimize`` can rank its candidates with it through
+``runner.score_strategies`` (same rows, same Dask machinery).
 """
 
 from __future__ import annotations
@@ -114,6 +115,25 @@ def evaluate_camera(camera: Camera, points: np.ndarray, settings: MonteCarloSett
     return row
 
 
+def evaluate_strategy_row(camera: Camera, strategy: Strategy, sampler: Sampler, settings: MonteCarloSettings, seed: int | None = None) -> dict:
+    """Row of one strategy on a known camera (``plan --optimize``'s candidates): points, heights, statistics.
+
+    ``camera`` is in the frame the sampler works in (the site frame); the
+    Monte-Carlo seed defaults to ``settings.seed`` so all strategies share
+    their noise draws.
+    """
+    row: dict = {"strategy": strategy.name, "x_min_m": strategy.x_min_m, "x_max_m": strategy.x_max_m,
+                 "y_step_m": strategy.y_step_m, "n_heights": strategy.n_heights, "trials": settings.trials}
+    try:
+        points = sampler.points(strategy, camera)
+    except DronecalError as exc:
+        row.update(status=STATUS_DEGENERATE, message=str(exc), n_points=0, heights_m="")
+        return row
+    row["heights_m"] = ",".join(f"{z:g}" for z in sorted(set(np.round(points[:, 2], 3)))) if len(points) else ""
+    row.update(evaluate_camera(camera, points, settings, settings.seed if seed is None else seed))
+    return row
+
+
 def evaluate_case(case: Case, settings: MonteCarloSettings) -> dict:
     """The survey row of one (camera, strategy): design factors, strategy, points and statistics."""
     t0 = time.perf_counter()
@@ -129,20 +149,8 @@ def evaluate_case(case: Case, settings: MonteCarloSettings) -> dict:
         "elevation_m": cam.elevation_m,
         "tilt_deg": cam.tilt_deg,
         "distorted": cam.distorted,
-        "x_min_m": strat.x_min_m,
-        "x_max_m": strat.x_max_m,
-        "y_step_m": strat.y_step_m,
-        "n_heights": strat.n_heights,
-        "trials": settings.trials,
     }
-    camera = cam.camera()
-    try:
-        points = case.sampler.points(strat, camera)
-    except DronecalError as exc:
-        row.update(status=STATUS_DEGENERATE, message=str(exc), n_points=0)
-    else:
-        row["heights_m"] = ",".join(f"{z:g}" for z in sorted(set(np.round(points[:, 2], 3)))) if len(points) else ""
-        row.update(evaluate_camera(camera, points, settings, settings.case_seed(cam.camera_id)))
+    row.update(evaluate_strategy_row(cam.camera(), strat, case.sampler, settings, settings.case_seed(cam.camera_id)))
     row["compute_s"] = time.perf_counter() - t0
     return row
 

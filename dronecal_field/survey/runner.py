@@ -17,7 +17,15 @@ from dronecal_field.errors import InputError
 from dronecal_field.plan.strategies import Strategy
 from dronecal_field.survey.catalogue import PaperLattice, PlanLattice, Sampler
 from dronecal_field.survey.design import DesignSpace, latin_hypercube
-from dronecal_field.survey.evaluate import STATUS_DEGENERATE, STATUS_FAILED, Case, MonteCarloSettings, evaluate_batch, warm_up
+from dronecal_field.survey.evaluate import (
+    STATUS_DEGENERATE,
+    STATUS_FAILED,
+    Case,
+    MonteCarloSettings,
+    evaluate_batch,
+    evaluate_strategy_row,
+    warm_up,
+)
 from dronecal_field.survey.store import ResultStore
 
 
@@ -172,3 +180,41 @@ def _item_rows(item: tuple[list[Case], MonteCarloSettings]) -> int:
 def _evaluate_item(item: tuple[list[Case], MonteCarloSettings]) -> list[dict]:
     cases, settings = item
     return evaluate_batch(cases, settings)
+
+
+def score_strategies(
+    camera: Any,
+    strategies: tuple[Strategy, ...],
+    sampler: Sampler,
+    settings: MonteCarloSettings = MonteCarloSettings(),
+    client: Any = None,
+    progress: bool | IO[str] = False,
+) -> list[dict]:
+    """Rows of several strategies on one known camera, in the order given: what ``plan --optimize`` ranks.
+
+    The survey's row function on the survey's Dask machinery: with a
+    ``client`` the strategies run in parallel on the cluster, without one in
+    this process. ``sampler`` is usually ``PlanLattice(limits)`` (what plan
+    flies); every strategy shares ``settings.seed`` (common random numbers).
+
+    Parameters
+    ----------
+    camera : core.camera.Camera in the site frame
+    strategies : candidates (plan.strategies.Strategy)
+    sampler : how a strategy becomes points for this camera
+    settings : noise model and trials
+
+    Returns
+    -------
+    list of row dicts (status, n_points, heights_m, rms_mean, ..., see ``evaluate_camera``)
+    """
+    items = [(camera, s, sampler, settings) for s in strategies]
+    rows: list[dict] = [{} for _ in items]
+    for index, row in map_with_progress(client, _score_item, items, desc="candidates", unit="strategy", progress=progress):
+        rows[index] = row
+    return rows
+
+
+def _score_item(item: tuple[Any, Strategy, Sampler, MonteCarloSettings]) -> dict:
+    camera, strategy, sampler, settings = item
+    return evaluate_strategy_row(camera, strategy, sampler, settings)
