@@ -120,8 +120,11 @@ def projective_residuals(X: np.ndarray, uv: np.ndarray, weights: np.ndarray | No
     A[1::2] = np.c_[zeros, Xh, -uh[:, 1:2] * Xh]
     if weights is not None:
         A *= np.repeat(np.asarray(weights, float), 2)[:, None]
-    _, _, vt = np.linalg.svd(A, full_matrices=False)
-    P = vt[-1].reshape(3, d + 1)
+    # The null vector from the (12, 12) normal matrix: with Hartley
+    # normalisation it is well enough conditioned for a cost, and it is an
+    # order of magnitude cheaper than the SVD of the (2N, 12) matrix.
+    _, vecs = np.linalg.eigh(A.T @ A)
+    P = vecs[:, 0].reshape(3, d + 1)
     proj = Xh @ P.T
     z = proj[:, 2:3]
     z = np.where(np.abs(z) < 1e-12, 1e-12, z)
@@ -181,6 +184,7 @@ def estimate_time_offset(
     scale_px: float = 2.0,
     min_moving_px: float = 1.0,
     min_points: int = 12,
+    max_points: int = 900,
 ) -> TimeOffset:
     """Estimate the camera-vs-GNSS offset from detections and the marker's GNSS track.
 
@@ -203,6 +207,9 @@ def estimate_time_offset(
     min_moving_px : float
         Detections whose pixel moves less than this per 0.1 s are "still";
         without moving detections the offset is unobservable.
+    max_points : int
+        At most this many moving detections (and a third as many still ones)
+        enter the fit, evenly spaced in time; the cost stays bounded on long runs.
 
     Returns
     -------
@@ -220,6 +227,10 @@ def estimate_time_offset(
     n = len(det_t_ns)
     moving = _moving_mask(det_t_ns, det_uv, min_moving_px)
     n_moving = int(moving.sum())
+    # Bound the cost: all moving detections carry the signal (up to a cap),
+    # still ones only anchor the fit, so an evenly spaced subset of them will do.
+    keep = _subsample(moving, max_moving=max_points, max_still=max_points // 3)
+    det_t_ns, det_uv, groups, moving = det_t_ns[keep], det_uv[keep], groups[keep], moving[keep]
     if n < min_points or n_moving < 4 or len(fix_t_ns) < 2:
         return TimeOffset(offset_s=0.0, std_s=None, method="none", n_points=n, n_moving=n_moving)
 
@@ -266,6 +277,17 @@ def estimate_time_offset(
         cost_min_px=float(cost_min),
         cost_zero_px=None if not np.isfinite(zero_cost) else float(zero_cost),
     )
+
+
+def _subsample(moving: np.ndarray, max_moving: int, max_still: int) -> np.ndarray:
+    """(M,) bool: evenly spaced subsets of the moving and the still detections."""
+    keep = np.zeros(len(moving), bool)
+    for mask, cap in ((moving, max_moving), (~moving, max_still)):
+        idx = np.flatnonzero(mask)
+        if len(idx) > cap:
+            idx = idx[np.linspace(0, len(idx) - 1, cap).round().astype(int)]
+        keep[idx] = True
+    return keep
 
 
 def _moving_mask(t_ns: np.ndarray, uv: np.ndarray, min_px: float) -> np.ndarray:

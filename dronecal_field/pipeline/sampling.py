@@ -29,8 +29,8 @@ class SamplingOptions:
     max_frames_per_window: int = 24
     margin_s: float = 1.2  # each side of a window: covers a camera offset up to 1 s
     dense_s: float = 2.0  # decode every frame this long into each transition
-    dense_period_s: float = 1.0 / 30.0  # but no faster than this
-    max_transitions: int = 12
+    dense_period_s: float = 1.0 / 15.0  # but no faster than this (15 Hz resolves a 1 s offset to ms)
+    max_transitions: int = 10
 
 
 @dataclass
