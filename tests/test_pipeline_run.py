@@ -28,6 +28,7 @@ from contract_writer import (
 from dronecal_field.camerafile import read_camera
 from dronecal_field.errors import ContractError, DegenerateGeometryError, InputError
 from dronecal_field.geodesy import enu_to_geodetic, geodetic_to_enu
+from dronecal_field.pipeline.annotate import write_annotated_copy
 from dronecal_field.pipeline.run import CalibrateOptions, calibrate_run
 from dronecal_field.runfile.reader import open_run
 
@@ -199,6 +200,12 @@ def test_cut_off_run_calibrates_from_its_complete_part(messy_run, tmp_path):
     assert len(report.used_points) >= 6
     assert report.monte_carlo is None and report.linearised is not None
     assert abs(report.camera.intrinsics.fx / camera.intrinsics.fx - 1) < 0.03
+    # The annotated copy of a cut-off run keeps its complete part and is itself complete.
+    added = write_annotated_copy(cut, tmp_path / "cut.annotated.mcap", report)
+    assert added == len(report.detections) + 1
+    with open_run(cut) as original, open_run(tmp_path / "cut.annotated.mcap") as annotated:
+        assert not annotated.truncated
+        assert sum(1 for _ in annotated.iter_frames()) == sum(1 for _ in original.iter_frames())
 
 
 def test_reached_without_attitude_uses_the_level_nose_to_camera_lever_arm(tmp_path):
