@@ -51,6 +51,8 @@ def test_calibrate_errors_exit_2_with_one_line(small_run, tmp_path):
     assert proc.returncode == 2 and "not an MCAP file" in proc.stderr
     proc = run_cli("calibrate", str(path), "--min-fix", "bogus")
     assert proc.returncode == 2 and "invalid choice" in proc.stderr  # argparse's own usage error
+    proc = run_cli("calibrate", str(path), "--trials", "1")
+    assert proc.returncode == 2 and "--trials 1: use 0" in proc.stderr
 
 
 def test_calibrate_help_is_fast_and_documents_the_outputs():

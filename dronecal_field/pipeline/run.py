@@ -69,8 +69,8 @@ class CalibrateOptions:
             raise InputError(f"--min-fix {self.min_fix!r} is not a fix type: use one of {', '.join(FIX_TYPES)}")
         if self.hover_source not in HOVER_SOURCES:
             raise InputError(f"--hover-source {self.hover_source!r}: use one of {', '.join(HOVER_SOURCES)}")
-        if self.trials < 0:
-            raise InputError(f"--trials {self.trials} must be >= 0 (0 skips the Monte-Carlo)")
+        if self.trials < 0 or self.trials == 1:
+            raise InputError(f"--trials {self.trials}: use 0 to skip the Monte-Carlo, or at least 2 (the paper uses 500)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -326,11 +326,11 @@ def calibrate_run(path: str | os.PathLike, options: CalibrateOptions = Calibrate
     DegenerateGeometryError : too few good waypoints, coplanar points
     CalibrationError : the solver found no trustworthy camera
     """
+    from dataclasses import replace
+
     from dronecal_field.core.calibrate import calibrate
     from dronecal_field.pipeline import maps
     from dronecal_field.runfile.reader import open_run
-
-    from dataclasses import replace
 
     path = Path(path)
     point_options = replace(options.points, min_fix=options.min_fix)
