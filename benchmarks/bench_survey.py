@@ -37,6 +37,29 @@ from dronecal_field.survey.store import load_results  # noqa: E402
 STRATEGY = "far-y1-z2"
 
 
+BUSY = "s = 0\nfor i in range(15_000_000): s += i"
+
+
+def machine_baseline() -> dict:
+    """How well this machine runs two CPU-bound processes at once right now (shared machines vary).
+
+    Pure-Python loops share nothing, so 2 processes / 1 process throughput
+    is the ceiling any 1 -> 2 worker scaling can reach at this moment.
+    """
+    import os
+    import subprocess
+
+    def wall(n: int) -> float:
+        t0 = time.perf_counter()
+        procs = [subprocess.Popen([sys.executable, "-c", BUSY]) for _ in range(n)]
+        for p in procs:
+            p.wait()
+        return time.perf_counter() - t0
+
+    one, two = wall(1), wall(2)
+    return {"busy_loop_scaling": 2.0 * one / two, "loadavg_1min": os.getloadavg()[0]}
+
+
 def survey_rate(n_cameras: int, trials: int, workers: int, seed: int = 0, progress: bool = False) -> dict:
     """Run a fresh one-strategy survey on a local cluster; rows/s after warm-up."""
     config = SurveyConfig(n_cameras=n_cameras, design_seed=seed, settings=MonteCarloSettings(trials=trials, seed=seed))
@@ -132,11 +155,15 @@ def main() -> int:
               f"({c['points_mean']:.0f} points); engine {c['engine_s_per_camera_500']:.3f} s per camera: {c['speedup_one_process']:.1f}x on one process")
         print("  mean RMS cv2 vs engine (px): " + ", ".join(f"{a:.2f}/{b:.2f}" for a, b in zip(c["cv2_rms_mean"], c["engine_rms_mean"])))
     if args.scaling_cameras:
+        before = machine_baseline()
         one = survey_rate(args.scaling_cameras, args.trials, 1)
         two = survey_rate(args.scaling_cameras, args.trials, 2)
-        out["scaling"] = {"one": one, "two": two, "speedup": two["rows_per_s"] / one["rows_per_s"]}
+        after = machine_baseline()
+        out["scaling"] = {"one": one, "two": two, "speedup": two["rows_per_s"] / one["rows_per_s"], "machine_before": before, "machine_after": after}
         print(f"scaling, {args.scaling_cameras} cameras x {args.trials} trials: 1 worker {one['rows_per_s']:.2f} rows/s, "
-              f"2 workers {two['rows_per_s']:.2f} rows/s: {out['scaling']['speedup']:.2f}x")
+              f"2 workers {two['rows_per_s']:.2f} rows/s: {out['scaling']['speedup']:.2f}x "
+              f"(machine ceiling for 2 CPU-bound processes now: {before['busy_loop_scaling']:.2f}x before, "
+              f"{after['busy_loop_scaling']:.2f}x after; load {before['loadavg_1min']:.1f})")
     n_full = args.full_cameras or (5000 if args.full else None)
     if n_full:
         full = survey_rate(n_full, args.trials, 2, progress=True)
