@@ -7,7 +7,8 @@ import numpy as np
 from contract_writer import pole_camera
 from dronecal_field.core.calibrate import CalibrationModel, resolve_model
 from dronecal_field.core.uncertainty import monte_carlo
-from dronecal_field.pipeline.maps import choose_model, ground_homography, parameter_covariance, uncertainty_maps
+from dronecal_field.core.uncertainty import parameter_covariance
+from dronecal_field.pipeline.maps import choose_model, ground_homography, uncertainty_maps
 
 
 def _grid_points(n_side=4):

@@ -79,7 +79,8 @@ class UncertaintyResult:
     ``rot_x/y/z``); projection error RMS (px) against the reference camera
     over the sampled points and over ground points in view; ground position
     error (cm) and speed error (km/h) 15 m out. ``rms`` holds the k trial
-    values for Monte-Carlo, None for the linearised estimate.
+    values for Monte-Carlo, None for the linearised estimate; ``covariance``
+    the (15, 15) parameter covariance of the linearised estimate.
     """
 
     method: str
@@ -99,6 +100,7 @@ class UncertaintyResult:
     n_points: int
     rms: np.ndarray | None = field(default=None, repr=False)
     failed_trials: int = 0
+    covariance: np.ndarray | None = field(default=None, repr=False)  # (15, 15), linearised only
 
     def to_dict(self) -> dict:
         d = {
@@ -327,14 +329,12 @@ def linearised(
     mdl = resolve_model(model, n)
     A = mdl.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx)
     m = A.shape[1]
-    _, J, Jx = project_batch_jacobians(*camera.batch_arrays(), P[None])
-    Jm = (J[0] @ A).reshape(2 * n, m)
-    Sigma_blocks = s2[:, None, None] ** 2 * np.eye(2) + np.einsum("nij,nj,nkj->nik", Jx[0], s3**2, Jx[0])  # (N,2,2)
+    Jm, blocks = _jacobian_and_noise(camera, P, s3, s2, A)
     Sigma = np.zeros((2 * n, 2 * n))
     for i in range(n):
-        Sigma[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = Sigma_blocks[i]
-    JtJ_inv = np.linalg.inv(Jm.T @ Jm)
-    cov = JtJ_inv @ Jm.T @ Sigma @ Jm @ JtJ_inv
+        Sigma[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = blocks[i]
+    JtJ_inv = np.linalg.pinv(Jm.T @ Jm)
+    cov = _sandwich(Jm, blocks, JtJ_inv)
     H = Jm @ JtJ_inv @ Jm.T
     M = (np.eye(2 * n) - H) @ Sigma
     ssr_mean = float(np.trace(M))
@@ -386,7 +386,55 @@ def linearised(
         speed_error_15m_kmh=speed_sd,
         speed_error_15m_kmh_p95=float(1.96 * speed_sd),
         n_points=n,
+        covariance=A @ cov @ A.T,
     )
+
+
+def _jacobian_and_noise(camera: Camera, P: np.ndarray, s3: np.ndarray, s2: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Free-parameter Jacobian (2N, m) and each observation's image noise (N, 2, 2).
+
+    The image noise of point i is s_i^2 I + J_X,i diag(S_i^2) J_X,i^T: its
+    pixel noise plus its 3D noise pushed through the projection.
+    """
+    n = P.shape[0]
+    _, J, Jx = project_batch_jacobians(*camera.batch_arrays(), P[None])
+    Jm = (J[0] @ A).reshape(2 * n, A.shape[1])
+    blocks = s2[:, None, None] ** 2 * np.eye(2) + np.einsum("nij,nj,nkj->nik", Jx[0], s3**2, Jx[0])
+    return Jm, blocks
+
+
+def _sandwich(Jm: np.ndarray, blocks: np.ndarray, JtJ_inv: np.ndarray) -> np.ndarray:
+    """(J^T J)^-1 J^T Sigma J (J^T J)^-1 for a block-diagonal Sigma, without forming it."""
+    Jb = Jm.reshape(blocks.shape[0], 2, -1)
+    middle = np.einsum("nia,nij,njb->ab", Jb, blocks, Jb)
+    return JtJ_inv @ middle @ JtJ_inv
+
+
+def parameter_covariance(
+    camera: Camera,
+    points_world: np.ndarray,
+    sigma_3d=DEFAULT_SIGMA_3D,
+    sigma_2d=DEFAULT_SIGMA_2D,
+    model: "str | CalibrationModel" = "default",
+) -> np.ndarray:
+    """(15, 15) first-order covariance of the least-squares camera under per-point noise.
+
+    Parameters
+    ----------
+    points_world : (N, 3) metres
+    sigma_3d : (3,) or (N, 3) metres, per axis
+    sigma_2d : scalar or (N,) pixels, per axis
+    model : the free parameters; fixed ones get zero variance
+
+    The unweighted estimate has covariance (J^T J)^-1 J^T Sigma J (J^T J)^-1
+    over the free parameters, Sigma holding each observation's image noise.
+    """
+    P = np.asarray(points_world, float)
+    s3, s2 = _sigmas(P, sigma_3d, sigma_2d)
+    mdl = resolve_model(model, P.shape[0])
+    A = mdl.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx)
+    Jm, blocks = _jacobian_and_noise(camera, P, s3, s2, A)
+    return A @ _sandwich(Jm, blocks, np.linalg.pinv(Jm.T @ Jm)) @ A.T
 
 
 def _derived_vectors(state: BatchState, probes: _Probes, reference: Camera, ground_z: float) -> dict[str, np.ndarray]:

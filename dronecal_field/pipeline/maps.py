@@ -3,8 +3,8 @@
 - ``choose_model``: the distortion model the points can support, from their
   number (the engine's rule) and their spread over the image (distortion
   grows with the radius; points near the centre cannot pin k2 or p1, p2).
-- ``parameter_covariance``: the (15, 15) covariance of the estimate under the
-  measured per-point sigmas (the linearised twin of the Monte-Carlo).
+- (the parameter covariance under the measured per-point sigmas comes from
+  ``core.uncertainty.parameter_covariance``, the linearised twin of the Monte-Carlo.)
 - ``uncertainty_maps``: cameras drawn from that covariance, giving the
   projection uncertainty (px) of the ground point seen at each pixel and the
   ground-position uncertainty (cm) of each pixel's ray on the plane z = 0.
@@ -25,7 +25,6 @@ from dronecal_field.core.camera import (
     Camera,
     intersect_plane_z,
     project_batch,
-    project_batch_jacobians,
 )
 
 MAX_GROUND_RANGE_M = 200.0
@@ -119,43 +118,6 @@ def select_model(
             rejected.append(f"{name} (p={p:.2g})")
     reason = why + (f"; not significant: {', '.join(rejected)}" if rejected else "")
     return best, reason
-
-
-def parameter_covariance(
-    camera: Camera,
-    points_world: np.ndarray,
-    sigma_3d: np.ndarray,
-    sigma_2d: np.ndarray,
-    model: "str | CalibrationModel",
-) -> np.ndarray:
-    """(15, 15) covariance of the least-squares estimate under per-point noise.
-
-    Parameters
-    ----------
-    points_world : (N, 3) metres
-    sigma_3d : (N, 3) metres, per axis
-    sigma_2d : (N,) pixels, per axis
-    model : the free parameters (fixed ones get zero variance)
-
-    Each observation's image noise is s_i^2 I + J_X S_i J_X^T (the 3D noise
-    through the projection); the estimate's covariance is the sandwich
-    (J^T J)^-1 J^T Sigma J (J^T J)^-1 over the free parameters.
-    """
-    P = np.asarray(points_world, float)
-    n = len(P)
-    mdl = resolve_model(model, n)
-    A = mdl.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx)
-    _, J, Jx = project_batch_jacobians(*camera.batch_arrays(), P[None])
-    Jm = (J[0] @ A).reshape(2 * n, -1)
-    s3 = np.broadcast_to(np.asarray(sigma_3d, float), (n, 3))
-    s2 = np.broadcast_to(np.asarray(sigma_2d, float).reshape(-1), (n,)) if np.ndim(sigma_2d) else np.full(n, float(sigma_2d))
-    blocks = s2[:, None, None] ** 2 * np.eye(2) + np.einsum("nij,nj,nkj->nik", Jx[0], s3**2, Jx[0])
-    # J^T Sigma J with a block-diagonal Sigma, without forming the (2N, 2N) matrix.
-    Jb = Jm.reshape(n, 2, -1)
-    middle = np.einsum("nia,nij,njb->ab", Jb, blocks, Jb)
-    JtJ_inv = np.linalg.pinv(Jm.T @ Jm)
-    cov_free = JtJ_inv @ middle @ JtJ_inv
-    return A @ cov_free @ A.T
 
 
 @dataclass(frozen=True, eq=False)

@@ -458,11 +458,11 @@ def calibrate_run(path: str | os.PathLike, options: CalibrateOptions = Calibrate
     s3 = np.array([p.sigma_enu_m for p in used])
     s2 = np.array([p.sigma_px for p in used])
     tick = time.perf_counter()
-    from dronecal_field.core.uncertainty import linearised, monte_carlo
+    from dronecal_field.core.uncertainty import linearised, monte_carlo, parameter_covariance
 
     mc = monte_carlo(camera, X, trials=options.trials, sigma_3d=s3, sigma_2d=s2, seed=options.seed, model=result.model) if options.trials >= 2 else None
     lin = linearised(camera, X, sigma_3d=s3, sigma_2d=s2, model=result.model)
-    cov = maps.parameter_covariance(camera, X, s3, s2, result.model)
+    cov = parameter_covariance(camera, X, s3, s2, result.model)
     umaps = maps.uncertainty_maps(camera, cov, seed=options.seed)
     H = maps.ground_homography(camera)
     timings["uncertainty_s"] = time.perf_counter() - tick
