@@ -10,7 +10,6 @@ simulator's truth.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import socket
 import subprocess
