@@ -1,0 +1,302 @@
+"""``dronecal-field fly``: pre-flight checks, upload + verify the mission, record the run.
+
+Steps: connect; open the video; print the pre-flight checklist (stops here
+with --dry-run, or with exit code 2 if a check fails); upload the mission and
+read it back; start recording RUN.mcap (and RUN.tlog beside it); then wait for
+the pilot to arm and switch to AUTO, or with --start arm in GUIDED and send
+MAV_CMD_MISSION_START (nothing else is ever commanded). Recording ends when the
+mission ends (last item reached and landed/disarmed) or on Ctrl-C, which
+finalises the file and commands nothing.
+
+The marker comes from the --marker-* flags, else from plan.json beside the
+mission (written by `dronecal-field plan`). See docs/fly.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "fly",
+        help="pre-flight, upload the mission, record the run (MCAP + tlog)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    link = parser.add_argument_group("vehicle")
+    link.add_argument("--connect", required=True, metavar="URL", help="MAVLink: udp:HOST:PORT (we send), udpin:HOST:PORT (we listen), tcp:HOST:PORT, serial:DEVICE")
+    link.add_argument("--baud", type=int, default=57600, help="serial baud rate (default 57600)")
+    link.add_argument("--signing-key", metavar="KEY", help="MAVLink 2 signing key: 64 hex characters or a passphrase (SHA-256); never printed")
+    link.add_argument("--heartbeat-timeout", type=float, default=10.0, metavar="S", help="wait this long for the vehicle's HEARTBEAT (default 10)")
+    link.add_argument("--link-timeout", type=float, default=3.0, metavar="S", help="telemetry silence that counts as a lost link (default 3)")
+    mission = parser.add_argument_group("mission")
+    mission.add_argument("--mission", required=True, metavar="FILE", help="mission.plan (QGroundControl) or .waypoints (QGC WPL 110)")
+    mission.add_argument("--dry-run", action="store_true", help="print the pre-flight checklist and stop: nothing is uploaded or recorded")
+    mission.add_argument("--start", action="store_true", help="arm in GUIDED and send MISSION_START yourself (default: wait for the pilot to arm and switch to AUTO)")
+    checks = parser.add_argument_group("pre-flight")
+    checks.add_argument("--min-fix", choices=("rtk_fixed", "rtk_float", "3d"), default="rtk_fixed", help="weakest GNSS fix to fly with (default rtk_fixed; others warn loudly)")
+    checks.add_argument("--min-battery", type=int, default=30, metavar="PCT", help="smallest battery charge, percent (default 30)")
+    checks.add_argument("--max-home-distance", type=float, default=500.0, metavar="M", help="largest home-to-mission distance, metres (default 500)")
+    checks.add_argument("--ready-timeout", type=float, default=60.0, metavar="S", help="wait this long for a booting vehicle to pass the checks (default 60)")
+    video = parser.add_argument_group("video")
+    video.add_argument("--video", required=True, metavar="URL", help="camera stream: http://.../stream.mjpg (MJPEG, JPEG passed through), rtsp://..., /dev/videoN or a file")
+    video.add_argument("--camera-width", type=int, metavar="PX", help="expected image width (default: from the first frame)")
+    video.add_argument("--camera-height", type=int, metavar="PX", help="expected image height (default: from the first frame)")
+    video.add_argument("--camera-latency", type=float, metavar="S", help="capture-to-arrival delay of the stream, seconds, if known (metadata camera.latency_s; default unknown)")
+    video.add_argument("--frame-queue", type=int, default=64, metavar="N", help="frames buffered for the disk before frames are dropped (default 64)")
+    marker = parser.add_argument_group("marker (default: plan.json beside the mission)")
+    marker.add_argument("--marker-kind", choices=("aruco", "led"), help="marker kind (default aruco)")
+    marker.add_argument("--marker-dictionary", metavar="NAME", help="ArUco dictionary (default DICT_4X4_50)")
+    marker.add_argument("--marker-id", type=int, metavar="ID", help="ArUco id (default 0)")
+    marker.add_argument("--marker-size", type=float, metavar="M", help="side of the marker's black square, metres")
+    marker.add_argument("--marker-offset", metavar="F,R,D", help="marker centre from the GNSS antenna, body frame forward,right,down, metres (default 0,0,0)")
+    parser.add_argument("--out", required=True, metavar="RUN.mcap", help="run file to write; the .tlog goes beside it")
+    parser.set_defaults(func=run)
+
+
+def _marker_spec(args: argparse.Namespace, plan_json: dict | None):
+    from dronecal_field.errors import InputError
+    from dronecal_field.runfile.records import MarkerSpec
+
+    flags = (args.marker_kind, args.marker_dictionary, args.marker_id, args.marker_size, args.marker_offset)
+    if any(v is not None for v in flags):
+        offset = (0.0, 0.0, 0.0)
+        if args.marker_offset:
+            try:
+                offset = tuple(float(v) for v in args.marker_offset.split(","))
+            except ValueError:
+                offset = ()
+            if len(offset) != 3:
+                raise InputError(f"--marker-offset {args.marker_offset!r} is not F,R,D in metres; e.g. --marker-offset 0.1,0,0.05")
+        kind = args.marker_kind or "aruco"
+        if kind == "aruco" and (args.marker_size is None or args.marker_size <= 0):
+            raise InputError("an ArUco marker needs --marker-size (side of the black square, metres)")
+        return MarkerSpec(
+            kind=kind,
+            dictionary=(args.marker_dictionary or "DICT_4X4_50") if kind == "aruco" else args.marker_dictionary,
+            marker_id=(args.marker_id if args.marker_id is not None else 0) if kind == "aruco" else args.marker_id,
+            size_m=args.marker_size,
+            offset_frd_m=offset,  # type: ignore[arg-type]
+        )
+    marker = (plan_json or {}).get("marker")
+    if not isinstance(marker, dict) or marker.get("size_m") is None:
+        raise InputError("no marker given: pass --marker-size (and --marker-dictionary/--marker-id/--marker-offset) or keep plan.json beside the mission")
+    return MarkerSpec(
+        kind=str(marker.get("kind", "aruco")),
+        dictionary=str(marker.get("dictionary", "DICT_4X4_50")),
+        marker_id=int(marker.get("id", 0)),
+        size_m=float(marker["size_m"]),
+        offset_frd_m=tuple(float(v) for v in marker.get("offset_frd_m", (0.0, 0.0, 0.0))),  # type: ignore[arg-type]
+    )
+
+
+def _site_origin(plan_json: dict | None):
+    from dronecal_field.geodesy import EnuOrigin
+
+    origin = (plan_json or {}).get("enu_origin")
+    if isinstance(origin, dict) and all(k in origin for k in ("lat_deg", "lon_deg", "h_m")):
+        return EnuOrigin(float(origin["lat_deg"]), float(origin["lon_deg"]), float(origin["h_m"]))
+    return None
+
+
+def _probe_video(url: str, first_timeout_s: float = 5.0, probe_s: float = 1.0):
+    """Open the stream, read the first frame and count frames for ``probe_s``: (source, first, VideoStatus)."""
+    from dronecal_field.errors import VideoError
+    from dronecal_field.mavlink.preflight import VideoStatus
+    from dronecal_field.video import open_video
+
+    try:
+        source = open_video(url)
+    except VideoError as exc:
+        return None, None, VideoStatus(url=url, error=str(exc))
+    first = source.read(timeout_s=first_timeout_s)
+    if first is None:
+        return source, None, VideoStatus(url=url, frames=0)
+    import cv2
+    import numpy as np
+
+    image = cv2.imdecode(np.frombuffer(first.data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        return source, None, VideoStatus(url=url, frames=1, error="the first frame is not a decodable image")
+    height, width = image.shape[:2]
+    frames, t0 = 1, time.monotonic()
+    while time.monotonic() - t0 < probe_s:
+        if source.read(timeout_s=probe_s) is not None:
+            frames += 1
+    fps = (frames - 1) / max(time.monotonic() - t0, 1e-6)
+    return source, first, VideoStatus(url=url, frames=frames, fps=fps, width=width, height=height)
+
+
+def _mission_over(recorder, mission) -> bool:
+    """The last item was reached (and the vehicle is down if it was a landing item), or it landed after flying."""
+    from dronecal_field.mavlink.missionfile import CMD_NAV_LAND, CMD_NAV_RETURN_TO_LAUNCH
+
+    last = mission.items[-1]
+    reached_last = any(seq == last.seq for _t, seq in recorder.reached)
+    if reached_last and (last.command not in (CMD_NAV_RETURN_TO_LAUNCH, CMD_NAV_LAND) or not recorder.armed):
+        return True
+    return recorder.airborne_then_disarmed
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    from dronecal_field import __version__
+    from dronecal_field.errors import InputError
+    from dronecal_field.mavlink.control import arm_and_start_mission, describe_heartbeat, request_telemetry
+    from dronecal_field.mavlink.link import open_link
+    from dronecal_field.mavlink.mission import upload_and_verify
+    from dronecal_field.mavlink.missionfile import read_mission
+    from dronecal_field.mavlink.preflight import format_checklist, require_preflight, run_preflight
+
+    mission_path = Path(args.mission)
+    mission = read_mission(mission_path)
+    plan_json = None
+    plan_json_path = mission_path.parent / "plan.json"
+    if plan_json_path.is_file():
+        try:
+            plan_json = json.loads(plan_json_path.read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError) as exc:
+            raise InputError(f"{plan_json_path}: unreadable ({exc}); fix it or pass the --marker-* flags") from None
+    marker = _marker_spec(args, plan_json)
+    out = Path(args.out)
+    if not out.parent.is_dir():
+        raise InputError(f"--out {out}: directory {out.parent} does not exist; create it first")
+    tlog_path = out.with_suffix(".tlog")
+
+    from dronecal_field.recording.status import VehicleClock
+
+    link = open_link(args.connect, baud=args.baud, signing_key=args.signing_key)
+    clock = VehicleClock()  # fed from now on, so hover windows are right from the first hold
+
+    def feed_clock(direction, stamp_ns, msg):
+        if direction == "in" and hasattr(msg, "time_boot_ms") and msg.get_srcSystem() == link.target_system:
+            clock.update(stamp_ns, int(msg.time_boot_ms))
+
+    link.add_listener(feed_clock)
+    source = None
+    recorder = None
+    try:
+        hb = link.wait_heartbeat(args.heartbeat_timeout)
+        print(f"vehicle: {describe_heartbeat(hb)} (sysid {link.target_system}) on {link.endpoint}", flush=True)
+        request_telemetry(link)
+        source, first, video_status = _probe_video(args.video)
+        if first is not None:
+            for flag, expected, actual in (("--camera-width", args.camera_width, video_status.width), ("--camera-height", args.camera_height, video_status.height)):
+                if expected is not None and expected != actual:
+                    raise InputError(f"{flag} {expected} but the stream sends {video_status.width}x{video_status.height}; drop the flag or fix the stream")
+        results = run_preflight(
+            link,
+            mission,
+            video_status,
+            min_fix=args.min_fix,
+            min_battery_pct=args.min_battery,
+            max_home_distance_m=args.max_home_distance,
+            wait_s=args.ready_timeout,
+        )
+        print("pre-flight:\n" + format_checklist(results), flush=True)
+        require_preflight(results)
+        if args.dry_run:
+            print("dry run: nothing uploaded, nothing recorded")
+            return 0
+
+        report = upload_and_verify(link, mission.items)
+        print(f"mission: {report.items} items uploaded and read back identical in {report.duration_s:.1f} s", flush=True)
+        if report.storage_changes:
+            more = f" (+{len(report.storage_changes) - 3} more)" if len(report.storage_changes) > 3 else ""
+            print(f"note: ArduCopter keeps some values differently, as expected: {'; '.join(report.storage_changes[:3])}{more}")
+
+        link.remove_listener(feed_clock)  # the recorder feeds the clock from here on
+        recorder = _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, __version__, clock)
+        if args.start:
+            arm_and_start_mission(link)
+            print("started: GUIDED, armed, MISSION_START sent", flush=True)
+        else:
+            print("waiting for the pilot to arm and switch to AUTO (Ctrl-C ends the recording; nothing is commanded)", flush=True)
+        _record_until_done(recorder, mission)
+    except KeyboardInterrupt:
+        if recorder is not None:
+            summary = recorder.stop().summary()
+            recorder = None
+            print(f"\ninterrupted: {out} finalised ({summary}); the vehicle was not commanded", file=sys.stderr)
+        raise
+    finally:
+        if recorder is not None:
+            summary = recorder.stop().summary()
+            print(f"\nrecorded {out} and {tlog_path.name}: {summary}", flush=True)
+        if source is not None:
+            source.close()
+        link.close()
+    return 0
+
+
+def _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, version, clock):
+    from dronecal_field.mavlink.missionfile import to_qgc_plan
+    from dronecal_field.recording.marker_check import MarkerCheck
+    from dronecal_field.recording.recorder import Recorder
+    from dronecal_field.runfile.records import FORMAT_VERSION, RunMetadata
+    from dronecal_field.runfile.tlog import TlogWriter
+    from dronecal_field.runfile.writer import RunWriter
+
+    gps = link.latest("GPS_RAW_INT")
+    datum = "msl" if gps is not None and not gps.alt_ellipsoid else "ellipsoid"
+    hb = link.vehicle_heartbeat
+    metadata = RunMetadata(
+        format_version=FORMAT_VERSION,
+        width=int(video_status.width),
+        height=int(video_status.height),
+        marker=marker,
+        altitude_datum=datum,
+        camera_latency_s=args.camera_latency,
+        site_origin=_site_origin(plan_json),
+        extra={
+            "recorder": f"dronecal-field {version} fly",
+            "video.url": args.video,
+            "vehicle.sysid": str(link.target_system),
+            "vehicle.autopilot": str(int(hb.autopilot)) if hb is not None else "unknown",
+            "mission.items": str(len(mission.items)),
+            "mission.file": mission_path.name,
+            "camera.timestamps": "host UTC at frame arrival",
+        },
+    )
+    writer = RunWriter(out, metadata)
+    data = mission_path.read_bytes() if mission.source_format == "plan" else to_qgc_plan(mission).encode("utf-8")
+    writer.attach("mission.plan", data, "application/json")
+    tlog = TlogWriter(tlog_path)
+    check = MarkerCheck(marker.dictionary, marker.marker_id) if marker.kind == "aruco" and marker.dictionary else None
+    return Recorder(
+        link,
+        source,
+        writer,
+        tlog,
+        mission,
+        altitude_datum=datum,
+        marker_check=check,
+        first_frame=first,
+        frame_queue_size=args.frame_queue,
+        link_timeout_s=args.link_timeout,
+        clock=clock,
+    ).start()
+
+
+def _record_until_done(recorder, mission) -> None:
+    from dronecal_field.recording.status import format_status
+
+    tty = sys.stdout.isatty()
+    last_print = 0.0
+    done_since = None
+    while True:
+        time.sleep(0.1)
+        now = time.monotonic()
+        if now - last_print >= 1.0:
+            last_print = now
+            line = format_status(recorder.status())
+            print(("\r" + line.ljust(120)) if tty else line, end="" if tty else "\n", flush=True)
+        if _mission_over(recorder, mission):
+            done_since = done_since or now
+            if now - done_since >= 1.0:  # a second more, to catch the final messages
+                return

@@ -1,0 +1,110 @@
+"""Flight control from the GCS: telemetry requests and the one start sequence we ever send.
+
+``fly`` commands the vehicle only when the pilot asked for it with ``--start``:
+GUIDED, arm, then MAV_CMD_MISSION_START, the sequence that works on ArduCopter
+4.7 (arming in AUTO is refused; GUIDED-arm then a bare switch to AUTO leaves it
+on the ground until it disarms itself: shared/replays/arducopter-sitl README).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from dronecal_field.errors import LinkError
+from dronecal_field.mavlink import ardupilot as ap
+from dronecal_field.mavlink.link import MavLink
+
+# Telemetry the recorder needs, in Hz (the recording GCS asked for the same).
+TELEMETRY_RATES_HZ: tuple[tuple[str, float], ...] = (
+    ("GPS_RAW_INT", 5.0),
+    ("GLOBAL_POSITION_INT", 10.0),
+    ("ATTITUDE", 10.0),
+    ("SYS_STATUS", 2.0),
+    ("EKF_STATUS_REPORT", 2.0),
+    ("BATTERY_STATUS", 2.0),
+    ("MISSION_CURRENT", 2.0),
+    ("SYSTEM_TIME", 1.0),
+    ("HOME_POSITION", 0.5),
+)
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """What the last HEARTBEAT says.
+
+    Attributes
+    ----------
+    mode : int
+        ArduCopter custom mode number.
+    mode_name : str
+        ``AUTO``, ``GUIDED``, ... or ``MODE<n>``.
+    armed : bool
+        Motors armed.
+    """
+
+    mode: int
+    mode_name: str
+    armed: bool
+
+
+def vehicle_state(link: MavLink) -> VehicleState | None:
+    """The vehicle's mode and arming state from its last HEARTBEAT (``None`` before the first)."""
+    hb = link.vehicle_heartbeat
+    if hb is None:
+        return None
+    mode = int(hb.custom_mode)
+    return VehicleState(mode=mode, mode_name=ap.MODE_NAMES.get(mode, f"MODE{mode}"), armed=bool(hb.base_mode & ap.MAV_MODE_FLAG_SAFETY_ARMED))
+
+
+def request_telemetry(link: MavLink, rates_hz: tuple[tuple[str, float], ...] = TELEMETRY_RATES_HZ) -> dict[str, int]:
+    """Ask for each message at its rate with MAV_CMD_SET_MESSAGE_INTERVAL (no flight effect).
+
+    Returns
+    -------
+    dict
+        Message name -> MAV_RESULT (a vehicle that already streams may refuse; that is fine).
+    """
+    results = {}
+    for name, hz in rates_hz:
+        msgid = getattr(link.dialect, f"MAVLINK_MSG_ID_{name}")
+        try:
+            results[name] = link.command_long(ap.CMD_SET_MESSAGE_INTERVAL, (msgid, 1e6 / hz), timeout_s=0.5, retries=1)
+        except LinkError:
+            results[name] = -1
+    return results
+
+
+def _last_statustext(link: MavLink) -> str:
+    msg = link.latest("STATUSTEXT")
+    return "" if msg is None else f" ({msg.text})"
+
+
+def arm_and_start_mission(link: MavLink, timeout_s: float = 2.0) -> None:
+    """GUIDED, arm, MAV_CMD_MISSION_START: the start the pilot asked for with ``--start``.
+
+    Raises
+    ------
+    LinkError
+        A step was refused, with the vehicle's last STATUSTEXT (e.g. a PreArm reason).
+    """
+    result = link.set_mode("GUIDED", timeout_s=timeout_s)
+    if result != ap.MAV_RESULT_ACCEPTED:
+        raise LinkError(f"vehicle refused GUIDED mode ({ap.MAV_RESULT_NAMES.get(result, result)}){_last_statustext(link)}; check the mode switch and GPS")
+    result = link.command_long(ap.CMD_COMPONENT_ARM_DISARM, (1,), timeout_s=timeout_s)
+    if result != ap.MAV_RESULT_ACCEPTED:
+        time.sleep(0.2)  # let the PreArm STATUSTEXT arrive
+        raise LinkError(f"vehicle refused to arm ({ap.MAV_RESULT_NAMES.get(result, result)}){_last_statustext(link)}; fix the pre-arm failure and retry")
+    result = link.command_long(ap.CMD_MISSION_START, timeout_s=timeout_s)
+    if result != ap.MAV_RESULT_ACCEPTED:
+        raise LinkError(f"vehicle refused MISSION_START ({ap.MAV_RESULT_NAMES.get(result, result)}){_last_statustext(link)}; it is armed in GUIDED: disarm or take over")
+
+
+def describe_heartbeat(msg: Any) -> str:
+    """``ArduPilot quadrotor, GUIDED, disarmed`` for a HEARTBEAT."""
+    autopilot = "ArduPilot" if msg.autopilot == ap.MAV_AUTOPILOT_ARDUPILOTMEGA else f"autopilot {msg.autopilot}"
+    kind = "quadrotor" if msg.type == ap.MAV_TYPE_QUADROTOR else f"type {msg.type}"
+    mode = ap.MODE_NAMES.get(int(msg.custom_mode), f"mode {msg.custom_mode}")
+    armed = "armed" if msg.base_mode & ap.MAV_MODE_FLAG_SAFETY_ARMED else "disarmed"
+    return f"{autopilot} {kind}, {mode}, {armed}"

@@ -1,0 +1,332 @@
+"""Pre-flight checks: is this vehicle, this GNSS fix and this video good enough to fly the mission?
+
+Pure evaluation (:func:`evaluate_preflight` on a :class:`VehicleSnapshot`)
+plus the I/O around it (:func:`snapshot_from_link`, :func:`run_preflight`,
+which waits for a booting vehicle to become ready). Nothing here commands
+the vehicle.
+
+Checks, in order: ``heartbeat`` (an ArduPilot autopilot), ``disarmed``,
+``gnss`` (fix at least ``min_fix``; RTK float or 3D pass with a loud warning
+when allowed), ``ekf`` (EKF3 healthy, as 0x033f in the recording), ``battery``,
+``ready_to_arm`` (SYS_STATUS pre-arm bit), ``home`` (within ``max_home_distance_m``
+of the mission's first position) and ``video`` (opened and producing frames).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+from dronecal_field.errors import InputError, PreflightError
+from dronecal_field.mavlink import ardupilot as ap
+from dronecal_field.mavlink.link import MavLink
+from dronecal_field.mavlink.missionfile import GLOBAL_FRAMES, Mission
+
+MIN_FIX_CHOICES = ("rtk_fixed", "rtk_float", "3d")
+
+
+@dataclass(frozen=True)
+class CheckResult:
+    """One line of the pre-flight checklist.
+
+    Attributes
+    ----------
+    name : str
+        Check name (``gnss``, ``ekf``, ...).
+    ok : bool
+        Passed.
+    detail : str
+        What was seen, and for a failure what to do.
+    warning : bool
+        Passed, but the operator must know (e.g. only RTK float).
+    """
+
+    name: str
+    ok: bool
+    detail: str
+    warning: bool = False
+
+
+@dataclass(frozen=True)
+class VehicleSnapshot:
+    """What the vehicle last reported (``None`` = not received).
+
+    Attributes
+    ----------
+    autopilot, vehicle_type : int or None
+        HEARTBEAT.autopilot / type.
+    armed : bool or None
+        HEARTBEAT armed flag.
+    mode_name : str or None
+        ArduCopter mode.
+    fix_type : int or None
+        GPS_RAW_INT.fix_type (6 = RTK fixed).
+    satellites : int or None
+        Satellites used.
+    h_acc_m : float or None
+        Reported horizontal accuracy, metres.
+    ekf_flags : int or None
+        EKF_STATUS_REPORT.flags.
+    ekf_max_variance : float or None
+        Largest of the velocity/position/compass variances.
+    battery_pct : int or None
+        Remaining charge, percent (``None`` or -1 unknown).
+    voltage_v : float or None
+        Battery voltage.
+    ready_to_arm : bool or None
+        SYS_STATUS pre-arm bit healthy.
+    home_lat_deg, home_lon_deg : float or None
+        HOME_POSITION.
+    last_text : str or None
+        Latest STATUSTEXT (often the PreArm reason).
+    """
+
+    autopilot: int | None = None
+    vehicle_type: int | None = None
+    armed: bool | None = None
+    mode_name: str | None = None
+    fix_type: int | None = None
+    satellites: int | None = None
+    h_acc_m: float | None = None
+    ekf_flags: int | None = None
+    ekf_max_variance: float | None = None
+    battery_pct: int | None = None
+    voltage_v: float | None = None
+    ready_to_arm: bool | None = None
+    home_lat_deg: float | None = None
+    home_lon_deg: float | None = None
+    last_text: str | None = None
+
+
+@dataclass(frozen=True)
+class VideoStatus:
+    """The video source as probed before flight.
+
+    Attributes
+    ----------
+    url : str
+        The source.
+    frames : int
+        Frames received during the probe.
+    fps : float
+        Frames per second during the probe.
+    width, height : int or None
+        Image size of the first frame, pixels.
+    error : str or None
+        Why it could not be opened.
+    """
+
+    url: str
+    frames: int = 0
+    fps: float = 0.0
+    width: int | None = None
+    height: int | None = None
+    error: str | None = None
+
+
+def _distance_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
+    """Great-circle distance on a 6371 km sphere (plenty for a 500 m sanity check)."""
+    p1, p2 = math.radians(lat1), math.radians(lat2)
+    dp, dl = p2 - p1, math.radians(lon2 - lon1)
+    a = math.sin(dp / 2) ** 2 + math.cos(p1) * math.cos(p2) * math.sin(dl / 2) ** 2
+    return 2 * 6371008.8 * math.asin(math.sqrt(min(1.0, a)))
+
+
+def first_position(mission: Mission) -> tuple[float, float] | None:
+    """(lat, lon) of the first item after home with a position, else ``None``."""
+    for item in mission.items[1:]:
+        if item.frame in GLOBAL_FRAMES and (item.x != 0 or item.y != 0):
+            return item.x * 1e-7, item.y * 1e-7
+    return None
+
+
+def evaluate_preflight(
+    vehicle: VehicleSnapshot,
+    mission: Mission,
+    video: VideoStatus,
+    *,
+    min_fix: str = "rtk_fixed",
+    min_battery_pct: int = 30,
+    max_home_distance_m: float = 500.0,
+) -> list[CheckResult]:
+    """The checklist for this vehicle, mission and video (pure).
+
+    Parameters
+    ----------
+    vehicle : VehicleSnapshot
+        Latest telemetry.
+    mission : Mission
+        The mission to fly.
+    video : VideoStatus
+        The video probe.
+    min_fix : str
+        Weakest acceptable fix: ``rtk_fixed`` (default), ``rtk_float`` or ``3d``.
+    min_battery_pct : int
+        Smallest remaining charge, percent.
+    max_home_distance_m : float
+        Largest distance between the vehicle's home and the mission's first position, metres.
+
+    Returns
+    -------
+    list of CheckResult
+    """
+    if min_fix not in MIN_FIX_CHOICES:
+        raise InputError(f"--min-fix {min_fix!r} unknown; use one of {', '.join(MIN_FIX_CHOICES)}")
+    out: list[CheckResult] = []
+
+    if vehicle.autopilot is None:
+        out.append(CheckResult("heartbeat", False, "no HEARTBEAT from a vehicle; check --connect"))
+    elif vehicle.autopilot != ap.MAV_AUTOPILOT_ARDUPILOTMEGA:
+        out.append(CheckResult("heartbeat", False, f"autopilot {vehicle.autopilot} is not ArduPilot; this tool flies ArduCopter missions"))
+    else:
+        kind = "quadrotor" if vehicle.vehicle_type == ap.MAV_TYPE_QUADROTOR else f"MAV_TYPE {vehicle.vehicle_type}"
+        out.append(CheckResult("heartbeat", True, f"ArduPilot {kind}, mode {vehicle.mode_name}"))
+
+    if vehicle.armed:
+        out.append(CheckResult("disarmed", False, "vehicle is armed; land and disarm before uploading a mission"))
+    else:
+        out.append(CheckResult("disarmed", vehicle.armed is not None, "disarmed" if vehicle.armed is not None else "arming state unknown"))
+
+    if vehicle.fix_type is None:
+        out.append(CheckResult("gnss", False, "no GPS_RAW_INT received; check the GNSS receiver and telemetry rates"))
+    else:
+        name = ap.FIX_TYPE_NAMES.get(vehicle.fix_type, "no_fix")
+        rank = ap.FIX_TYPE_RANK[name]
+        acc = f", h_acc {vehicle.h_acc_m * 100:.1f} cm" if vehicle.h_acc_m else ""
+        seen = f"{name}, {vehicle.satellites or 0} satellites{acc}"
+        if rank >= ap.FIX_TYPE_RANK["rtk_fixed"]:
+            out.append(CheckResult("gnss", True, seen))
+        elif rank >= ap.FIX_TYPE_RANK[min_fix]:
+            out.append(
+                CheckResult("gnss", True, f"WARNING: only {seen}: positions may be off by decimetres and the calibration will be worse; wait for RTK fixed if you can", warning=True)
+            )
+        else:
+            out.append(CheckResult("gnss", False, f"{seen}, need {min_fix}; wait for the RTK base/corrections or pass --min-fix"))
+
+    if vehicle.ekf_flags is None:
+        out.append(CheckResult("ekf", False, "no EKF_STATUS_REPORT received; wait for the EKF to start"))
+    else:
+        missing = ap.EKF_HEALTHY_FLAGS & ~vehicle.ekf_flags
+        bad = vehicle.ekf_flags & ap.EKF_BAD_FLAGS
+        variance = vehicle.ekf_max_variance or 0.0
+        if missing or bad or variance >= 0.8:
+            out.append(CheckResult("ekf", False, f"EKF not healthy (flags 0x{vehicle.ekf_flags:04x}, max variance {variance:.2f}); wait for GPS lock and EKF alignment"))
+        else:
+            out.append(CheckResult("ekf", True, f"healthy (flags 0x{vehicle.ekf_flags:04x}, max variance {variance:.2f})"))
+
+    if vehicle.battery_pct is None or vehicle.battery_pct < 0:
+        volts = f"{vehicle.voltage_v:.1f} V, " if vehicle.voltage_v else ""
+        out.append(CheckResult("battery", True, f"{volts}remaining charge unknown: check the battery yourself", warning=True))
+    elif vehicle.battery_pct < min_battery_pct:
+        out.append(CheckResult("battery", False, f"{vehicle.battery_pct} % left, need {min_battery_pct} %; fit a charged battery"))
+    else:
+        volts = f", {vehicle.voltage_v:.1f} V" if vehicle.voltage_v else ""
+        out.append(CheckResult("battery", True, f"{vehicle.battery_pct} %{volts}"))
+
+    if vehicle.ready_to_arm:
+        out.append(CheckResult("ready_to_arm", True, "pre-arm checks pass"))
+    else:
+        reason = f" ({vehicle.last_text})" if vehicle.last_text and "PreArm" in vehicle.last_text else ""
+        out.append(CheckResult("ready_to_arm", False, f"vehicle reports pre-arm checks failing{reason}; fix them on the vehicle"))
+
+    target = first_position(mission)
+    if vehicle.home_lat_deg is None:
+        out.append(CheckResult("home", False, "no HOME_POSITION yet; wait for a GPS lock on the vehicle"))
+    elif target is None:
+        out.append(CheckResult("home", True, "mission has no positions to compare with"))
+    else:
+        d = _distance_m(vehicle.home_lat_deg, vehicle.home_lon_deg or 0.0, *target)
+        if d > max_home_distance_m:
+            out.append(CheckResult("home", False, f"home is {d:.0f} m from the mission's first point (limit {max_home_distance_m:.0f} m); wrong site or wrong mission"))
+        else:
+            out.append(CheckResult("home", True, f"{d:.1f} m from the mission's first point"))
+
+    if video.error:
+        out.append(CheckResult("video", False, f"{video.url}: {video.error}"))
+    elif video.frames == 0:
+        out.append(CheckResult("video", False, f"{video.url} opened but sent no frame; check the camera stream"))
+    else:
+        out.append(CheckResult("video", True, f"{video.width}x{video.height}, {video.fps:.1f} fps"))
+    return out
+
+
+def snapshot_from_link(link: MavLink) -> VehicleSnapshot:
+    """The latest telemetry the link has seen, as a snapshot."""
+    hb = link.vehicle_heartbeat
+    gps = link.latest("GPS_RAW_INT")
+    ekf = link.latest("EKF_STATUS_REPORT")
+    status = link.latest("SYS_STATUS")
+    battery = link.latest("BATTERY_STATUS")
+    home = link.latest("HOME_POSITION")
+    text = link.latest("STATUSTEXT")
+    battery_pct = None
+    if battery is not None and battery.battery_remaining >= 0:
+        battery_pct = int(battery.battery_remaining)
+    elif status is not None and status.battery_remaining >= 0:
+        battery_pct = int(status.battery_remaining)
+    return VehicleSnapshot(
+        autopilot=None if hb is None else int(hb.autopilot),
+        vehicle_type=None if hb is None else int(hb.type),
+        armed=None if hb is None else bool(hb.base_mode & ap.MAV_MODE_FLAG_SAFETY_ARMED),
+        mode_name=None if hb is None else ap.MODE_NAMES.get(int(hb.custom_mode), f"MODE{hb.custom_mode}"),
+        fix_type=None if gps is None else int(gps.fix_type),
+        satellites=None if gps is None else int(gps.satellites_visible),
+        h_acc_m=None if gps is None or not getattr(gps, "h_acc", 0) else gps.h_acc / 1000.0,
+        ekf_flags=None if ekf is None else int(ekf.flags),
+        ekf_max_variance=None if ekf is None else float(max(ekf.velocity_variance, ekf.pos_horiz_variance, ekf.pos_vert_variance, ekf.compass_variance)),
+        battery_pct=battery_pct,
+        voltage_v=None if status is None or status.voltage_battery in (0, 65535) else status.voltage_battery / 1000.0,
+        ready_to_arm=None if status is None else bool(status.onboard_control_sensors_health & ap.MAV_SYS_STATUS_PREARM_CHECK),
+        home_lat_deg=None if home is None else home.latitude * 1e-7,
+        home_lon_deg=None if home is None else home.longitude * 1e-7,
+        last_text=None if text is None else str(text.text),
+    )
+
+
+def run_preflight(
+    link: MavLink,
+    mission: Mission,
+    video: VideoStatus,
+    *,
+    min_fix: str = "rtk_fixed",
+    min_battery_pct: int = 30,
+    max_home_distance_m: float = 500.0,
+    wait_s: float = 60.0,
+) -> list[CheckResult]:
+    """Evaluate the checklist, waiting up to ``wait_s`` seconds for a booting vehicle to pass.
+
+    Only vehicle checks are waited for; a failed video probe or an armed
+    vehicle is reported at once. Asks for HOME_POSITION if none came (a
+    request, not a command).
+    """
+    deadline = time.monotonic() + wait_s
+    asked_home = False
+    while True:
+        results = evaluate_preflight(
+            snapshot_from_link(link), mission, video, min_fix=min_fix, min_battery_pct=min_battery_pct, max_home_distance_m=max_home_distance_m
+        )
+        failing = {r.name for r in results if not r.ok}
+        if not failing or failing & {"video", "disarmed", "heartbeat"} or time.monotonic() >= deadline:
+            return results
+        if "home" in failing and not asked_home and link.latest("HOME_POSITION") is None:
+            link.send(link.dialect.MAVLink_command_long_message(link.target_system, link.target_component, ap.CMD_REQUEST_MESSAGE, 0, 242, 0, 0, 0, 0, 0, 0))
+            asked_home = True
+        time.sleep(0.2)
+
+
+def require_preflight(results: list[CheckResult]) -> None:
+    """Raise PreflightError naming every failed check (one line)."""
+    failed = [r for r in results if not r.ok]
+    if failed:
+        raise PreflightError("pre-flight failed: " + "; ".join(f"{r.name}: {r.detail}" for r in failed))
+
+
+def format_checklist(results: list[CheckResult]) -> str:
+    """The checklist as aligned text lines (``[ OK ]``, ``[WARN]``, ``[FAIL]``)."""
+    width = max((len(r.name) for r in results), default=0)
+    lines = []
+    for r in results:
+        tag = "FAIL" if not r.ok else ("WARN" if r.warning else " OK ")
+        lines.append(f"[{tag}] {r.name.ljust(width)}  {r.detail}")
+    return "\n".join(lines)

@@ -1,0 +1,417 @@
+"""Record a run: MAVLink telemetry and video into one MCAP (plus a .tlog), without losing GNSS.
+
+Threads and queues::
+
+    link reader thread --(every message, host-stamped)--> .tlog (both directions)
+                       \\-> telemetry queue (unbounded: small, never dropped) --\\
+    video thread -------> frame queue (bounded: a slow disk drops frames) -------> writer thread -> RunWriter
+    monitor thread (2 Hz): link loss / restore events, marker probe once a second
+
+The writer thread always drains the telemetry queue before taking the next
+frame, so a slow disk costs frames (counted) and never fixes, and memory is
+bounded by the frame queue. Every timestamp is the host's UTC clock at
+arrival (the run clock); frames too, hence ``camera.latency_s`` in the metadata.
+
+Events on ``/events``: ``hover`` (the hold that ends with each
+MISSION_ITEM_REACHED: ArduCopter reports at the end of a hold), ``video_gap``,
+``link_lost`` (with its duration) and ``link_restored``.
+"""
+
+from __future__ import annotations
+
+import collections
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from dronecal_field.errors import VideoError
+from dronecal_field.mavlink import ardupilot as ap
+from dronecal_field.mavlink.control import vehicle_state
+from dronecal_field.mavlink.link import MavLink
+from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT, Mission
+from dronecal_field.recording.marker_check import MarkerCheck
+from dronecal_field.recording.status import (
+    RecorderStatus,
+    VehicleClock,
+    attitude_from_mavlink,
+    fix_from_gps_raw,
+    hover_event,
+    remaining_s,
+)
+from dronecal_field.runfile.records import Frame, RunEvent
+
+
+@dataclass(frozen=True)
+class RecordingReport:
+    """What was recorded.
+
+    Attributes
+    ----------
+    frames_written : int
+        Frames in ``/camera/image``.
+    frames_dropped : int
+        Frames the recorder dropped because the disk was slow.
+    frames_dropped_source : int
+        Frames the video source dropped because the recorder was slow to read.
+    fixes_written : int
+        Records in ``/gnss/fix``.
+    fixes_without_position : int
+        GPS_RAW_INT without a usable position (no fix, or no height in the run's datum).
+    mavlink_messages : int
+        Messages on ``/mavlink/*``.
+    attitudes : int
+        Records in ``/vehicle/attitude``.
+    hover_events, video_gaps, link_losses : int
+        Events written.
+    duration_s : float
+        Wall seconds recorded.
+    clock_rate : float
+        Vehicle seconds per host second (1 for a real vehicle).
+    """
+
+    frames_written: int
+    frames_dropped: int
+    frames_dropped_source: int
+    fixes_written: int
+    fixes_without_position: int
+    mavlink_messages: int
+    attitudes: int
+    hover_events: int
+    video_gaps: int
+    link_losses: int
+    duration_s: float
+    clock_rate: float
+
+    def summary(self) -> str:
+        """One line for the operator."""
+        return (
+            f"{self.frames_written} frames ({self.frames_dropped + self.frames_dropped_source} dropped), {self.fixes_written} GNSS fixes, "
+            f"{self.mavlink_messages} MAVLink messages, {self.hover_events} hover windows, {self.video_gaps} video gaps, "
+            f"{self.link_losses} link losses in {self.duration_s:.1f} s"
+        )
+
+
+class Recorder:
+    """Record telemetry and video into an open RunWriter (and TlogWriter).
+
+    Parameters
+    ----------
+    link : MavLink
+        Open link to the vehicle.
+    video : VideoSource
+        Open video source (``read``, ``reopen``, ``frames_dropped``).
+    writer : RunWriter
+        Open run writer; the recorder writes and finally closes it.
+    tlog : TlogWriter or None
+        Telemetry log beside the run; closed at the end.
+    mission : Mission
+        The mission flown (hover windows, progress).
+    altitude_datum : str
+        ``ellipsoid`` or ``msl``: the run's datum for ``/gnss/fix`` heights.
+    marker_check : MarkerCheck or None
+        The once-a-second marker probe.
+    first_frame : Frame or None
+        A frame already read (to size the image); recorded first.
+    frame_queue_size : int
+        Frames buffered for the disk; beyond that frames are dropped.
+    link_timeout_s : float
+        Seconds without telemetry before a ``link_lost`` event.
+    video_timeout_s : float
+        Seconds without a frame before a video gap starts and the source is reopened.
+    clock : VehicleClock or None
+        A vehicle clock already fed since the link opened (sharper hover windows
+        early in the flight); the recorder keeps feeding it.
+    """
+
+    def __init__(
+        self,
+        link: MavLink,
+        video: Any,
+        writer: Any,
+        tlog: Any | None,
+        mission: Mission,
+        *,
+        altitude_datum: str = "ellipsoid",
+        marker_check: MarkerCheck | None = None,
+        first_frame: Frame | None = None,
+        frame_queue_size: int = 64,
+        link_timeout_s: float = 3.0,
+        video_timeout_s: float = 2.0,
+        clock: VehicleClock | None = None,
+    ) -> None:
+        self.link = link
+        self.video = video
+        self.writer = writer
+        self.tlog = tlog
+        self.mission = mission
+        self.altitude_datum = altitude_datum
+        self.marker_check = marker_check
+        self.link_timeout_s = link_timeout_s
+        self.video_timeout_s = video_timeout_s
+        self.clock = clock or VehicleClock()
+        self._telemetry: queue.SimpleQueue[tuple] = queue.SimpleQueue()
+        self._frames: queue.Queue[Frame] = queue.Queue(maxsize=max(1, frame_queue_size))
+        self._stop = threading.Event()
+        self._writer_done = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._first_frame = first_frame
+        self._started_mono = 0.0
+        self._frame_times: collections.deque[float] = collections.deque(maxlen=256)
+        self._latest_frame: Frame | None = first_frame
+        self._last_frame_mono = time.monotonic()
+        self._gap_start_ns: int | None = None
+        self._link_lost_ns: int | None = None
+        self._write_error: BaseException | None = None
+        # counters (written by one thread each, read by anyone)
+        self.frames_written = 0
+        self.frames_dropped = 0
+        self.fixes_written = 0
+        self.fixes_without_position = 0
+        self.mavlink_messages = 0
+        self.attitudes = 0
+        self.hover_events = 0
+        self.video_gaps = 0
+        self.link_losses = 0
+        self.marker_seen: bool | None = None
+        # vehicle progress, for the status line and the end of the mission
+        self.reached: list[tuple[int, int]] = []  # (host ns, seq)
+        self.current_seq = 0
+        self.armed = False
+        self.was_armed = False
+        self.max_rel_alt_m = 0.0
+        self.airborne_then_disarmed = False
+
+    # ----- lifecycle -----
+    def start(self) -> Recorder:
+        """Start recording (threads)."""
+        self._started_mono = time.monotonic()
+        if self._first_frame is not None:
+            self._offer_frame(self._first_frame)
+        self.link.add_listener(self._on_message)
+        for target, name in ((self._writer_loop, "recorder-writer"), (self._video_loop, "recorder-video"), (self._monitor_loop, "recorder-monitor")):
+            thread = threading.Thread(target=target, name=name, daemon=True)
+            thread.start()
+            self._threads.append(thread)
+        return self
+
+    def stop(self) -> RecordingReport:
+        """Stop, write what is queued, close open events, close the files. Commands nothing."""
+        self._stop.set()
+        self.link.remove_listener(self._on_message)
+        for thread in self._threads:
+            if thread.name != "recorder-writer":
+                thread.join(timeout=5.0)
+        now_ns = time.time_ns()
+        if self._gap_start_ns is not None:
+            self._event(RunEvent(self._gap_start_ns, now_ns - self._gap_start_ns, "video_gap", {"open": "true"}))
+            self.video_gaps += 1
+        if self._link_lost_ns is not None:
+            self._event(RunEvent(self._link_lost_ns, now_ns - self._link_lost_ns, "link_lost", {"open": "true"}))
+            self.link_losses += 1
+        self._telemetry.put(("end",))
+        for thread in self._threads:
+            if thread.name == "recorder-writer":
+                thread.join(timeout=60.0)
+        try:
+            self.writer.close()
+        finally:
+            if self.tlog is not None:
+                self.tlog.close()
+        if self._write_error is not None:
+            raise self._write_error
+        return RecordingReport(
+            frames_written=self.frames_written,
+            frames_dropped=self.frames_dropped,
+            frames_dropped_source=int(getattr(self.video, "frames_dropped", 0)),
+            fixes_written=self.fixes_written,
+            fixes_without_position=self.fixes_without_position,
+            mavlink_messages=self.mavlink_messages,
+            attitudes=self.attitudes,
+            hover_events=self.hover_events,
+            video_gaps=self.video_gaps,
+            link_losses=self.link_losses,
+            duration_s=time.monotonic() - self._started_mono,
+            clock_rate=self.clock.rate,
+        )
+
+    # ----- link reader thread -----
+    def _on_message(self, direction: str, stamp_ns: int, msg: Any) -> None:
+        if self.tlog is not None:
+            try:
+                self.tlog.write(msg.get_msgbuf(), stamp_ns // 1000)
+            except Exception as exc:  # noqa: BLE001 - a full disk must not kill the link thread
+                self._write_error = self._write_error or exc
+        if direction != "in":
+            return
+        mtype = msg.get_type()
+        boot_ms = getattr(msg, "time_boot_ms", None)
+        if boot_ms is not None and msg.get_srcSystem() == self.link.target_system:
+            self.clock.update(stamp_ns, int(boot_ms))  # on the reader thread: in arrival order
+        if mtype == "MISSION_ITEM_REACHED":
+            self.reached.append((stamp_ns, int(msg.seq)))
+        elif mtype == "MISSION_CURRENT":
+            self.current_seq = int(msg.seq)
+        elif mtype == "GLOBAL_POSITION_INT":
+            self.max_rel_alt_m = max(self.max_rel_alt_m, msg.relative_alt / 1000.0)
+        elif mtype == "HEARTBEAT" and msg.get_srcSystem() == self.link.target_system and msg.type != ap.MAV_TYPE_GCS:
+            armed = bool(msg.base_mode & ap.MAV_MODE_FLAG_SAFETY_ARMED)
+            if armed:
+                self.was_armed = True
+            elif self.armed and self.max_rel_alt_m > 0.5:
+                self.airborne_then_disarmed = True
+            self.armed = armed
+        self._telemetry.put(("msg", stamp_ns, msg))
+
+    # ----- writer thread -----
+    def _event(self, event: RunEvent) -> None:
+        self._telemetry.put(("event", event))
+
+    def _write_telemetry(self, item: tuple) -> None:
+        kind = item[0]
+        if kind == "event":
+            self.writer.write_event(item[1])
+            return
+        _kind, stamp_ns, msg = item
+        mtype = msg.get_type()
+        fields = msg.to_dict()
+        self.writer.write_mavlink(mtype, stamp_ns, fields)
+        self.mavlink_messages += 1
+        if mtype == "GPS_RAW_INT":
+            fix = fix_from_gps_raw(msg, stamp_ns, self.altitude_datum)
+            if fix is None:
+                self.fixes_without_position += 1
+            else:
+                self.writer.write_fix(fix)
+                self.fixes_written += 1
+        elif mtype == "ATTITUDE":
+            self.writer.write_attitude(attitude_from_mavlink(msg, stamp_ns))
+            self.attitudes += 1
+        elif mtype == "MISSION_ITEM_REACHED":
+            event = hover_event(self.mission, int(msg.seq), stamp_ns, self.clock.rate)
+            if event is not None:
+                self.writer.write_event(event)
+                self.hover_events += 1
+
+    def _writer_loop(self) -> None:
+        ending = False
+        while True:
+            try:
+                while True:  # telemetry first: never lose GNSS to a slow disk
+                    try:
+                        item = self._telemetry.get_nowait()
+                    except queue.Empty:
+                        break
+                    if item[0] == "end":
+                        ending = True
+                        continue
+                    self._write_telemetry(item)
+                try:
+                    frame = self._frames.get(timeout=0.02)
+                except queue.Empty:
+                    if ending:
+                        return
+                    continue
+                self.writer.write_frame(frame)
+                self.frames_written += 1
+            except Exception as exc:  # noqa: BLE001 - reported by stop(); keep draining so nothing blocks
+                self._write_error = self._write_error or exc
+                if ending:
+                    return
+
+    # ----- video thread -----
+    def _offer_frame(self, frame: Frame) -> None:
+        try:
+            self._frames.put_nowait(frame)
+        except queue.Full:
+            self.frames_dropped += 1  # a slow disk costs frames, never memory
+
+    def _video_loop(self) -> None:
+        last_reopen = 0.0
+        while not self._stop.is_set():
+            frame = self.video.read(timeout_s=0.2)
+            now = time.monotonic()
+            if frame is None:
+                silent_s = now - self._last_frame_mono
+                if self._gap_start_ns is None and silent_s > self.video_timeout_s:
+                    self._gap_start_ns = time.time_ns() - int(silent_s * 1e9)
+                if (self._gap_start_ns is not None or getattr(self.video, "ended", False)) and now - last_reopen > 1.0:
+                    last_reopen = now
+                    try:
+                        self.video.reopen()
+                    except VideoError:
+                        pass  # camera still away: try again in a second
+                continue
+            if self._gap_start_ns is not None:
+                start = self._gap_start_ns
+                self._gap_start_ns = None
+                self._event(RunEvent(start, max(0, frame.timestamp_ns - start), "video_gap", {"reopens": str(getattr(self.video, "reconnects", 0))}))
+                self.video_gaps += 1
+            self._last_frame_mono = now
+            self._frame_times.append(now)
+            self._latest_frame = frame
+            self._offer_frame(frame)
+
+    # ----- monitor thread -----
+    def _monitor_loop(self) -> None:
+        last_marker = 0.0
+        while not self._stop.wait(0.5):
+            silent_s = self.link.seconds_since_receive()
+            if self._link_lost_ns is None and silent_s > self.link_timeout_s:
+                self._link_lost_ns = time.time_ns() - int(silent_s * 1e9)
+            elif self._link_lost_ns is not None and silent_s < 1.0:
+                lost = self._link_lost_ns
+                self._link_lost_ns = None
+                now_ns = time.time_ns()
+                meta = {"reconnects": str(self.link.reconnects)}
+                self._event(RunEvent(lost, now_ns - lost, "link_lost", meta))
+                self._event(RunEvent(now_ns, 0, "link_restored", meta))
+                self.link_losses += 1
+            now = time.monotonic()
+            if self.marker_check is not None and now - last_marker >= 1.0 and self._latest_frame is not None:
+                last_marker = now
+                try:
+                    self.marker_seen = self.marker_check.seen(self._latest_frame.data)
+                except Exception:  # noqa: BLE001 - the probe is cosmetic; never stop recording for it
+                    self.marker_seen = None
+
+    # ----- status -----
+    @property
+    def link_ok(self) -> bool:
+        return self._link_lost_ns is None and self.link.seconds_since_receive() < self.link_timeout_s
+
+    @property
+    def video_ok(self) -> bool:
+        return self._gap_start_ns is None
+
+    def status(self) -> RecorderStatus:
+        """A snapshot for the live status line."""
+        now = time.monotonic()
+        fps = float(sum(1 for t in list(self._frame_times) if now - t <= 1.0))
+        waypoints = [item.seq for item in self.mission.items if item.command == CMD_NAV_WAYPOINT and item.seq > 0]
+        done = sum(1 for seq in waypoints if seq < self.current_seq)
+        current = min(len(waypoints), done + 1) if self.current_seq > 0 else 0
+        gps = self.link.latest("GPS_RAW_INT")
+        state = vehicle_state(self.link)
+        gpi = self.link.latest("GLOBAL_POSITION_INT")
+        position = None if gpi is None or gpi.lat == 0 else (gpi.lat * 1e-7, gpi.lon * 1e-7, gpi.relative_alt / 1000.0)
+        left = None
+        if self.current_seq > 0:
+            left = remaining_s(self.mission, self.current_seq, position) / self.clock.rate
+        return RecorderStatus(
+            waypoint=current,
+            waypoints=len(waypoints),
+            mode="?" if state is None else state.mode_name,
+            armed=bool(state and state.armed),
+            fix="none" if gps is None else ap.FIX_TYPE_NAMES.get(int(gps.fix_type), "no_fix"),
+            satellites=0 if gps is None else int(gps.satellites_visible),
+            fps=fps,
+            frames=self.frames_written,
+            dropped=self.frames_dropped + int(getattr(self.video, "frames_dropped", 0)),
+            marker_seen=self.marker_seen,
+            link_ok=self.link_ok,
+            video_ok=self.video_ok,
+            elapsed_s=now - self._started_mono,
+            remaining_s=left,
+        )
