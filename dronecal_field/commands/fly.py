@@ -172,12 +172,15 @@ def run(args: argparse.Namespace) -> int:
 
     link = open_link(args.connect, baud=args.baud, signing_key=args.signing_key)
     clock = VehicleClock()  # fed from now on, so hover windows are right from the first hold
+    backlog: list[tuple[int, bytes]] = []  # the session before recording (pre-flight, upload) for the .tlog
 
-    def feed_clock(direction, stamp_ns, msg):
+    def before_recording(direction, stamp_ns, msg):
+        if len(backlog) < 200_000:
+            backlog.append((stamp_ns, msg.get_msgbuf()))
         if direction == "in" and hasattr(msg, "time_boot_ms") and msg.get_srcSystem() == link.target_system:
             clock.update(stamp_ns, int(msg.time_boot_ms))
 
-    link.add_listener(feed_clock)
+    link.add_listener(before_recording)
     source = None
     recorder = None
     try:
@@ -210,8 +213,8 @@ def run(args: argparse.Namespace) -> int:
             more = f" (+{len(report.storage_changes) - 3} more)" if len(report.storage_changes) > 3 else ""
             print(f"note: ArduCopter keeps some values differently, as expected: {'; '.join(report.storage_changes[:3])}{more}")
 
-        link.remove_listener(feed_clock)  # the recorder feeds the clock from here on
-        recorder = _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, __version__, clock)
+        link.remove_listener(before_recording)  # the recorder takes over the clock and the tlog
+        recorder = _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, __version__, clock, backlog)
         if args.start:
             arm_and_start_mission(link)
             print("started: GUIDED, armed, MISSION_START sent", flush=True)
@@ -234,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, version, clock):
+def _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, version, clock, backlog):
     from dronecal_field.mavlink.missionfile import to_qgc_plan
     from dronecal_field.recording.marker_check import MarkerCheck
     from dronecal_field.recording.recorder import Recorder
@@ -267,6 +270,8 @@ def _start_recorder(args, link, source, first, mission, mission_path, marker, pl
     data = mission_path.read_bytes() if mission.source_format == "plan" else to_qgc_plan(mission).encode("utf-8")
     writer.attach("mission.plan", data, "application/json")
     tlog = TlogWriter(tlog_path)
+    for stamp_ns, data in backlog:  # the whole session: connect, pre-flight, upload and read-back
+        tlog.write(data, stamp_ns // 1000)
     check = MarkerCheck(marker.dictionary, marker.marker_id) if marker.kind == "aruco" and marker.dictionary else None
     return Recorder(
         link,

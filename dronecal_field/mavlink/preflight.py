@@ -243,7 +243,7 @@ def evaluate_preflight(
             out.append(CheckResult("home", True, f"{d:.1f} m from the mission's first point"))
 
     if video.error:
-        out.append(CheckResult("video", False, f"{video.url}: {video.error}"))
+        out.append(CheckResult("video", False, video.error if video.url in video.error else f"{video.url}: {video.error}"))
     elif video.frames == 0:
         out.append(CheckResult("video", False, f"{video.url} opened but sent no frame; check the camera stream"))
     else:

@@ -1,0 +1,142 @@
+"""The recorder's parts: a slow disk costs frames, never GNSS; pure conversions; the pre-flight table."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+
+from dronecal_field.mavlink import ardupilot as ap
+from dronecal_field.mavlink.link import mavlink_dialect, open_link
+from dronecal_field.mavlink.missionfile import parse_qgc_plan
+from dronecal_field.mavlink.preflight import VehicleSnapshot, VideoStatus, evaluate_preflight, format_checklist
+from dronecal_field.recording.recorder import Recorder
+from dronecal_field.recording.status import RecorderStatus, VehicleClock, fix_from_gps_raw, format_status, hover_event, remaining_s
+from dronecal_field.runfile.reader import open_run
+from dronecal_field.runfile.records import FORMAT_VERSION, MarkerSpec, RunMetadata
+from dronecal_field.runfile.writer import RunWriter
+from dronecal_field.video import open_video
+from test_mavlink_support import MjpegServer, plan_document, start_sim, wait_ready
+
+MISSION = parse_qgc_plan(json.dumps(plan_document([(0.0, 4.0, 1.5), (1.0, 4.0, 1.5)], hold_s=3.0)))
+
+
+class SlowDiskRunWriter(RunWriter):
+    """The real RunWriter on a disk that needs 40 ms per frame."""
+
+    def write_frame(self, frame):
+        time.sleep(0.04)
+        super().write_frame(frame)
+
+
+def test_a_slow_disk_drops_frames_but_never_a_gnss_fix(tmp_path):
+    sim = start_sim(speedup=5.0, boot_s=0.5)
+    camera = MjpegServer(fps=60)
+    link = open_link(sim.addresses()[0])
+    video = open_video(camera.url)
+    meta = RunMetadata(format_version=FORMAT_VERSION, width=640, height=480, marker=MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.3))
+    out = tmp_path / "slow.mcap"
+    try:
+        link.wait_heartbeat(5)
+        wait_ready(link)
+        recorder = Recorder(link, video, SlowDiskRunWriter(out, meta), None, MISSION, frame_queue_size=4).start()
+        time.sleep(2.5)
+        report = recorder.stop()
+    finally:
+        video.close()
+        link.close()
+        camera.close()
+        sim.stop()
+    assert report.frames_dropped > 10  # 60 fps offered, about 25 fps written
+    assert report.frames_written + report.frames_dropped + report.frames_dropped_source >= 100
+    with open_run(out) as run:
+        gps = [f for _n, _t, f in run.iter_mavlink({"GPS_RAW_INT"})]
+        fixes = list(run.iter_fixes())
+        frames = sum(1 for _ in run.iter_frames())
+    assert len(gps) > 40 and len(fixes) == len(gps) == report.fixes_written
+    assert frames == report.frames_written
+
+
+def _gps(**kw):
+    fields = dict(time_usec=0, fix_type=6, lat=-353632610, lon=1491652300, alt=584000, eph=70, epv=120, vel=0, cog=0, satellites_visible=18, alt_ellipsoid=604500, h_acc=10, v_acc=15, vel_acc=0, hdg_acc=0, yaw=0)
+    fields.update(kw)
+    return mavlink_dialect().MAVLink_gps_raw_int_message(**fields)
+
+
+def test_fix_from_gps_raw_int_datums_and_covariance():
+    fix = fix_from_gps_raw(_gps(), 123, "ellipsoid")
+    assert (fix.timestamp_ns, fix.lat_deg, fix.lon_deg, fix.alt_m, fix.fix_type) == (123, pytest.approx(-35.363261), pytest.approx(149.16523), 604.5, "rtk_fixed")
+    np.testing.assert_allclose(np.diag(fix.covariance_enu), [1e-4, 1e-4, 2.25e-4])
+    assert fix_from_gps_raw(_gps(alt_ellipsoid=0), 1, "ellipsoid") is None  # no ellipsoidal height: not in this run's datum
+    assert fix_from_gps_raw(_gps(alt_ellipsoid=0), 1, "msl").alt_m == 584.0
+    assert fix_from_gps_raw(_gps(fix_type=1), 1) is None
+    assert fix_from_gps_raw(_gps(h_acc=0, v_acc=0), 1).covariance_enu is None
+    assert fix_from_gps_raw(_gps(fix_type=5), 1).fix_type == "rtk_float"
+
+
+def test_vehicle_clock_rate():
+    clock = VehicleClock()
+    for i in range(30):
+        clock.update(i * 100_000_000, 5000 + i * 1000)  # 1 vehicle s per 0.1 host s
+    assert clock.rate == pytest.approx(10.0)
+    clock.update(40 * 100_000_000, 200)  # reboot
+    assert clock.rate == 1.0
+    real = VehicleClock()
+    for i in range(30):
+        real.update(i * 100_000_000, i * 102)  # 2 % fast: a real autopilot and jitter
+    assert real.rate == 1.0
+
+
+def test_hover_window_ends_at_the_reached_message():
+    event = hover_event(MISSION, 4, 10_000_000_000, clock_rate=2.0)
+    assert (event.type, event.timestamp_ns, event.duration_ns, event.end_ns) == ("hover", 8_500_000_000, 1_500_000_000, 10_000_000_000)
+    assert event.metadata["seq"] == "4" and float(event.metadata["hold_s"]) == 3.0
+    assert hover_event(MISSION, 2, 1, 1.0) is None  # DO_CHANGE_SPEED has no hold
+    assert remaining_s(MISSION, 4) == pytest.approx(3.0 + 1.0 / 2.0 + 3.0, rel=0.01)
+
+
+def test_status_line():
+    status = RecorderStatus(waypoint=3, waypoints=12, mode="AUTO", armed=True, fix="rtk_fixed", satellites=18, fps=29.8, frames=100, dropped=2, marker_seen=True, link_ok=False, video_ok=True, elapsed_s=62, remaining_s=190)
+    assert format_status(status) == "wp 3/12 AUTO armed | rtk_fixed 18 sats | 29.8 fps 2 dropped | marker yes | 01:02 / ~03:10 left | LINK LOST"
+
+
+GOOD = VehicleSnapshot(
+    autopilot=3, vehicle_type=2, armed=False, mode_name="LOITER", fix_type=6, satellites=18, h_acc_m=0.01, ekf_flags=0x033F, ekf_max_variance=0.02,
+    battery_pct=90, voltage_v=16.4, ready_to_arm=True, home_lat_deg=-35.363261, home_lon_deg=149.16523,
+)
+VIDEO = VideoStatus(url="http://cam/stream.mjpg", frames=30, fps=30.0, width=1920, height=1080)
+
+
+@pytest.mark.parametrize(
+    "change, min_fix, failing, warning",
+    [
+        ({}, "rtk_fixed", set(), set()),
+        ({"fix_type": 5}, "rtk_fixed", {"gnss"}, set()),
+        ({"fix_type": 5}, "rtk_float", set(), {"gnss"}),
+        ({"fix_type": 3}, "rtk_float", {"gnss"}, set()),
+        ({"autopilot": 12}, "rtk_fixed", {"heartbeat"}, set()),
+        ({"armed": True}, "rtk_fixed", {"disarmed"}, set()),
+        ({"ekf_flags": 0x0025}, "rtk_fixed", {"ekf"}, set()),
+        ({"battery_pct": 12}, "rtk_fixed", {"battery"}, set()),
+        ({"battery_pct": None}, "rtk_fixed", set(), {"battery"}),
+        ({"ready_to_arm": False, "last_text": "PreArm: Throttle below failsafe"}, "rtk_fixed", {"ready_to_arm"}, set()),
+        ({"home_lat_deg": -35.37}, "rtk_fixed", {"home"}, set()),  # 750 m south
+    ],
+)
+def test_preflight_table(change, min_fix, failing, warning):
+    snapshot = VehicleSnapshot(**{**GOOD.__dict__, **change})
+    results = evaluate_preflight(snapshot, MISSION, VIDEO, min_fix=min_fix)
+    assert [r.name for r in results] == ["heartbeat", "disarmed", "gnss", "ekf", "battery", "ready_to_arm", "home", "video"]
+    assert {r.name for r in results if not r.ok} == failing
+    assert {r.name for r in results if r.warning} == warning
+    text = format_checklist(results)
+    assert text.count("\n") == 7 and ("[WARN]" in text) == bool(warning)
+    if "ready_to_arm" in failing:
+        assert "Throttle below failsafe" in text
+
+
+def test_preflight_video_without_frames_fails():
+    results = evaluate_preflight(GOOD, MISSION, VideoStatus(url="rtsp://cam/1", frames=0))
+    assert [r.detail for r in results if not r.ok] == ["rtsp://cam/1 opened but sent no frame; check the camera stream"]
