@@ -16,7 +16,7 @@ from dronecal_field.cli import main
 from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink.link import mavutil_module, open_link
 from dronecal_field.runfile.reader import open_run
-from test_mavlink_support import MjpegServer, Recorder, UdpRelay, start_sim, wait_until, write_plan
+from test_mavlink_support import MjpegServer, MessageLog, UdpRelay, start_sim, wait_until, write_plan
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = [(-1.0, 4.0, 1.5), (0.0, 4.0, 1.5), (1.0, 4.0, 2.0), (0.0, 5.0, 2.0)]  # ENU metres from home
@@ -141,7 +141,7 @@ def test_ctrl_c_finalises_the_file_and_commands_nothing(tmp_path, camera):
     plan = write_plan(tmp_path / "mission.plan", SMALL, hold_s=3.0)
     out = tmp_path / "run.mcap"
     watcher = open_link(sim.addresses()[0])
-    rec = Recorder(watcher)
+    rec = MessageLog(watcher)
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.Popen(
         [sys.executable, "-m", "dronecal_field", *_fly_args(sim.addresses()[0], plan, camera, out, "--start")],
@@ -180,7 +180,7 @@ def test_link_dropped_and_video_paused_mid_mission_are_recorded_and_survived(tmp
     plan = write_plan(tmp_path / "mission.plan", SMALL, hold_s=2.0)
     out = tmp_path / "run.mcap"
     watcher = open_link(sim.addresses()[0])
-    rec = Recorder(watcher)
+    rec = MessageLog(watcher)
     result = {}
 
     def fly():

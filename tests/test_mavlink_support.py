@@ -249,7 +249,7 @@ class MjpegServer:
         self.httpd.server_close()
 
 
-class Recorder:
+class MessageLog:
     """Collects every message of a link with the vehicle time (s) it was seen at."""
 
     def __init__(self, link) -> None:

@@ -17,7 +17,7 @@ from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink.link import open_link
 from dronecal_field.mavlink.mission import download_mission, send_mission, upload_and_verify
 from dronecal_field.mavlink.missionfile import MissionItem, parse_qgc_plan
-from test_mavlink_support import HOME, Recorder, plan_document, start_sim, wait_until, wait_ready
+from test_mavlink_support import HOME, MessageLog, plan_document, start_sim, wait_until, wait_ready
 
 ORIGIN = EnuOrigin(*HOME)
 WAYPOINTS = [(-2.0, 4.0, 1.5), (0.0, 4.0, 1.5), (2.0, 4.0, 2.5)]
@@ -43,7 +43,7 @@ def flight():
     """One whole mission flown by the simulator: takeoff, speed, ROI, 3 holds, RTL, auto-disarm."""
     sim = start_sim(speedup=20.0, boot_s=2.0)
     link = open_link(sim.addresses()[0])
-    rec = Recorder(link)
+    rec = MessageLog(link)
     try:
         link.wait_heartbeat(5)
         wait_ready(link)
@@ -146,7 +146,7 @@ def test_readback_frames_and_home_follow_arducopter():
 def test_arming_in_auto_is_refused_with_a_statustext():
     sim = start_sim(boot_s=0.5)
     link = open_link(sim.addresses()[0])
-    rec = Recorder(link)
+    rec = MessageLog(link)
     try:
         link.wait_heartbeat(5)
         wait_ready(link)
@@ -165,7 +165,7 @@ def test_arming_in_auto_is_refused_with_a_statustext():
 def test_guided_arm_then_auto_stays_on_the_ground_and_disarms_after_10_s():
     sim = start_sim(speedup=20.0, boot_s=0.5)
     link = open_link(sim.addresses()[0])
-    rec = Recorder(link)
+    rec = MessageLog(link)
     try:
         link.wait_heartbeat(5)
         wait_ready(link)
@@ -273,7 +273,7 @@ def test_after_rtl_landing_it_disarms_but_stays_in_auto(flight):
 def test_after_the_last_item_it_hovers_in_auto_until_the_mode_changes():
     sim = start_sim(speedup=20.0, boot_s=0.5)
     link = open_link(sim.addresses()[0])
-    rec = Recorder(link)
+    rec = MessageLog(link)
     try:
         link.wait_heartbeat(5)
         wait_ready(link)

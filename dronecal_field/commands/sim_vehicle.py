@@ -13,6 +13,7 @@ Example:
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 
 
@@ -36,6 +37,9 @@ def register(sims: argparse._SubParsersAction) -> None:
     parser.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     parser.add_argument("--signing-key", metavar="KEY", help="MAVLink 2 signing: 64 hex characters or a passphrase; unsigned messages are then ignored")
     parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after this many wall seconds (default: run until Ctrl-C)")
+    # "--home -35.36,149.16,584" (southern latitudes) must read as a value, not an option: teach
+    # argparse that a leading minus followed by digits and commas is a number
+    parser._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-\d[\d.]*(,-?[\d.]+)+$")
     parser.set_defaults(func=run)
 
 
