@@ -255,3 +255,72 @@ def test_every_leg_of_a_near_route_clears_the_keep_out():
     assert np.hypot(seg[..., 0], seg[..., 1]).min() >= 2.0 - 1e-9
     assert r.kind.count("detour") >= 2  # rows at X = 0, 1 cross in front of the pole
     assert (r.grid_index >= 0).sum() == len(pts)
+
+
+# --------------------------------------------------------------------------- one scoring path with the survey
+
+
+@pytest.mark.parametrize(
+    "k, min_slope, expected",
+    [
+        ((-0.25, 0.0, 0.0, 0.0, 0.0), 0.0, math.sqrt(1 / 0.75)),  # 1 - 3 * 0.25 r^2 = 0
+        ((-0.25, 0.0, 0.0, 0.0, 0.0), 0.05, math.sqrt(0.95 / 0.75)),
+        ((-0.01, 0.0, 0.0, 0.0, 0.0), 0.0, math.sqrt(1 / 0.03)),  # folds at r = 5.77, beyond any image
+        ((-0.4, 0.15, 0.0, 0.0, 0.0), 0.0, math.inf),  # the 'strong' guess: the slope dips to 0.52 and climbs again
+        ((0.1, 0.0, 0.0, 0.0, 0.0), 0.0, math.inf),
+    ],
+)
+def test_fold_radius_is_where_the_radial_map_stops_growing(k, min_slope, expected):
+    from dronecal_field.plan.strategies import fold_radius
+
+    r = fold_radius(np.array(k), min_slope)
+    if math.isinf(expected):
+        assert math.isinf(r)
+    else:
+        assert r == pytest.approx(expected, abs=1.1e-3)
+
+
+def test_plan_candidates_are_the_survey_rows():
+    """plan's scores are the survey's score_strategies rows for PlanLattice: same points, same numbers."""
+    from dronecal_field.plan.strategies import score_candidates
+    from dronecal_field.survey.catalogue import PlanLattice
+    from dronecal_field.survey.evaluate import MonteCarloSettings
+    from dronecal_field.survey.runner import score_strategies
+
+    _, _, cam = paper_camera("medium")
+    limits = Limits(min_agl_m=0.5)
+    strategies = alternatives(make_strategy("far"))
+    settings = MonteCarloSettings(trials=40, seed=3)
+    scores = score_candidates(cam, strategies, limits, settings)
+    rows = score_strategies(cam, strategies, PlanLattice(limits), settings)
+    assert [s.strategy.name for s in scores] == [r["strategy"] for r in rows] == [s.name for s in strategies]
+    usable = 0
+    for score, row in zip(scores, rows):
+        if score.usable:
+            usable += 1
+            assert row["status"] == "ok" and row["n_points"] == score.n_points
+            assert score.rms_mean_px == row["rms_mean"] and score.ground_error_15m_cm == row["ground_error_15m_cm"]
+            assert score.uncertainty["trials"] == 40 and score.uncertainty["n_points"] == score.n_points
+            assert score.ground_error_15m_cm_p95 >= score.ground_error_15m_cm
+    assert usable >= 4
+    # the single-candidate form is the same path
+    one = evaluate_strategy(cam, strategies[0], limits, trials=40, seed=3)
+    assert one.rms_mean_px == scores[0].rms_mean_px and one.flight_time_s == scores[0].flight_time_s
+
+
+def test_make_plan_on_a_local_cluster_gives_the_same_plan():
+    from dronecal_field.cluster import dask_client
+    from dronecal_field.plan.site import resolve_options
+    from dronecal_field.plan.stage import make_plan, request_from_options
+
+    values = load_site_file(REPO / "missions" / "paper-pinhole.toml")
+    values.update(trials=30, optimize=True)
+    req = request_from_options(resolve_options(values))
+    here = make_plan(req)
+    with dask_client(None, 2) as client:
+        there = make_plan(req, client=client)
+        assert len(client.scheduler_info()["workers"]) == 2
+    assert len(here.candidates) == len(there.candidates) == 18
+    assert [c.row() for c in there.candidates] == [c.row() for c in here.candidates]
+    assert there.chosen.strategy.name == here.chosen.strategy.name
+    assert np.array_equal(there.grid_site, here.grid_site)

@@ -25,13 +25,14 @@ from dronecal_field.plan import mission as msn
 from dronecal_field.plan.route import FlightModel, Route, plan_route
 from dronecal_field.plan.site import CameraSite, LensGuess, Marker, guess_camera, latlon_to_site, resolve_focal_px
 from dronecal_field.plan.strategies import (
+    PLAN_FOLD_MIN_SLOPE,
     Limits,
-    _fold_radius,
     StrategyScore,
     alternatives,
-    evaluate_strategy,
+    fold_radius,
     paper_strategies,
     recommended_strategy,
+    score_candidates,
 )
 
 MAX_PRACTICAL_MARKER_M = 1.0  # larger plates make a small copter a sail
@@ -52,6 +53,13 @@ class Evaluation:
     model: str = "default"
     optimize: bool = False
     max_flight_time_s: float | None = None
+
+    def monte_carlo_settings(self):
+        """The survey's ``MonteCarloSettings`` for these values (the candidates are scored by the survey's rows)."""
+        from dronecal_field.survey.evaluate import MonteCarloSettings
+
+        return MonteCarloSettings(trials=self.trials, sigma_3d=(self.sigma_h_m, self.sigma_h_m, self.sigma_v_m),
+                                  sigma_2d=self.sigma_px, model=self.model, seed=self.seed)
 
 
 @dataclass(frozen=True, eq=False)
@@ -267,7 +275,7 @@ def footprint_site(camera_site: Camera, n_side: int = 24, range_m: float = FOOTP
     back = camera_site.project(c[None] + rays)
     d_cam = rays @ camera_site.pose.R_cam_from_world.T
     r_norm = np.hypot(d_cam[:, 0], d_cam[:, 1]) / np.maximum(d_cam[:, 2], 1e-9)
-    ok = (np.linalg.norm(back - border, axis=1) < 1.0) & (d_cam[:, 2] > 0) & (r_norm < _fold_radius(camera_site.distortion.as_array()))
+    ok = (np.linalg.norm(back - border, axis=1) < 1.0) & (d_cam[:, 2] > 0) & (r_norm < fold_radius(camera_site.distortion.as_array(), PLAN_FOLD_MIN_SLOPE))
     out = []
     for d in rays[ok]:
         horiz = float(np.hypot(d[0], d[1]))
@@ -311,8 +319,13 @@ def _json_safe(x: Any) -> Any:
     return x
 
 
-def make_plan(req: PlanRequest) -> PlanResult:
+def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
     """Evaluate the candidates for this camera, pick one, and build the mission and the report.
+
+    The candidates are scored by ``plan.strategies.score_candidates`` (the
+    survey's row function): in this process, or on a Dask cluster when
+    ``client`` (a ``distributed.Client``, see ``dronecal_field.cluster.dask_client``)
+    is given; the plan is the same either way.
 
     Raises ``PlanError`` (with what to change) when no safe, useful mission exists.
     """
@@ -325,12 +338,7 @@ def make_plan(req: PlanRequest) -> PlanResult:
     if ev.optimize:
         names = {s.name for s in strategies}
         strategies += [s for s in paper_strategies() if s.name not in names]
-    sigma_3d = (ev.sigma_h_m, ev.sigma_h_m, ev.sigma_v_m)
-    scores = tuple(
-        evaluate_strategy(cam_site, s, req.limits, trials=ev.trials, sigma_3d=sigma_3d, sigma_2d=ev.sigma_px,
-                          seed=ev.seed, model=ev.model, flight=req.flight)
-        for s in strategies
-    )
+    scores = score_candidates(cam_site, strategies, req.limits, ev.monte_carlo_settings(), req.flight, client)
     usable = [s for s in scores if s.usable]
     warnings = list(req.notes)
     if not usable:

@@ -22,13 +22,17 @@ height, keep-out, range and geofence limits apply to the drone.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from dronecal_field.core.camera import Camera
-from dronecal_field.errors import DronecalError
 from dronecal_field.plan.route import FlightModel, plan_route
+
+if TYPE_CHECKING:  # the survey imports this module: its settings are only named here
+    from dronecal_field.survey.evaluate import MonteCarloSettings
 
 # The paper's X ranges (section IV.B): near 0-4 m, far 4-8 m, full 0-8 m.
 X_RANGES_M: dict[str, tuple[float, float]] = {"far": (4.0, 8.0), "near": (0.0, 4.0), "full": (0.0, 8.0)}
@@ -178,14 +182,37 @@ class GridScreen:
         return float(np.max(limits.marker_size_m * limits.min_marker_px / self.marker_px[short]))
 
 
-def _fold_radius(distortion: np.ndarray) -> float:
-    """Normalised radius where the radial distortion stops increasing (inf if it never does within 4)."""
-    k1, k2, _, _, k3 = distortion
-    r = np.linspace(0.0, 4.0, 4001)
+def fold_radius(distortion: np.ndarray, min_slope: float = 0.0) -> float:
+    """Normalised radius where the radial distortion stops increasing (inf if it never does within 10).
+
+    The radial map ``r -> r (1 + k1 r^2 + k2 r^4 + k3 r^6)`` of a barrel
+    model turns back beyond this radius, so points past it project back
+    *into* the image although a real lens never shows them. One definition
+    for ``plan`` and the survey.
+
+    Parameters
+    ----------
+    distortion : (5,) k1, k2, p1, p2, k3 (OpenCV order)
+    min_slope : the fold is where d(r')/dr first drops to this; ``plan`` asks
+        0.05 to stay clear of the squeezed rim, the survey 0 (the fold itself)
+
+    Returns
+    -------
+    float : normalised radius (x^2 + y^2)^0.5 on the z = 1 plane, resolution 0.001
+    """
+    k1, k2, _, _, k3 = np.asarray(distortion, float)
+    if k1 >= 0 and k2 >= 0 and k3 >= 0 and min_slope < 1.0:
+        return math.inf
+    r = np.linspace(0.0, 10.0, 10001)
     r2 = r * r
     slope = 1.0 + 3.0 * k1 * r2 + 5.0 * k2 * r2 * r2 + 7.0 * k3 * r2 * r2 * r2
-    bad = np.nonzero(slope <= 0.05)[0]
+    bad = np.flatnonzero(slope <= min_slope)
     return float(r[bad[0]]) if bad.size else math.inf
+
+
+# plan keeps lattice points inside 97 % of the radius where the slope falls to 5 %
+PLAN_FOLD_MIN_SLOPE = 0.05
+PLAN_FOLD_FRACTION = 0.97
 
 
 def _facing_vehicle(marker: np.ndarray, offset_frd: tuple[float, float, float], camera_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -235,7 +262,7 @@ def screen_points(camera: Camera, marker_site: np.ndarray, limits: Limits) -> di
     front = depth > 0.3
     safe = np.where(front, depth, 1.0)
     rn = np.hypot(Xc[:, 0] / safe, Xc[:, 1] / safe)
-    before_fold = rn < 0.97 * _fold_radius(camera.distortion.as_array())
+    before_fold = rn < PLAN_FOLD_FRACTION * fold_radius(camera.distortion.as_array(), PLAN_FOLD_MIN_SLOPE)
     with np.errstate(invalid="ignore", divide="ignore"):
         uv_all = camera.project(np.where(front[:, None], allp, np.nan))
     w, h, m = camera.width, camera.height, limits.margin_px
@@ -278,8 +305,8 @@ def screen_points(camera: Camera, marker_site: np.ndarray, limits: Limits) -> di
     }
 
 
-def _xy_lattice(strategy: Strategy) -> np.ndarray:
-    """(K, 2) lattice X, Y of a strategy, m."""
+def xy_lattice(strategy: Strategy) -> np.ndarray:
+    """(K, 2) lattice X, Y (m) of a strategy: X rows outer, Y inner (the order of every sampler)."""
     xs = np.arange(strategy.x_min_m, strategy.x_max_m + 1e-9, strategy.x_step_m)
     n_y = int(round(strategy.y_half_width_m / strategy.y_step_m))
     ys = np.arange(-n_y, n_y + 1) * strategy.y_step_m
@@ -297,7 +324,7 @@ def choose_heights(strategy: Strategy, camera: Camera, limits: Limits) -> tuple[
     so they cover the visible band without flying where little is seen.
     Returns fewer levels when the band is thinner than the levels need.
     """
-    xy = _xy_lattice(strategy)
+    xy = xy_lattice(strategy)
     d = limits.marker_offset_frd_m[2]
     z_lo = max(limits.min_agl_m - d, 0.2)
     z_top = (limits.max_agl_m if limits.max_agl_m is not None else limits.max_search_height_m) - d
@@ -328,7 +355,7 @@ def choose_heights(strategy: Strategy, camera: Camera, limits: Limits) -> tuple[
 def screen_grid(strategy: Strategy, camera: Camera, limits: Limits) -> GridScreen:
     """The strategy's lattice for this camera with every point's verdict (see :class:`GridScreen`)."""
     heights = choose_heights(strategy, camera, limits)
-    xy = _xy_lattice(strategy)
+    xy = xy_lattice(strategy)
     if not heights:
         pts = np.zeros((0, 3))
     else:
@@ -405,6 +432,79 @@ class StrategyScore:
         }
 
 
+def score_candidates(
+    camera: Camera,
+    strategies: Sequence[Strategy],
+    limits: Limits,
+    settings: MonteCarloSettings | None = None,
+    flight: FlightModel | None = None,
+    client: Any = None,
+) -> tuple[StrategyScore, ...]:
+    """Score candidate strategies on one camera: points and flight time here, Monte-Carlo through the survey.
+
+    Each strategy is screened and its route timed in this process (plan's
+    own rules: :func:`geometry_problem`, ``plan.route``); those that can
+    calibrate are then scored by ``survey.runner.score_strategies`` with
+    ``PlanLattice(limits)``, the very row function the survey runs, on Dask
+    when ``client`` is given. All candidates share ``settings.seed`` (common
+    random numbers), so their differences are not noise.
+
+    Parameters
+    ----------
+    camera : the (guessed) camera, world = site frame
+    strategies : the candidates, in the order of the result
+    limits : where the drone may go and what the detector reads
+    settings : ``survey.evaluate.MonteCarloSettings`` (noise, trials, model, seed);
+        None gives the plan defaults (200 trials, RTK 1 / 1.5 cm, 2 px)
+    flight : ``plan.route.FlightModel`` for the flight time (default one if None)
+    client : ``distributed.Client`` to score on a cluster, None for this process
+
+    Returns
+    -------
+    tuple of StrategyScore, one per strategy; ``problem`` says why one cannot calibrate.
+    """
+    from dronecal_field.survey.catalogue import PlanLattice
+    from dronecal_field.survey.evaluate import STATUS_OK, MonteCarloSettings
+    from dronecal_field.survey.runner import score_strategies
+
+    if settings is None:
+        settings = MonteCarloSettings(trials=200)
+    screens = [screen_grid(s, camera, limits) for s in strategies]
+    flight_times: list[float | None] = []
+    problems: list[str | None] = []
+    for screen in screens:
+        points = screen.points
+        problems.append(geometry_problem(points) if len(points) else "no point is both seen and allowed")
+        if len(points):
+            route = plan_route(screen.vehicle_points, points, limits, flight or FlightModel())
+            flight_times.append(route.flight_time_s)
+        else:
+            flight_times.append(None)
+    todo = [i for i, problem in enumerate(problems) if problem is None]
+    rows = score_strategies(camera, tuple(strategies[i] for i in todo), PlanLattice(limits), settings, client=client, details=True)
+    row_of = dict(zip(todo, rows))
+    scores = []
+    for i, (strategy, screen) in enumerate(zip(strategies, screens)):
+        base = dict(strategy=strategy, screen=screen, n_points=len(screen.points), flight_time_s=flight_times[i])
+        row = row_of.get(i)
+        if row is None:
+            scores.append(StrategyScore(**base, problem=problems[i]))
+        elif row["status"] != STATUS_OK:
+            scores.append(StrategyScore(**base, problem=row["message"]))
+        else:
+            if row["n_points"] != base["n_points"]:
+                raise RuntimeError(f"{strategy.name}: the survey sampled {row['n_points']} points, plan {base['n_points']}: the samplers disagree")
+            scores.append(StrategyScore(
+                **base,
+                rms_mean_px=_finite(row["rms_mean"]),
+                rms_p95_px=_finite(row["rms_p95"]),
+                ground_error_15m_cm=_finite(row["ground_error_15m_cm"]),
+                ground_error_15m_cm_p95=_finite(row["ground_error_15m_cm_p95"]),
+                uncertainty=row["monte_carlo"],
+            ))
+    return tuple(scores)
+
+
 def evaluate_strategy(
     camera: Camera,
     strategy: Strategy,
@@ -416,7 +516,7 @@ def evaluate_strategy(
     model: str = "default",
     flight: FlightModel | None = None,
 ) -> StrategyScore:
-    """Sample ``strategy`` on ``camera`` (site frame), time its flight and run the engine's Monte-Carlo.
+    """One candidate of :func:`score_candidates`, in this process.
 
     Parameters
     ----------
@@ -425,7 +525,7 @@ def evaluate_strategy(
     trials : Monte-Carlo trials (the paper uses 500; ~200 ranks candidates)
     sigma_3d : position noise std (x, y, z), m (paper: RTK 1 cm, 1.5 cm vertical)
     sigma_2d : detection noise std, px (paper: 2)
-    seed : Monte-Carlo seed (the same for every candidate, so they share noise draws)
+    seed : Monte-Carlo seed
     model : calibration model of the prediction
     flight : ``plan.route.FlightModel`` for the flight time (default one if None)
 
@@ -433,32 +533,10 @@ def evaluate_strategy(
     -------
     StrategyScore; ``problem`` says why when the points cannot calibrate.
     """
-    from dronecal_field.core.uncertainty import monte_carlo  # numba-compiled engine: load on first use
+    from dronecal_field.survey.evaluate import MonteCarloSettings
 
-    screen = screen_grid(strategy, camera, limits)
-    points = screen.points
-    problem = geometry_problem(points) if len(points) else "no point is both seen and allowed"
-    flight_time = None
-    if len(points):
-        route = plan_route(screen.vehicle_points, points, limits, flight or FlightModel())
-        flight_time = route.flight_time_s
-    if problem is not None:
-        return StrategyScore(strategy=strategy, screen=screen, n_points=len(points), flight_time_s=flight_time, problem=problem)
-    try:
-        mc = monte_carlo(camera, points, trials=trials, sigma_3d=sigma_3d, sigma_2d=sigma_2d, seed=seed, model=model)
-    except DronecalError as exc:
-        return StrategyScore(strategy=strategy, screen=screen, n_points=len(points), flight_time_s=flight_time, problem=str(exc))
-    return StrategyScore(
-        strategy=strategy,
-        screen=screen,
-        n_points=len(points),
-        flight_time_s=flight_time,
-        rms_mean_px=_finite(mc.rms_mean),
-        rms_p95_px=_finite(mc.rms_percentiles.get(95)),
-        ground_error_15m_cm=_finite(mc.ground_error_15m_cm),
-        ground_error_15m_cm_p95=_finite(getattr(mc, "ground_error_15m_cm_p95", None)),
-        uncertainty=mc.to_dict(),
-    )
+    settings = MonteCarloSettings(trials=trials, sigma_3d=tuple(sigma_3d), sigma_2d=sigma_2d, model=model, seed=seed)
+    return score_candidates(camera, [strategy], limits, settings, flight)[0]
 
 
 def _finite(v: object) -> float | None:

@@ -24,7 +24,7 @@ import numpy as np
 
 from dronecal_field.core.camera import Camera
 from dronecal_field.errors import InputError
-from dronecal_field.plan.strategies import Limits, Strategy, make_strategy, paper_strategies, sample_grid
+from dronecal_field.plan.strategies import Limits, Strategy, fold_radius, make_strategy, paper_strategies, sample_grid, xy_lattice
 
 # The paper's comparisons (section IV.B), each a tuple whose first entry is the paper's winner.
 # The baseline lattice (section III.B) is 1 m along X and Y, X out to 8 m: 'full' here.
@@ -76,18 +76,6 @@ def catalogue(spec: str = "paper") -> tuple[Strategy, ...]:
     return tuple(seen.values())
 
 
-def _fold_radius(camera: Camera) -> float:
-    """Normalised radius where the radial distortion stops growing (inf when it never does by 10)."""
-    k1, k2, _, _, k3 = camera.distortion.as_array()
-    if k1 >= 0 and k2 >= 0 and k3 >= 0:
-        return float("inf")
-    r = np.linspace(0.0, 10.0, 10001)
-    r2 = r * r
-    slope = 1.0 + 3.0 * k1 * r2 + 5.0 * k2 * r2 * r2 + 7.0 * k3 * r2 * r2 * r2
-    bad = np.flatnonzero(slope <= 0.0)
-    return float(r[bad[0]]) if bad.size else float("inf")
-
-
 def in_view(camera: Camera, points: np.ndarray, margin_px: float = 10.0) -> np.ndarray:
     """(N,) mask of points (N, 3) the camera sees: in front, in the image with a margin, before the distortion folds.
 
@@ -104,7 +92,7 @@ def in_view(camera: Camera, points: np.ndarray, margin_px: float = 10.0) -> np.n
     r = np.hypot(Xc[:, 0] / z, Xc[:, 1] / z)
     with np.errstate(invalid="ignore", over="ignore"):
         seen = visible(camera, points, margin_px)
-    return seen & (r < 0.98 * _fold_radius(camera))
+    return seen & (r < 0.98 * fold_radius(camera.distortion.as_array()))
 
 
 @dataclass(frozen=True)
@@ -122,12 +110,10 @@ class PaperLattice:
 
     def points(self, strategy: Strategy, camera: Camera) -> np.ndarray:
         """(N, 3) lattice points (m, paper frame) that ``camera`` sees."""
-        from dronecal_field.core.synthetic import sampling_grid
-
-        xs = np.arange(strategy.x_min_m, strategy.x_max_m + 1e-9, strategy.x_step_m)
-        n_y = int(round(strategy.y_half_width_m / strategy.y_step_m))
-        ys = np.arange(-n_y, n_y + 1) * strategy.y_step_m
-        grid = sampling_grid(xs, ys, self.heights(strategy, camera))
+        xy = xy_lattice(strategy)
+        z = np.asarray(self.heights(strategy, camera), float)
+        # X, then Y, then Z fastest: the order the stored survey rows were drawn in (noise is drawn per point)
+        grid = np.column_stack([np.repeat(xy, len(z), axis=0), np.tile(z, len(xy))])
         return grid[in_view(camera, grid, self.margin_px)]
 
 

@@ -2,9 +2,9 @@
 
 Pure computation (no files, no cluster): ``evaluate_case`` is what a Dask
 worker runs, ``evaluate_batch`` a list of them in one task.
-``evaluate_strategy_row`` scores a strategy on any known camera; ``plan
---optimize`` can rank its candidates with it through
-``runner.score_strategies`` (same rows, same Dask machinery).
+``evaluate_strategy_row`` scores a strategy on any known camera; ``plan``
+scores its candidates with it through ``runner.score_strategies`` (same
+rows, same Dask machinery: ``plan.strategies.score_candidates``).
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ class Case:
         return (self.camera.camera_id, self.strategy.name)
 
 
-def evaluate_camera(camera: Camera, points: np.ndarray, settings: MonteCarloSettings, seed: int) -> dict:
+def evaluate_camera(camera: Camera, points: np.ndarray, settings: MonteCarloSettings, seed: int, details: bool = False) -> dict:
     """Monte-Carlo statistics of one camera and its sampled points, as flat row fields.
 
     Parameters
@@ -70,6 +70,9 @@ def evaluate_camera(camera: Camera, points: np.ndarray, settings: MonteCarloSett
     points : (N, 3) sampled 3D points in the camera's world frame, m
     settings : noise model, trials, calibration model
     seed : the Monte-Carlo seed
+    details : also return ``ground_error_15m_cm_p95`` and the whole result as
+        ``monte_carlo`` (``UncertaintyResult.to_dict()``): what ``plan``
+        reports for its chosen candidate; the survey's stored rows leave them out
 
     Returns
     -------
@@ -110,17 +113,21 @@ def evaluate_camera(camera: Camera, points: np.ndarray, settings: MonteCarloSett
         speed_error_15m_kmh=mc.speed_error_15m_kmh,
         failed_trials=mc.failed_trials,
     )
+    if details:
+        row.update(ground_error_15m_cm_p95=mc.ground_error_15m_cm_p95, monte_carlo=mc.to_dict())
     if mc.failed_trials == mc.trials:
         row.update(status=STATUS_FAILED, message=f"all {mc.trials} trials failed to converge")
     return row
 
 
-def evaluate_strategy_row(camera: Camera, strategy: Strategy, sampler: Sampler, settings: MonteCarloSettings, seed: int | None = None) -> dict:
-    """Row of one strategy on a known camera (``plan --optimize``'s candidates): points, heights, statistics.
+def evaluate_strategy_row(
+    camera: Camera, strategy: Strategy, sampler: Sampler, settings: MonteCarloSettings, seed: int | None = None, details: bool = False
+) -> dict:
+    """Row of one strategy on a known camera (the survey's cases and ``plan``'s candidates): points, heights, statistics.
 
     ``camera`` is in the frame the sampler works in (the site frame); the
     Monte-Carlo seed defaults to ``settings.seed`` so all strategies share
-    their noise draws.
+    their noise draws; ``details`` as in :func:`evaluate_camera`.
     """
     row: dict = {"strategy": strategy.name, "x_min_m": strategy.x_min_m, "x_max_m": strategy.x_max_m,
                  "y_step_m": strategy.y_step_m, "n_heights": strategy.n_heights, "trials": settings.trials}
@@ -130,7 +137,7 @@ def evaluate_strategy_row(camera: Camera, strategy: Strategy, sampler: Sampler, 
         row.update(status=STATUS_DEGENERATE, message=str(exc), n_points=0, heights_m="")
         return row
     row["heights_m"] = ",".join(f"{z:g}" for z in sorted(set(np.round(points[:, 2], 3)))) if len(points) else ""
-    row.update(evaluate_camera(camera, points, settings, settings.seed if seed is None else seed))
+    row.update(evaluate_camera(camera, points, settings, settings.seed if seed is None else seed, details))
     return row
 
 

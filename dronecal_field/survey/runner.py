@@ -22,6 +22,7 @@ from dronecal_field.survey.evaluate import (
     STATUS_FAILED,
     Case,
     MonteCarloSettings,
+    _limit_threads,
     evaluate_batch,
     evaluate_strategy_row,
     warm_up,
@@ -189,8 +190,9 @@ def score_strategies(
     settings: MonteCarloSettings = MonteCarloSettings(),
     client: Any = None,
     progress: bool | IO[str] = False,
+    details: bool = False,
 ) -> list[dict]:
-    """Rows of several strategies on one known camera, in the order given: what ``plan --optimize`` ranks.
+    """Rows of several strategies on one known camera, in the order given: what ``plan`` ranks.
 
     The survey's row function on the survey's Dask machinery: with a
     ``client`` the strategies run in parallel on the cluster, without one in
@@ -203,18 +205,23 @@ def score_strategies(
     strategies : candidates (plan.strategies.Strategy)
     sampler : how a strategy becomes points for this camera
     settings : noise model and trials
+    client : ``distributed.Client``, or None to compute in this process
+    progress : False, True (tqdm bar on stderr) or a stream
+    details : add ``ground_error_15m_cm_p95`` and the whole Monte-Carlo result
+        (``monte_carlo``) to ok rows (see ``evaluate.evaluate_camera``)
 
     Returns
     -------
     list of row dicts (status, n_points, heights_m, rms_mean, ..., see ``evaluate_camera``)
     """
-    items = [(camera, s, sampler, settings) for s in strategies]
+    items = [(camera, s, sampler, settings, details) for s in strategies]
     rows: list[dict] = [{} for _ in items]
     for index, row in map_with_progress(client, _score_item, items, desc="candidates", unit="strategy", progress=progress):
         rows[index] = row
     return rows
 
 
-def _score_item(item: tuple[Any, Strategy, Sampler, MonteCarloSettings]) -> dict:
-    camera, strategy, sampler, settings = item
-    return evaluate_strategy_row(camera, strategy, sampler, settings)
+def _score_item(item: tuple[Any, Strategy, Sampler, MonteCarloSettings, bool]) -> dict:
+    camera, strategy, sampler, settings, details = item
+    _limit_threads()
+    return evaluate_strategy_row(camera, strategy, sampler, settings, details=details)
