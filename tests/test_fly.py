@@ -222,3 +222,25 @@ def test_link_dropped_and_video_paused_mid_mission_are_recorded_and_survived(tmp
     assert len(gaps) == 1 and 2.5 < gaps[0].duration_ns / 1e9 < 4.5
     assert abs(gaps[0].timestamp_ns - paused_ns) < 0.5e9
     assert reached[-1] == 8  # the RTL: the end of the mission was seen
+
+
+def test_without_start_it_waits_for_the_pilot_and_commands_nothing(tmp_path, camera, capsys):
+    sim = start_sim(speedup=20.0, boot_s=1.0)
+    plan = write_plan(tmp_path / "mission.plan", SMALL)
+    out = tmp_path / "run.mcap"
+    try:
+        rc = main(_fly_args(sim.addresses()[0], plan, camera, out, "--timeout-s", "1.5"))
+        watcher = open_link(sim.addresses()[0])
+        state = watcher.wait_heartbeat(5)
+        watcher.close()
+    finally:
+        sim.stop()
+    captured = capsys.readouterr()
+    assert rc == 2
+    assert "waiting for the pilot to arm and switch to AUTO" in captured.out
+    assert "did not end within --timeout-s 1.5" in captured.err and "the vehicle was not commanded" in captured.err
+    assert not state.base_mode & ap.MAV_MODE_FLAG_SAFETY_ARMED and state.custom_mode == ap.MODE_STABILIZE
+    sent = [m for m in _tlog(out.with_suffix(".tlog")) if m.get_srcSystem() == 255 and m.get_type() in ("COMMAND_LONG", "SET_MODE")]
+    assert {m.command for m in sent} == {ap.CMD_SET_MESSAGE_INTERVAL}  # telemetry requests only
+    with open_run(out) as run:
+        assert sum(1 for _ in run.iter_frames()) > 5

@@ -22,13 +22,14 @@ from test_mavlink_support import start_sim, wait_until
         ("udpin:0.0.0.0:14550", "udpin", "0.0.0.0:14550"),
         ("tcp:127.0.0.1:5760", "tcp", "127.0.0.1:5760"),
         ("serial:/dev/ttyUSB0", "serial", "/dev/ttyUSB0"),
+        ("/dev/ttyACM0", "serial", "/dev/ttyACM0"),
     ],
 )
 def test_parse_endpoint_schemes(url, scheme, address):
     assert parse_endpoint(url, baud=57600) == Endpoint(scheme=scheme, address=address, baud=57600)
 
 
-@pytest.mark.parametrize("url, fragment", [("127.0.0.1:14550", "unknown"), ("/dev/ttyUSB0", "no scheme"), ("udp:localhost", "HOST:PORT"), ("ws:1.2.3.4:5", "unknown")])
+@pytest.mark.parametrize("url, fragment", [("127.0.0.1:14550", "unknown"), ("ttyUSB0", "no scheme"), ("udp:localhost", "HOST:PORT"), ("ws:1.2.3.4:5", "unknown")])
 def test_parse_endpoint_refuses_guessing(url, fragment):
     with pytest.raises(InputError, match=fragment):
         parse_endpoint(url)

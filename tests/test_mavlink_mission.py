@@ -105,3 +105,58 @@ def test_silent_vehicle_is_a_link_error():
         link.close()
         relay.close()
         sim.stop()
+
+
+def test_upload_answers_mission_request_int_and_duplicates():
+    """A raw-socket vehicle that asks with MISSION_REQUEST_INT (as PX4 does) and repeats a request."""
+    import socket
+    import threading
+
+    from dronecal_field.mavlink.link import mavlink_dialect
+    from dronecal_field.mavlink.mission import send_mission
+
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    peer.bind(("127.0.0.1", 0))
+    peer.settimeout(2.0)
+    d = mavlink_dialect()
+    mav = d.MAVLink(None, srcSystem=1, srcComponent=1)
+    got = []
+
+    def vehicle():
+        gcs = None
+        hb = d.MAVLink_heartbeat_message(2, 12, 0, 0, 3, 3)
+        # announce ourselves until the GCS writes to us
+        while gcs is None:
+            try:
+                data, gcs = peer.recvfrom(65535)
+            except TimeoutError:
+                continue
+        peer.sendto(hb.pack(mav), gcs)
+        count = None
+        while count is None:
+            for msg in mav.parse_buffer(peer.recvfrom(65535)[0]) or []:
+                if msg.get_type() == "MISSION_COUNT":
+                    count = msg.count
+        for seq in list(range(count)) + [count - 1]:
+            for _ in range(2 if seq == 1 else 1):  # seq 1 requested twice
+                peer.sendto(d.MAVLink_mission_request_int_message(255, 190, seq, 0).pack(mav), gcs)
+            while True:
+                msgs = [m for m in mav.parse_buffer(peer.recvfrom(65535)[0]) or [] if m.get_type() == "MISSION_ITEM_INT"]
+                if msgs and msgs[-1].seq == seq:
+                    got.append(seq)
+                    break
+        peer.sendto(d.MAVLink_mission_ack_message(255, 190, 0, 0).pack(mav), gcs)
+
+    thread = threading.Thread(target=vehicle, daemon=True)
+    thread.start()
+    link = open_link(f"udp:127.0.0.1:{peer.getsockname()[1]}")
+    try:
+        link.wait_heartbeat(5)
+        items = parse_qgc_plan(json.dumps(plan_document([(0.0, 4.0, 1.5)]))).items
+        count_sends, item_sends, _ = send_mission(link, items, timeout_s=0.5)
+        thread.join(timeout=5)
+    finally:
+        link.close()
+        peer.close()
+    assert got[: len(items)] == list(range(len(items)))
+    assert count_sends == 1 and item_sends >= len(items) + 1  # the duplicate request was answered again

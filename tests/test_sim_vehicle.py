@@ -302,3 +302,25 @@ def test_system_time_advances_at_vehicle_rate(flight):
     unix_span_ms = (times[-1].time_unix_usec - times[0].time_unix_usec) / 1000.0
     boot_span_ms = times[-1].time_boot_ms - times[0].time_boot_ms
     assert unix_span_ms == pytest.approx(boot_span_ms, abs=1.0)
+
+
+def test_guided_takeoff_then_land_mode_lands_and_disarms_in_land():
+    sim = start_sim(speedup=20.0, boot_s=0.5)
+    link = open_link(sim.addresses()[0])
+    rec = MessageLog(link)
+    try:
+        link.wait_heartbeat(5)
+        wait_ready(link)
+        assert link.set_mode("GUIDED") == ap.MAV_RESULT_ACCEPTED
+        assert link.command_long(ap.CMD_COMPONENT_ARM_DISARM, (1,)) == ap.MAV_RESULT_ACCEPTED
+        assert link.command_long(ap.CMD_NAV_TAKEOFF, (0, 0, 0, 0, 0, 0, 3.0)) == ap.MAV_RESULT_ACCEPTED
+        assert wait_until(lambda: (m := link.latest("GLOBAL_POSITION_INT")) is not None and m.relative_alt > 2990, 10)
+        assert link.set_mode("LAND") == ap.MAV_RESULT_ACCEPTED
+        assert wait_until(lambda: not _armed(link), 10)
+    finally:
+        link.close()
+        sim.stop()
+    highest = max(m.relative_alt for _, m in rec.of("GLOBAL_POSITION_INT"))
+    assert 2990 <= highest <= 3010
+    assert link.vehicle_heartbeat.custom_mode == ap.MODE_LAND
+    assert rec.of("GLOBAL_POSITION_INT")[-1][1].relative_alt < 20

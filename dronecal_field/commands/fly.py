@@ -37,6 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     mission.add_argument("--mission", required=True, metavar="FILE", help="mission.plan (QGroundControl) or .waypoints (QGC WPL 110)")
     mission.add_argument("--dry-run", action="store_true", help="print the pre-flight checklist and stop: nothing is uploaded or recorded")
     mission.add_argument("--start", action="store_true", help="arm in GUIDED and send MISSION_START yourself (default: wait for the pilot to arm and switch to AUTO)")
+    mission.add_argument("--timeout-s", type=float, default=None, metavar="S", help="stop recording after S wall seconds if the mission has not ended (file finalised, exit code 2)")
     checks = parser.add_argument_group("pre-flight")
     checks.add_argument("--min-fix", choices=("rtk_fixed", "rtk_float", "3d"), default="rtk_fixed", help="weakest GNSS fix to fly with (default rtk_fixed; others warn loudly)")
     checks.add_argument("--min-battery", type=int, default=30, metavar="PCT", help="smallest battery charge, percent (default 30)")
@@ -146,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from dronecal_field import __version__
-    from dronecal_field.errors import InputError
+    from dronecal_field.errors import InputError, LinkError
     from dronecal_field.mavlink.control import arm_and_start_mission, describe_heartbeat, request_telemetry
     from dronecal_field.mavlink.link import open_link
     from dronecal_field.mavlink.mission import upload_and_verify
@@ -220,7 +221,10 @@ def run(args: argparse.Namespace) -> int:
             print("started: GUIDED, armed, MISSION_START sent", flush=True)
         else:
             print("waiting for the pilot to arm and switch to AUTO (Ctrl-C ends the recording; nothing is commanded)", flush=True)
-        _record_until_done(recorder, mission)
+        if not _record_until_done(recorder, mission, args.timeout_s):
+            summary = recorder.stop().summary()
+            recorder = None
+            raise LinkError(f"the mission did not end within --timeout-s {args.timeout_s:g}; {out} is finalised ({summary}); the vehicle was not commanded")
     except KeyboardInterrupt:
         if recorder is not None:
             summary = recorder.stop().summary()
@@ -288,15 +292,19 @@ def _start_recorder(args, link, source, first, mission, mission_path, marker, pl
     ).start()
 
 
-def _record_until_done(recorder, mission) -> None:
+def _record_until_done(recorder, mission, timeout_s: float | None = None) -> bool:
+    """Print the status line each second until the mission is over (True) or ``timeout_s`` passed (False)."""
     from dronecal_field.recording.status import format_status
 
     tty = sys.stdout.isatty()
     last_print = 0.0
     done_since = None
+    started = time.monotonic()
     while True:
         time.sleep(0.1)
         now = time.monotonic()
+        if timeout_s is not None and now - started > timeout_s:
+            return False
         if now - last_print >= 1.0:
             last_print = now
             line = format_status(recorder.status())
@@ -304,4 +312,4 @@ def _record_until_done(recorder, mission) -> None:
         if _mission_over(recorder, mission):
             done_since = done_since or now
             if now - done_since >= 1.0:  # a second more, to catch the final messages
-                return
+                return True

@@ -108,6 +108,8 @@ def parse_endpoint(url: str, baud: int = 115200) -> Endpoint:
     InputError
         No scheme, an unknown scheme or a malformed HOST:PORT.
     """
+    if url.startswith("/dev/"):
+        return Endpoint(scheme="serial", address=url, baud=int(baud))  # a device path is explicit enough
     scheme, sep, rest = url.partition(":")
     if not sep:
         raise InputError(f"connection {url!r} has no scheme; write udp:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT or serial:DEVICE")
