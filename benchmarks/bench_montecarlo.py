@@ -42,7 +42,7 @@ def opencv_loop(cam, Q, q):
 def engine(cam, Q, q):
     A = CalibrationModel().parameter_map()
     state = BatchState.from_camera(cam, len(Q))
-    _, cost, _ = levenberg_marquardt(state, Q, q, A, max_iterations=30, tolerance=1e-7)
+    _, cost, _ = levenberg_marquardt(state, Q, q, A, max_iterations=30, tolerance=1e-6)
     return np.sqrt(cost / Q.shape[1])
 
 

@@ -223,7 +223,7 @@ def monte_carlo(
     chunk_size: int = 2000,
     ground_z: float = 0.0,
     max_iterations: int = 30,
-    mc_tolerance: float = 1e-7,
+    mc_tolerance: float = 1e-6,
     observed_pixels: np.ndarray | None = None,
 ) -> UncertaintyResult:
     """The paper's Monte-Carlo estimate of calibration uncertainty, all trials batched.
@@ -240,7 +240,7 @@ def monte_carlo(
     chunk_size : trials solved together; bounds memory (~ chunk_size * N * 240 bytes)
     observed_pixels : (N, 2) p_i; default the reference camera's projection of P_i
     mc_tolerance : a trial stops when its cost drops by less than this fraction in an
-        iteration; 1e-7 leaves the RMS within 1e-7 of the converged value (the
+        iteration; 1e-6 leaves the RMS within about 1e-6 of the converged value (the
         large-residual problem converges linearly, so tighter costs iterations)
 
     Returns
