@@ -433,16 +433,23 @@ class MavLink:
             conn = self._conn
             if conn is None:
                 return False
+            # pymavlink's MAVLink.send, split so listeners see the message before any reply can
+            # arrive: a log of both directions stays in causal order
+            mav = conn.mav
+            buf = msg.pack(mav)
+            mav.seq = (mav.seq + 1) % 256
+            mav.total_packets_sent += 1
+            mav.total_bytes_sent += len(buf)
+            self.mav.seq = mav.seq
+            stamp_ns = time.time_ns()
+            for listener in list(self._listeners):
+                listener("out", stamp_ns, msg)
             try:
-                conn.mav.send(msg)
+                conn.write(buf)
             except (OSError, ConnectionError):
                 self.transport_errors += 1
                 return False
-            self.mav.seq = conn.mav.seq
             self.sent += 1
-        stamp_ns = time.time_ns()
-        for listener in list(self._listeners):
-            listener("out", stamp_ns, msg)
         return True
 
     def _heartbeat_loop(self) -> None:
