@@ -12,9 +12,9 @@ from dronecal_field.errors import LinkError, MissionRejectedError
 from dronecal_field.mavlink.link import open_link
 from dronecal_field.mavlink.mission import upload_and_verify
 from dronecal_field.mavlink.missionfile import MissionItem, parse_qgc_plan, read_mission
-from test_mavlink_support import UdpRelay, plan_document, start_sim, wait_ready
+from test_mavlink_support import REPLAYS, UdpRelay, plan_document, start_sim, wait_ready
 
-WAYPOINTS_FILE = Path("/work/shared/replays/arducopter-sitl/calib-grid.waypoints")
+WAYPOINTS_FILE = REPLAYS / "calib-grid.waypoints"
 
 
 def _grid_mission():

@@ -21,9 +21,9 @@ from dronecal_field.mavlink.missionfile import (
     to_qgc_plan,
     wire_frame,
 )
-from test_mavlink_support import plan_document
+from test_mavlink_support import REPLAYS, plan_document
 
-WAYPOINTS_FILE = Path("/work/shared/replays/arducopter-sitl/calib-grid.waypoints")
+WAYPOINTS_FILE = REPLAYS / "calib-grid.waypoints"
 
 
 @pytest.mark.skipif(not WAYPOINTS_FILE.is_file(), reason="shared replays not mounted")

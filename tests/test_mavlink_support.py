@@ -23,6 +23,8 @@ from dronecal_field.sim.vehicle import SimVehicle, VehicleConfig
 from dronecal_field.sim.vehicle_flight import CopterParams
 
 HOME = (-35.363261, 149.165230, 584.0)  # SITL's CMAC site, AMSL
+# the recorded ArduCopter SITL session (shared/ beside the repository, as tests/conftest.py expects)
+REPLAYS = Path(__file__).resolve().parents[1].parent / "shared" / "replays" / "arducopter-sitl"
 # MAVLink ids of the mission protocol: ITEM, REQUEST, SET_CURRENT, REQUEST_LIST, COUNT, CLEAR_ALL, ACK, REQUEST_INT, ITEM_INT
 MISSION_MSG_IDS = frozenset({39, 40, 41, 43, 44, 45, 47, 51, 73})
 

@@ -12,9 +12,8 @@ import pytest
 from dronecal_field.mavlink.link import mavutil_module, open_link
 from dronecal_field.mavlink.mission import upload_and_verify
 from dronecal_field.mavlink.missionfile import MissionItem, read_mission
-from test_mavlink_support import start_sim, wait_until, wait_ready
+from test_mavlink_support import REPLAYS, start_sim, wait_until, wait_ready
 
-REPLAYS = Path("/work/shared/replays/arducopter-sitl")
 TLOG = REPLAYS / "calib-grid-rtk.tlog"
 PROTOCOL = {"MISSION_COUNT", "MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_ACK", "MISSION_REQUEST_LIST"}
 STREAMS = ("ATTITUDE", "GLOBAL_POSITION_INT", "GPS_RAW_INT", "SYS_STATUS", "EKF_STATUS_REPORT", "BATTERY_STATUS", "MISSION_CURRENT", "HEARTBEAT", "SYSTEM_TIME", "HOME_POSITION")
