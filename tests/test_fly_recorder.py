@@ -8,7 +8,6 @@ import time
 import numpy as np
 import pytest
 
-from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink.link import mavlink_dialect, open_link
 from dronecal_field.mavlink.missionfile import parse_qgc_plan
 from dronecal_field.mavlink.preflight import VehicleSnapshot, VideoStatus, evaluate_preflight, format_checklist

@@ -166,3 +166,8 @@ def test_udpin_link_hears_a_vehicle_sending_to_it():
     finally:
         link.close()
         sim.stop()
+
+
+def test_serial_link_names_what_is_missing():
+    with pytest.raises(LinkError, match="pyserial|cannot open serial:/dev/ttyDRONECAL0"):
+        open_link("serial:/dev/ttyDRONECAL0", baud=57600)

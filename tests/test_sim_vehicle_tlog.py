@@ -5,7 +5,6 @@ second, and the exact mission-protocol exchange for the same 75-item mission."""
 from __future__ import annotations
 
 import collections
-from pathlib import Path
 
 import pytest
 
@@ -69,18 +68,18 @@ def simulated():
         report = upload_and_verify(link, read_mission(REPLAYS / "calib-grid.waypoints").items, timeout_s=1.0)
         protocol = [("gcs" if d == "out" else "vehicle", m.get_type(), getattr(m, "seq", None)) for d, _t, m in log[start:] if m.get_type() in PROTOCOL]
         t0 = vehicle_ms[0] / 1000.0
-        assert wait_until(lambda: vehicle_ms[0] / 1000.0 > t0 + 30.0, 10)
-        window = [(t, m) for d, t, m in log if d == "in" and t0 + 5 <= t < t0 + 25]
+        assert wait_until(lambda: vehicle_ms[0] / 1000.0 > t0 + 46.0, 15)
+        window = [(t, m) for d, t, m in log if d == "in" and t0 + 5 <= t < t0 + 45]
     finally:
         link.close()
         sim.stop()
     counts = collections.Counter(m.get_type() for _t, m in window)
-    return {"rates": {k: counts[k] / 20.0 for k in STREAMS}, "exchange": protocol, "readback": list(report.readback)}
+    return {"rates": {k: counts[k] / 40.0 for k in STREAMS}, "exchange": protocol, "readback": list(report.readback)}
 
 
 def test_telemetry_rates_match_the_recording(recorded, simulated):
     for name in STREAMS:
-        assert simulated["rates"][name] == pytest.approx(recorded["rates"][name], rel=0.12), name
+        assert simulated["rates"][name] == pytest.approx(recorded["rates"][name], rel=0.08), name
     assert recorded["rates"]["ATTITUDE"] == pytest.approx(10.0, rel=0.01)
 
 

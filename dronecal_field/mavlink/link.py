@@ -262,10 +262,10 @@ class MavLink:
     def _open_transport(self) -> Any:
         ep = self.endpoint
         if ep.scheme == "serial":
-            try:
-                import serial  # noqa: F401  (pymavlink's serial port needs pyserial)
-            except ImportError:
-                raise LinkError("serial links need pyserial; install it with: pip install pyserial") from None
+            import importlib.util
+
+            if importlib.util.find_spec("serial") is None:  # pymavlink's serial port needs pyserial
+                raise LinkError("serial links need pyserial; install it with: pip install pyserial")
         try:
             conn = self._mavutil.mavlink_connection(
                 ep.pymavlink_device(),

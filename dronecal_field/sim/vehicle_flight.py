@@ -210,10 +210,7 @@ class CopterModel:
         if mode == ap.MODE_AUTO and len(self.items) <= 1:
             self.say("Mode change failed: no mission", ap.SEVERITY_WARNING)
             return ap.MAV_RESULT_FAILED
-        old = self.mode
-        self.mode = mode
-        if old == ap.MODE_AUTO:
-            pass  # the mission keeps its place; re-entering AUTO resumes it
+        self.mode = mode  # leaving AUTO keeps the mission's place; re-entering AUTO resumes it
         self._enter_mode(mode)
         return ap.MAV_RESULT_ACCEPTED
 
