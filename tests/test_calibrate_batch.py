@@ -49,6 +49,7 @@ def campus(tmp_path_factory):
     return {name: cam for name, (cam, _, _) in cameras.items()}, paths, out, proc
 
 
+@pytest.mark.slow  # ~15-20 s: a 2-worker cluster starts and each worker loads cv2 and the kernels
 def test_each_good_camera_is_calibrated_within_one_percent(campus):
     truth, _, out, proc = campus
     assert proc.returncode == 1, proc.stderr  # one run failed
@@ -62,6 +63,7 @@ def test_each_good_camera_is_calibrated_within_one_percent(campus):
     assert not (out / "pole-broken").exists()  # refused before anything is written
 
 
+@pytest.mark.slow
 def test_summary_lists_every_run_in_order_with_the_broken_one_and_its_error(campus):
     truth, paths, out, proc = campus
     rows = list(csv.DictReader((out / "summary.csv").open()))

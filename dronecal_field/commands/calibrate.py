@@ -5,6 +5,14 @@ aligns the camera and GNSS clocks, builds one robust 3D-2D point per
 waypoint, calibrates, and estimates the confidence (Monte-Carlo with the
 measured sigmas). Writes camera.yaml, camera_info.yaml, ground_homography.yaml,
 detections.csv, report.json and report.html into --out.
+
+Many runs (a campus of cameras, one run each):
+  calibrate a.mcap b.mcap ... --out DIR [--workers N | --scheduler tcp://HOST:8786]
+calibrates them in parallel on Dask (local worker processes by default),
+one folder per run (DIR/<run-stem>/), and writes DIR/summary.csv and
+DIR/summary.json. A run that fails is listed with its error and does not
+stop the others; the exit code is then 1. --workers or --scheduler with a
+single run also takes this path.
 """
 
 from __future__ import annotations
@@ -23,8 +31,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("run", type=Path, help="the run file (.mcap), complete or cut off")
-    parser.add_argument("--out", type=Path, default=None, help="output directory (default: <run>-calibration beside the run)")
+    parser.add_argument("run", type=Path, nargs="+", help="the run file (.mcap), complete or cut off; several for a batch")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="output directory (default: <run>-calibration beside the run); for a batch the folder "
+                             "of the summary and of one folder per run (required)")
     parser.add_argument("--min-fix", choices=FIX_CHOICES, default="rtk_fixed", help="drop hover windows with a worse GNSS fix (default rtk_fixed)")
     parser.add_argument("--model", choices=MODEL_CHOICES, default="auto",
                         help="distortion model; auto suits it to the number and spread of the points (default)")
@@ -37,18 +47,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--settle-s", type=float, default=1.0, help="seconds ignored at the start of each hold (default 1)")
     parser.add_argument("--max-frames-per-window", type=int, default=24, help="frames decoded per hover window (default 24)")
     parser.add_argument("--annotate", action="store_true", help="also write a copy of the run with the calibration and detections for Foxglove")
+    batch = parser.add_argument_group("many runs (Dask)")
+    batch.add_argument("--workers", type=int, default=None, metavar="N",
+                       help="local worker processes for a batch (default: one per core; 0 runs them one by one in this process)")
+    batch.add_argument("--scheduler", default=None, metavar="tcp://HOST:8786",
+                       help="run the batch on this Dask scheduler's workers (run files and --out must be on a folder they share)")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    if len(args.run) > 1 or args.workers is not None or args.scheduler is not None:
+        return run_batch(args)
+    return run_single(args, args.run[0])
+
+
+def _options(args: argparse.Namespace, out: Path | None):
     from dataclasses import replace
 
     from dronecal_field.pipeline.points import PointOptions
-    from dronecal_field.pipeline.run import CalibrateOptions, calibrate_run
+    from dronecal_field.pipeline.run import CalibrateOptions
     from dronecal_field.pipeline.sampling import SamplingOptions
 
-    out = args.out if args.out is not None else args.run.with_name(args.run.stem + "-calibration")
-    options = CalibrateOptions(
+    return CalibrateOptions(
         out_dir=out,
         min_fix=args.min_fix,
         model=args.model,
@@ -61,14 +81,21 @@ def run(args: argparse.Namespace) -> int:
         points=replace(PointOptions(), settle_s=args.settle_s, min_fix=args.min_fix),
         sampling=replace(SamplingOptions(), max_frames_per_window=args.max_frames_per_window),
     )
-    report = calibrate_run(args.run, options)
+
+
+def run_single(args: argparse.Namespace, run_path: Path) -> int:
+    """One run, in this process: the report's summary on stdout."""
+    from dronecal_field.pipeline.run import calibrate_run
+
+    out = args.out if args.out is not None else run_path.with_name(run_path.stem + "-calibration")
+    report = calibrate_run(run_path, _options(args, out))
     cam = report.camera
     i = cam.intrinsics
     mc = report.monte_carlo or report.linearised
     off = report.offset
     dropped = [p for p in report.points if not p.used]
     lines = [
-        f"calibrated {args.run.name}: {len(report.used_points)} of {len(report.windows)} waypoints "
+        f"calibrated {run_path.name}: {len(report.used_points)} of {len(report.windows)} waypoints "
         f"(windows from {report.window_source}), model {report.result.model.name}",
         f"  fx {i.fx:.2f}  fy {i.fy:.2f}  cx {i.cx:.2f}  cy {i.cy:.2f} px;  distortion "
         + " ".join(f"{v:.4g}" for v in cam.distortion.as_array()),
@@ -88,4 +115,28 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"  warning: {w}")
     lines.append(f"report: {report.outputs.get('report_html', out)}")
     print("\n".join(lines))
+    return 0
+
+
+def run_batch(args: argparse.Namespace) -> int:
+    """Several runs on Dask: one folder each, the summary table on stdout; 1 if any run failed."""
+    import sys
+
+    from dronecal_field.cluster import dask_client
+    from dronecal_field.errors import InputError
+    from dronecal_field.pipeline.batch import calibrate_many, plan_tasks, summary_table
+
+    if args.out is None:
+        raise InputError("several runs need --out DIR: the folder of summary.csv, summary.json and one folder per run")
+    options = _options(args, None)
+    plan_tasks(args.run, args.out, options)  # colliding run names fail here, before a cluster starts
+    with dask_client(args.scheduler, args.workers) as client:
+        report = calibrate_many(args.run, args.out, options, client=client, scheduler=args.scheduler, progress=sys.stderr.isatty())
+    print(summary_table(report))
+    n_bad = len(report.failed)
+    print(f"{len(report.rows) - n_bad} of {len(report.rows)} runs calibrated on {report.workers} worker(s) in {report.wall_s:.1f} s; "
+          f"wrote {', '.join(Path(p).name for p in report.outputs.values())} and one folder per run to {args.out}")
+    if n_bad:
+        print(f"dronecal-field calibrate: {n_bad} of {len(report.rows)} runs failed (see {report.outputs['summary_csv']})", file=sys.stderr)
+        return 1
     return 0
