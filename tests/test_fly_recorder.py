@@ -91,7 +91,7 @@ def test_vehicle_clock_rate():
 def test_hover_window_ends_at_the_reached_message():
     event = hover_event(MISSION, 4, 10_000_000_000, clock_rate=2.0)
     assert (event.type, event.timestamp_ns, event.duration_ns, event.end_ns) == ("hover", 8_500_000_000, 1_500_000_000, 10_000_000_000)
-    assert event.metadata["seq"] == "4" and float(event.metadata["hold_s"]) == 3.0
+    assert event.metadata["seq"] == "4" and float(event.metadata["hold_s"]) == 3.0 and float(event.metadata["vehicle_clock_rate"]) == 2.0
     assert hover_event(MISSION, 2, 1, 1.0) is None  # DO_CHANGE_SPEED has no hold
     assert remaining_s(MISSION, 4) == pytest.approx(3.0 + 1.0 / 2.0 + 3.0, rel=0.01)
 

@@ -88,7 +88,16 @@ def hover_event(mission: Mission, seq: int, reached_ns: int, clock_rate: float) 
     if item.command != CMD_NAV_WAYPOINT or item.hold_s <= 0:
         return None
     duration_ns = int(round(item.hold_s / max(clock_rate, 1e-6) * 1e9))
-    meta = {"seq": str(seq), "hold_s": repr(float(item.hold_s)), "lat": repr(item.x * 1e-7), "lon": repr(item.y * 1e-7), "alt": repr(float(item.z)), "alt_frame": str(item.frame)}
+    # hold_s is vehicle time; the window is host time: hold_s / vehicle_clock_rate (1 for a real vehicle)
+    meta = {
+        "seq": str(seq),
+        "hold_s": repr(float(item.hold_s)),
+        "vehicle_clock_rate": repr(float(clock_rate)),
+        "lat": repr(item.x * 1e-7),
+        "lon": repr(item.y * 1e-7),
+        "alt": repr(float(item.z)),
+        "alt_frame": str(item.frame),
+    }
     return RunEvent(timestamp_ns=int(reached_ns) - duration_ns, duration_ns=duration_ns, type="hover", metadata=meta)
 
 
