@@ -61,6 +61,20 @@ def _run(step: str, argv: list[str], log: Path, timeout_s: float) -> None:
         raise DronecalError(f"demo step '{step}' failed ({tail[0]}): see {log}")
 
 
+def _wait_for_tcp(port: int, proc: subprocess.Popen, log: Path, timeout_s: float = 60.0) -> None:
+    """Wait until a simulator accepts connections on ``port`` (it builds its ray map first)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise DronecalError(f"the simulated camera exited early (code {proc.returncode}): see {log}")
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+                return
+        except OSError:
+            time.sleep(0.2)
+    raise DronecalError(f"the simulated camera did not open port {port} within {timeout_s:.0f} s: see {log}")
+
+
 def _stop(proc: subprocess.Popen) -> None:
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
@@ -71,7 +85,7 @@ def _stop(proc: subprocess.Popen) -> None:
             proc.wait()
 
 
-def run_demo(out_dir: Path, speedup: float = 4.0, trials: int = 500, echo=print) -> DemoResult:
+def run_demo(out_dir: Path, speedup: float = 3.0, trials: int = 500, fps: float = 15.0, echo=print) -> DemoResult:
     """Run the whole chain into ``out_dir``; ``echo`` receives progress lines."""
     from dronecal_field.camerafile import read_camera, write_camera
     from dronecal_field.core.camera import Distortion
@@ -114,11 +128,12 @@ def run_demo(out_dir: Path, speedup: float = 4.0, trials: int = 500, echo=print)
     ), stdout=(logs / "sim-vehicle.log").open("w"), stderr=subprocess.STDOUT)
     camera = subprocess.Popen(_cli(
         "sim", "camera", "--connect", f"udpin:127.0.0.1:{camera_link_port}", "--camera", truth_path, "--serve", video_url,
-        "--fps", "10", "--noise-px", "2", "--marker-dictionary", MARKER["dictionary"], "--marker-id", MARKER["marker_id"],
+        "--fps", fps, "--noise-px", "2", "--marker-dictionary", MARKER["dictionary"], "--marker-id", MARKER["marker_id"],
         "--marker-size", MARKER["size_m"], "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]),
     ), stdout=(logs / "sim-camera.log").open("w"), stderr=subprocess.STDOUT)
     run_path = out_dir / "run.mcap"
     try:
+        _wait_for_tcp(http_port, camera, logs / "sim-camera.log")
         echo("3/4 fly --start: upload, verify, arm in GUIDED, MISSION_START, record (Ctrl-C stops cleanly)")
         _run("fly", _cli(
             "fly", "--connect", f"udp:127.0.0.1:{vehicle_port}", "--mission", plan_dir / "mission.plan",
@@ -130,7 +145,10 @@ def run_demo(out_dir: Path, speedup: float = 4.0, trials: int = 500, echo=print)
 
     echo("4/4 calibrate: hover windows, ArUco, ENU, calibration, Monte-Carlo confidence")
     calib_dir = out_dir / "calibration"
-    _run("calibrate", _cli("calibrate", run_path, "--out", calib_dir, "--trials", trials, "--min-fix", "rtk_fixed"),
+    # The simulator's clock runs `speedup` times faster, so each hold is that much shorter on the
+    # run clock: decode more frames per window than a real 3 s hold needs.
+    _run("calibrate", _cli("calibrate", run_path, "--out", calib_dir, "--trials", trials, "--min-fix", "rtk_fixed",
+                           "--max-frames-per-window", int(24 * speedup)),
          logs / "calibrate.log", timeout_s=600)
 
     est = in_enu_frame_of(read_camera(calib_dir / "camera.yaml"), truth.enu_origin)

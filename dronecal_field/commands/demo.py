@@ -16,7 +16,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("demo", help="plan -> fly -> calibrate on the built-in simulators", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("demo-output"), help="output folder (default demo-output)")
-    p.add_argument("--speedup", type=float, default=4.0, help="simulated vehicle speed-up (default 4)")
+    p.add_argument("--speedup", type=float, default=3.0, help="simulated vehicle speed-up (default 3)")
     p.add_argument("--trials", type=int, default=500, help="Monte-Carlo trials in calibrate (default 500)")
     p.set_defaults(func=run)
 

@@ -1,0 +1,32 @@
+"""One end-to-end run of every stage, as `make demo` does: plan -> sim vehicle + sim camera -> fly -> calibrate.
+
+Real processes, real UDP MAVLink, real MJPEG over HTTP, a real MCAP run file;
+the calibrated camera is checked against the simulator's truth (issue 5's
+accuracy bands).
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from dronecal_field.camerafile import read_camera
+from dronecal_field.demo import in_enu_frame_of, run_demo
+
+
+@pytest.mark.slow
+def test_plan_fly_calibrate_on_the_simulators(tmp_path):
+    lines: list[str] = []
+    result = run_demo(tmp_path / "demo", speedup=4.0, trials=100, echo=lines.append)
+    assert result.focal_error_pct < 1.0
+    assert result.principal_point_error_px < 5.0
+    assert result.position_error_cm < 5.0
+    assert result.projection_error_px < 1.0
+    report = json.loads((tmp_path / "demo" / "calibration" / "report.json").read_text())
+    truth = read_camera(tmp_path / "demo" / "truth.yaml")
+    est = in_enu_frame_of(read_camera(tmp_path / "demo" / "calibration" / "camera.yaml"), truth.enu_origin)
+    assert np.degrees(np.arccos((np.trace(est.pose.R_cam_from_world @ truth.pose.R_cam_from_world.T) - 1) / 2)) < 0.5
+    # every stage left its files
+    for name in ("plan/mission.plan", "plan/plan.json", "run.mcap", "run.tlog", "calibration/report.html", "calibration/detections.csv"):
+        assert (tmp_path / "demo" / name).is_file(), name
+    assert report is not None
