@@ -28,6 +28,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--site", metavar="TOML", help="site file with the same keys as the flags (examples in missions/)")
     parser.add_argument("--out", metavar="DIR", required=True, help="output folder (written atomically; a previous plan folder is replaced)")
+    parser.add_argument("--scheduler", metavar="tcp://HOST:8786", help="score the candidates on this Dask scheduler's workers (default: in this process)")
     groups: dict[str, argparse._ArgumentGroup] = {}
     for spec in OPTIONS:
         group = groups.setdefault(spec.group, parser.add_argument_group(spec.group))
@@ -49,7 +50,13 @@ def run(args: argparse.Namespace) -> int:
         if v is not None:
             values[spec.key] = v
     request = request_from_options(resolve_options(values))
-    result = make_plan(request)
+    if args.scheduler:
+        from dronecal_field.cluster import dask_client
+
+        with dask_client(args.scheduler) as client:
+            result = make_plan(request, client)
+    else:
+        result = make_plan(request)
     paths = write_plan(result, args.out)
     print(format_report(result, args.out))
     for w in result.warnings:
