@@ -85,8 +85,14 @@ def _stop(proc: subprocess.Popen) -> None:
             proc.wait()
 
 
-def run_demo(out_dir: Path, speedup: float = 3.0, trials: int = 500, fps: float = 15.0, echo=print) -> DemoResult:
-    """Run the whole chain into ``out_dir``; ``echo`` receives progress lines."""
+def run_demo(
+    out_dir: Path, speedup: float = 3.0, trials: int = 500, fps: float = 15.0, echo=print, latency_s: float = 0.0
+) -> DemoResult:
+    """Run the whole chain into ``out_dir``; ``echo`` receives progress lines.
+
+    ``latency_s`` (seconds, host clock) makes the simulated camera's frames show
+    the vehicle that long late (``sim camera --latency-s``), as a real IP camera's do.
+    """
     from dronecal_field.camerafile import read_camera, write_camera
     from dronecal_field.core.camera import Distortion
     from dronecal_field.geodesy import EnuOrigin
@@ -128,7 +134,7 @@ def run_demo(out_dir: Path, speedup: float = 3.0, trials: int = 500, fps: float 
     ), stdout=(logs / "sim-vehicle.log").open("w"), stderr=subprocess.STDOUT)
     camera = subprocess.Popen(_cli(
         "sim", "camera", "--connect", f"udpin:127.0.0.1:{camera_link_port}", "--camera", truth_path, "--serve", video_url,
-        "--fps", fps, "--noise-px", "2", "--marker-dictionary", MARKER["dictionary"], "--marker-id", MARKER["marker_id"],
+        "--fps", fps, "--latency-s", latency_s, "--noise-px", "2", "--marker-dictionary", MARKER["dictionary"], "--marker-id", MARKER["marker_id"],
         "--marker-size", MARKER["size_m"], "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]),
     ), stdout=(logs / "sim-camera.log").open("w"), stderr=subprocess.STDOUT)
     run_path = out_dir / "run.mcap"
