@@ -38,8 +38,10 @@ class DemoResult:
     focal_error_pct: float
     principal_point_error_px: float
     position_error_cm: float
+    principal_point_sigma_px: float
     rms_px: float
     projection_error_px: float
+    sampled_projection_error_px: float
     elapsed_s: float
 
 
@@ -162,14 +164,24 @@ def run_demo(
     ti, ei = truth.intrinsics, est.intrinsics
     # Compare in the truth's ENU frame (both files use ENU at the pole's foot).
     proj = _projection_error_px(truth, est)
+    sampled = np.array([w["marker_enu_m"] for w in report["hover_windows"]["windows"] if w.get("used")])
+    if est.enu_origin is not None and truth.enu_origin is not None and not np.allclose(est.enu_origin, truth.enu_origin, atol=1e-10):
+        from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic, geodetic_to_enu
+
+        llh = enu_to_geodetic(sampled, EnuOrigin(*est.enu_origin))
+        sampled = geodetic_to_enu(llh[:, 0], llh[:, 1], llh[:, 2], EnuOrigin(*truth.enu_origin))
+    sampled_proj = float(np.sqrt(np.mean(np.sum((truth.project(sampled) - est.project(sampled)) ** 2, axis=1))))
+    std = report.get("calibration", {}).get("parameter_std_from_residuals", {})
     return DemoResult(
         out_dir=out_dir,
         report_path=calib_dir / "report.html",
         focal_error_pct=100.0 * abs(0.5 * (ei.fx + ei.fy) - 0.5 * (ti.fx + ti.fy)) / (0.5 * (ti.fx + ti.fy)),
         principal_point_error_px=float(np.hypot(ei.cx - ti.cx, ei.cy - ti.cy)),
+        principal_point_sigma_px=float(np.hypot(std.get("cx", np.nan), std.get("cy", np.nan))),
         position_error_cm=100.0 * float(np.linalg.norm(est.pose.position_world - truth.pose.position_world)),
         rms_px=float(report.get("calibration", {}).get("rms_px", float("nan"))),
         projection_error_px=proj,
+        sampled_projection_error_px=sampled_proj,
         elapsed_s=time.monotonic() - t0,
     )
 

@@ -49,9 +49,9 @@ def run(args: argparse.Namespace) -> int:
     for name, a, b in rows:
         print(f"{name:28}{a:14.5g}{b:14.5g}")
     print()
-    print(f"focal error {result.focal_error_pct:.2f} %, principal point error {result.principal_point_error_px:.1f} px, "
-          f"camera position error {result.position_error_cm:.1f} cm")
-    print(f"projection error against the truth over 4-12 m: {result.projection_error_px:.2f} px RMS; "
-          f"reprojection RMS {result.rms_px:.2f} px")
+    print(f"focal error {result.focal_error_pct:.2f} %, principal point error {result.principal_point_error_px:.1f} px "
+          f"(1-sigma from the residuals {result.principal_point_sigma_px:.1f} px), camera position error {result.position_error_cm:.1f} cm")
+    print(f"projection error against the truth: {result.sampled_projection_error_px:.2f} px RMS over the sampled volume, "
+          f"{result.projection_error_px:.2f} px over the whole image at 4-12 m; reprojection RMS {result.rms_px:.2f} px")
     print(f"report: {result.report_path}   ({result.elapsed_s:.0f} s)")
     return 0
