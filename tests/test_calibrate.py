@@ -6,7 +6,7 @@ import pytest
 
 from dronecal_field.core.calibrate import CalibrationModel, calibrate, resolve_model
 from dronecal_field.core.camera import Distortion
-from dronecal_field.core.synthetic import paper_camera, paper_grid, pole_camera, sampling_grid
+from dronecal_field.core.synthetic import paper_camera, paper_grid, pole_camera, sampling_grid, visible
 from dronecal_field.errors import DegenerateGeometryError, InputError
 
 
@@ -139,6 +139,15 @@ def test_coplanar_points():
     truth = paper_camera()
     X = sampling_grid(np.arange(4, 9.0), np.arange(-3, 3.1), [0.5])
     with pytest.raises(DegenerateGeometryError, match="coplanar"):
+        calibrate(X, truth.project(X), 1280, 960)
+
+
+def test_one_point_off_a_plane_is_still_coplanar():
+    truth = paper_camera()
+    X = sampling_grid(np.arange(4, 9.0), np.arange(-3, 3.1), [0.5])
+    X = X[visible(truth, X)]
+    X = np.vstack([X, [[6.0, 0.0, 1.2]]])
+    with pytest.raises(DegenerateGeometryError, match="only 1 off it"):
         calibrate(X, truth.project(X), 1280, 960)
 
 

@@ -144,12 +144,11 @@ def test_cutoff_replay_fails_with_one_line_exit_2(calibrated):
     assert "coplanar" in lines[0] and "heights" in lines[0]
 
 
-@pytest.mark.xfail(strict=True, reason="calibrate's errors do not yet say the run was cut off (the reader knows: "
-                                       "Run.truncated_at); the pipeline should append it to the message")
 def test_cutoff_replay_error_names_the_cut(calibrated):
     proc, _ = calibrated("cutoff")
     assert proc.returncode == 2
-    assert "cut off" in proc.stderr
+    assert "cut off at byte" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
 
 
 def test_a_late_cut_still_calibrates(tmp_path):

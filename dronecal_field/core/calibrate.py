@@ -163,7 +163,34 @@ def check_correspondences(points_world: np.ndarray, pixels: np.ndarray, n_free: 
             f"the {n} points are coplanar (RMS {s[2] * 100:.1f} cm off one plane): fly at least two heights, "
             f"or several distances, at least {min_thickness_m * 200:.0f} cm apart"
         )
+    off = _points_off_main_plane(X, min_thickness_m)
+    needed_off = max(3, int(np.ceil(0.1 * n)))
+    if off < needed_off:
+        raise DegenerateGeometryError(
+            f"{n - off} of the {n} points lie in one plane and only {off} off it (need {needed_off}): "
+            "fly a second height or distance with several waypoints"
+        )
     return X, uv
+
+
+def _points_off_main_plane(X: np.ndarray, min_thickness_m: float) -> int:
+    """How many points lie farther than ``min_thickness_m`` from the plane most points share.
+
+    The plane is fitted robustly (least squares, then refitted on the points
+    within 3 MADs of it), so a single high point cannot make a flat grid look 3D.
+    """
+    inliers = np.ones(len(X), dtype=bool)
+    for _ in range(3):
+        c = X[inliers].mean(axis=0)
+        normal = np.linalg.svd(X[inliers] - c)[2][-1]
+        d = (X - c) @ normal
+        med = np.median(d)
+        mad = 1.4826 * np.median(np.abs(d - med))
+        new = np.abs(d - med) <= max(3.0 * mad, min_thickness_m)
+        if new.sum() < 3 or np.array_equal(new, inliers):
+            break
+        inliers = new
+    return int(np.sum(np.abs(d) > min_thickness_m))
 
 
 # --------------------------------------------------------------------------

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dronecal_field.errors import ContractError, DegenerateGeometryError, InputError
+from dronecal_field.errors import ContractError, DegenerateGeometryError, DronecalError, InputError
 from dronecal_field.geodesy import EnuOrigin, geodetic_to_enu
 from dronecal_field.pipeline.align import TimeOffset, estimate_time_offset
 from dronecal_field.pipeline.detect import Detection
@@ -310,6 +310,9 @@ def _detect_frames(run, windows: list[HoverWindow], marker, width: int, height: 
 def calibrate_run(path: str | os.PathLike, options: CalibrateOptions = CalibrateOptions()) -> CalibrationReport:
     """Calibrate the camera seen in one run file; write the outputs when ``options.out_dir`` is set.
 
+    When a cut-off run cannot be calibrated, the error says where it is cut:
+    the missing part is the likely reason (e.g. a second height never flown).
+
     Parameters
     ----------
     path : a run file following shared/contracts/run-format.md (also cut off)
@@ -326,13 +329,35 @@ def calibrate_run(path: str | os.PathLike, options: CalibrateOptions = Calibrate
     DegenerateGeometryError : too few good waypoints, coplanar points
     CalibrationError : the solver found no trustworthy camera
     """
+    try:
+        return _calibrate_run(Path(path), options)
+    except ContractError:
+        raise
+    except DronecalError as exc:
+        cut = _cut_off_at(Path(path))
+        if cut is None:
+            raise
+        raise type(exc)(f"{exc} (the run is cut off at byte {cut}: only its complete part could be used)") from None
+
+
+def _cut_off_at(path: Path) -> int | None:
+    """Byte offset where a run file is cut off, None when it is complete or unreadable."""
+    from dronecal_field.runfile.reader import open_run
+
+    try:
+        with open_run(path) as run:
+            return int(run.truncated_at) if run.truncated and run.truncated_at is not None else None
+    except DronecalError:
+        return None
+
+
+def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
     from dataclasses import replace
 
     from dronecal_field.core.calibrate import calibrate
     from dronecal_field.pipeline import maps
     from dronecal_field.runfile.reader import open_run
 
-    path = Path(path)
     point_options = replace(options.points, min_fix=options.min_fix)
     timings: dict[str, float] = {}
     warnings: list[str] = []
