@@ -23,7 +23,7 @@ from typing import Any
 from dronecal_field.errors import LinkError, MissionRejectedError
 from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink.link import MavLink
-from dronecal_field.mavlink.missionfile import GLOBAL_FRAMES, MissionItem, compare_readback, storage_changes, wire_frame
+from dronecal_field.mavlink.missionfile import MissionItem, compare_readback, item_from_message, storage_changes, wire_frame
 
 _UPLOAD_TYPES = frozenset({"MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"})
 _DOWNLOAD_TYPES = frozenset({"MISSION_COUNT", "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_ACK"})
@@ -245,29 +245,9 @@ def download_mission(link: MavLink, *, timeout_s: float = 1.5, retries: int = 5)
                 lambda m, s=seq: m.get_type() in ("MISSION_ITEM_INT", "MISSION_ITEM") and m.seq == s,
                 f"MISSION_ITEM_INT {seq}",
             )
-            items.append(_item_from_message(msg))
+            items.append(item_from_message(msg))
         link.send(d.MAVLink_mission_ack_message(link.target_system, link.target_component, ap.MAV_MISSION_ACCEPTED, 0))
     return items
-
-
-def _item_from_message(msg: Any) -> MissionItem:
-    if msg.get_type() == "MISSION_ITEM" and msg.frame in GLOBAL_FRAMES:
-        x, y = int(round(msg.x * 1e7)), int(round(msg.y * 1e7))
-    else:
-        x, y = int(msg.x), int(msg.y)
-    return MissionItem(
-        seq=int(msg.seq),
-        frame=int(msg.frame),
-        command=int(msg.command),
-        p1=float(msg.param1),
-        p2=float(msg.param2),
-        p3=float(msg.param3),
-        p4=float(msg.param4),
-        x=x,
-        y=y,
-        z=float(msg.z),
-        autocontinue=bool(msg.autocontinue),
-    )
 
 
 def upload_and_verify(

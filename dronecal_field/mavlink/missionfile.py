@@ -19,6 +19,7 @@ import math
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 from dronecal_field.errors import InputError
 
@@ -611,3 +612,31 @@ def compare_readback(sent: list[MissionItem] | tuple[MissionItem, ...], back: li
         if check_autocontinue and a.autocontinue != b.autocontinue:
             problems.append(f"{where}: autocontinue {a.autocontinue} read back as {b.autocontinue}")
     return problems
+
+
+def item_from_message(msg: Any) -> MissionItem:
+    """A MissionItem from a MISSION_ITEM_INT or MISSION_ITEM message (float lat/lon scaled to 1e-7 deg ints).
+
+    Both sides of the mission protocol use it: the client reading a mission
+    back and the simulated vehicle receiving one.
+    """
+    if msg.get_type() == "MISSION_ITEM":
+        if msg.frame in GLOBAL_FRAMES:
+            x, y = int(round(msg.x * 1e7)), int(round(msg.y * 1e7))
+        else:
+            x, y = int(round(msg.x)), int(round(msg.y))
+    else:
+        x, y = int(msg.x), int(msg.y)
+    return MissionItem(
+        seq=int(msg.seq),
+        frame=int(msg.frame),
+        command=int(msg.command),
+        p1=float(msg.param1),
+        p2=float(msg.param2),
+        p3=float(msg.param3),
+        p4=float(msg.param4),
+        x=x,
+        y=y,
+        z=float(msg.z),
+        autocontinue=bool(msg.autocontinue),
+    )

@@ -22,7 +22,7 @@ from typing import Any
 
 from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink import missionfile as mf
-from dronecal_field.mavlink.missionfile import MissionItem, ardupilot_check, ardupilot_readback
+from dronecal_field.mavlink.missionfile import MissionItem, ardupilot_check, ardupilot_readback, item_from_message
 
 REQUEST_RESEND_S = 1.0  # ArduPilot: wp_recv_timeout_ms 1000
 UPLOAD_TIMEOUT_S = 8.0  # ArduPilot: upload_timeout_ms 8000
@@ -133,7 +133,7 @@ class MissionServer:
             up.last_receive_s = now_s
             if msg.seq != up.next_seq:
                 return True  # ArduPilot ignores it; the re-request asks again
-            item = _item_from_message(msg)
+            item = item_from_message(msg)
             # seq 0 is home: ArduPilot keeps its own, whatever was sent
             result = ardupilot_check(item) if item.seq > 0 else ap.MAV_MISSION_ACCEPTED
             if result != ap.MAV_MISSION_ACCEPTED:
@@ -195,27 +195,3 @@ class MissionServer:
             self._ack(up.link, up.sysid, up.compid, ap.MAV_MISSION_OPERATION_CANCELLED)
         elif now_s - up.last_request_s > REQUEST_RESEND_S:
             self._request(up, now_s)
-
-
-def _item_from_message(msg: Any) -> MissionItem:
-    """MISSION_ITEM_INT or MISSION_ITEM to a MissionItem (floats scaled to 1e-7 deg ints)."""
-    if msg.get_type() == "MISSION_ITEM":
-        if msg.frame in mf.GLOBAL_FRAMES:
-            x, y = int(round(msg.x * 1e7)), int(round(msg.y * 1e7))
-        else:
-            x, y = int(round(msg.x)), int(round(msg.y))
-    else:
-        x, y = int(msg.x), int(msg.y)
-    return MissionItem(
-        seq=int(msg.seq),
-        frame=int(msg.frame),
-        command=int(msg.command),
-        p1=float(msg.param1),
-        p2=float(msg.param2),
-        p3=float(msg.param3),
-        p4=float(msg.param4),
-        x=x,
-        y=y,
-        z=float(msg.z),
-        autocontinue=bool(msg.autocontinue),
-    )
