@@ -249,6 +249,13 @@ def _start_recorder(args, link, source, first, mission, mission_path, marker, pl
     from dronecal_field.runfile.tlog import TlogWriter
     from dronecal_field.runfile.writer import RunWriter
 
+    tlog = TlogWriter(tlog_path)
+    for stamp_ns, data in backlog:  # the whole session: connect, pre-flight, upload and read-back
+        tlog.write(data, stamp_ns // 1000)
+    check = MarkerCheck(marker.dictionary, marker.marker_id) if marker.kind == "aruco" and marker.dictionary else None
+    # Frames that arrived before this instant (queued during pre-flight and upload) are not
+    # recorded; taken after the slow steps above so that few fresh frames wait in the queue.
+    start_ns = time.time_ns()
     gps = link.latest("GPS_RAW_INT")
     datum = "msl" if gps is not None and not gps.alt_ellipsoid else "ellipsoid"
     hb = link.vehicle_heartbeat
@@ -268,15 +275,12 @@ def _start_recorder(args, link, source, first, mission, mission_path, marker, pl
             "mission.items": str(len(mission.items)),
             "mission.file": mission_path.name,
             "camera.timestamps": "host UTC at frame arrival",
+            "recording.start_ns": str(start_ns),
         },
     )
     writer = RunWriter(out, metadata)
     data = mission_path.read_bytes() if mission.source_format == "plan" else to_qgc_plan(mission).encode("utf-8")
     writer.attach("mission.plan", data, "application/json")
-    tlog = TlogWriter(tlog_path)
-    for stamp_ns, data in backlog:  # the whole session: connect, pre-flight, upload and read-back
-        tlog.write(data, stamp_ns // 1000)
-    check = MarkerCheck(marker.dictionary, marker.marker_id) if marker.kind == "aruco" and marker.dictionary else None
     return Recorder(
         link,
         source,
@@ -289,6 +293,7 @@ def _start_recorder(args, link, source, first, mission, mission_path, marker, pl
         frame_queue_size=args.frame_queue,
         link_timeout_s=args.link_timeout,
         clock=clock,
+        start_ns=start_ns,
     ).start()
 
 

@@ -9,8 +9,15 @@ Threads and queues::
 
 The writer thread always drains the telemetry queue before taking the next
 frame, so a slow disk costs frames (counted) and never fixes, and memory is
-bounded by the frame queue. Every timestamp is the host's UTC clock at
-arrival (the run clock); frames too, hence ``camera.latency_s`` in the metadata.
+bounded by the frame queue.
+
+Recording starts clean: a live source's queue filled up while nobody read it
+(pre-flight, mission upload), so at the start the frames that arrived before
+it are discarded (counted apart, not as drops) and the source's drop counter
+is taken as the zero: ``dropped`` counts only frames lost while recording.
+
+Every timestamp is the host's UTC clock at arrival (the run clock); frames
+too, hence ``camera.latency_s`` in the metadata.
 
 Events on ``/events``: ``hover`` (the hold that ends with each
 MISSION_ITEM_REACHED: ArduCopter reports at the end of a hold), ``video_gap``,
@@ -54,7 +61,10 @@ class RecordingReport:
     frames_dropped : int
         Frames the recorder dropped because the disk was slow.
     frames_dropped_source : int
-        Frames the video source dropped because the recorder was slow to read.
+        Frames the video source dropped, after the start, because the recorder was slow to read.
+    frames_discarded_at_start : int
+        Frames that arrived before the start (queued while nobody read the
+        source), discarded rather than recorded; not drops.
     fixes_written : int
         Records in ``/gnss/fix``.
     fixes_without_position : int
@@ -74,6 +84,7 @@ class RecordingReport:
     frames_written: int
     frames_dropped: int
     frames_dropped_source: int
+    frames_discarded_at_start: int
     fixes_written: int
     fixes_without_position: int
     mavlink_messages: int
@@ -90,6 +101,7 @@ class RecordingReport:
             f"{self.frames_written} frames ({self.frames_dropped + self.frames_dropped_source} dropped), {self.fixes_written} GNSS fixes, "
             f"{self.mavlink_messages} MAVLink messages, {self.hover_events} hover windows, {self.video_gaps} video gaps, "
             f"{self.link_losses} link losses in {self.duration_s:.1f} s"
+            + (f" ({self.frames_discarded_at_start} frames from before the start not recorded)" if self.frames_discarded_at_start else "")
         )
 
 
@@ -113,7 +125,8 @@ class Recorder:
     marker_check : MarkerCheck or None
         The once-a-second marker probe.
     first_frame : Frame or None
-        A frame already read (to size the image); recorded first.
+        A frame already read (to size the image); recorded first unless a
+        live source's frame arrived before ``start_ns``.
     frame_queue_size : int
         Frames buffered for the disk; beyond that frames are dropped.
     link_timeout_s : float
@@ -123,6 +136,10 @@ class Recorder:
     clock : VehicleClock or None
         A vehicle clock already fed since the link opened (sharper hover windows
         early in the flight); the recorder keeps feeding it.
+    start_ns : int or None
+        UTC ns when recording starts (what the run's metadata says); frames of
+        a live source that arrived before it are not recorded. Default: the
+        moment :meth:`start` is called.
     """
 
     def __init__(
@@ -140,6 +157,7 @@ class Recorder:
         link_timeout_s: float = 3.0,
         video_timeout_s: float = 2.0,
         clock: VehicleClock | None = None,
+        start_ns: int | None = None,
     ) -> None:
         self.link = link
         self.video = video
@@ -157,6 +175,9 @@ class Recorder:
         self._writer_done = threading.Event()
         self._threads: list[threading.Thread] = []
         self._first_frame = first_frame
+        self._start_ns = start_ns
+        self.started_ns = 0
+        self._source_dropped_at_start = 0
         self._started_mono = 0.0
         self._frame_times: collections.deque[float] = collections.deque(maxlen=256)
         self._latest_frame: Frame | None = first_frame
@@ -167,6 +188,7 @@ class Recorder:
         # counters (written by one thread each, read by anyone)
         self.frames_written = 0
         self.frames_dropped = 0
+        self.frames_discarded_at_start = 0
         self.fixes_written = 0
         self.fixes_without_position = 0
         self.mavlink_messages = 0
@@ -185,16 +207,52 @@ class Recorder:
 
     # ----- lifecycle -----
     def start(self) -> Recorder:
-        """Start recording (threads)."""
+        """Start recording (threads), after discarding the frames that arrived before the start."""
         self._started_mono = time.monotonic()
-        if self._first_frame is not None:
-            self._offer_frame(self._first_frame)
+        self.started_ns = self._start_ns if self._start_ns is not None else time.time_ns()
+        fresh = self._discard_stale_frames()
+        # Taken after the discard: while the queue was full, each arrival pushed
+        # out an older, pre-start frame, and those are not recording losses.
+        self._source_dropped_at_start = int(getattr(self.video, "frames_dropped", 0))
+        if fresh is not None:
+            self._latest_frame = fresh
+            self._offer_frame(fresh)
         self.link.add_listener(self._on_message)
         for target, name in ((self._writer_loop, "recorder-writer"), (self._video_loop, "recorder-video"), (self._monitor_loop, "recorder-monitor")):
             thread = threading.Thread(target=target, name=name, daemon=True)
             thread.start()
             self._threads.append(thread)
         return self
+
+    def _discard_stale_frames(self) -> Frame | None:
+        """Empty a live source's queue of frames stamped before the start; the first fresh frame, if any.
+
+        A file source loses nothing by waiting, so its queued frames and the
+        first frame are all recorded.
+        """
+        first = self._first_frame
+        if not getattr(self.video, "live", True):
+            return first
+        if first is not None and first.timestamp_ns >= self.started_ns:
+            return first
+        if first is not None:
+            self.frames_discarded_at_start += 1
+            self._latest_frame = None
+        # Ends at the first fresh frame or an empty queue; the cap only guards
+        # against a source that stamps frames in the past faster than we read.
+        for _ in range(100_000):
+            frame = self.video.read(timeout_s=0.0)
+            if frame is None:
+                return None
+            if frame.timestamp_ns >= self.started_ns:
+                return frame
+            self.frames_discarded_at_start += 1
+        return None
+
+    @property
+    def frames_dropped_source(self) -> int:
+        """Frames the video source dropped since the start (it was not read fast enough)."""
+        return max(0, int(getattr(self.video, "frames_dropped", 0)) - self._source_dropped_at_start)
 
     def stop(self) -> RecordingReport:
         """Stop, write what is queued, close open events, close the files. Commands nothing."""
@@ -224,7 +282,8 @@ class Recorder:
         return RecordingReport(
             frames_written=self.frames_written,
             frames_dropped=self.frames_dropped,
-            frames_dropped_source=int(getattr(self.video, "frames_dropped", 0)),
+            frames_dropped_source=self.frames_dropped_source,
+            frames_discarded_at_start=self.frames_discarded_at_start,
             fixes_written=self.fixes_written,
             fixes_without_position=self.fixes_without_position,
             mavlink_messages=self.mavlink_messages,
@@ -408,7 +467,7 @@ class Recorder:
             satellites=0 if gps is None else int(gps.satellites_visible),
             fps=fps,
             frames=self.frames_written,
-            dropped=self.frames_dropped + int(getattr(self.video, "frames_dropped", 0)),
+            dropped=self.frames_dropped + self.frames_dropped_source,
             marker_seen=self.marker_seen,
             link_ok=self.link_ok,
             video_ok=self.video_ok,
