@@ -16,9 +16,10 @@ from dronecal_field.errors import LinkError
 from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink.link import MavLink
 
-# Telemetry the recorder needs, in Hz (the recording GCS asked for the same).
+# Telemetry the recorder needs, in Hz. GNSS at 10 Hz, what an RTK receiver gives
+# and what the calibration assumes (the recorded SITL session asked for 5 Hz).
 TELEMETRY_RATES_HZ: tuple[tuple[str, float], ...] = (
-    ("GPS_RAW_INT", 5.0),
+    ("GPS_RAW_INT", 10.0),
     ("GLOBAL_POSITION_INT", 10.0),
     ("ATTITUDE", 10.0),
     ("SYS_STATUS", 2.0),
