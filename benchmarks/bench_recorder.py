@@ -14,9 +14,8 @@ Real parts on real wires, each in its own process except the camera:
 * vehicle: ``dronecal-field sim vehicle`` (real time, speed-up 1) on UDP;
 * recorder: ``dronecal-field fly --start`` flies a mission of long holds and
   is stopped with SIGINT (Ctrl-C: the file is finalised) ``--seconds`` after it
-  started. ``fly`` asks for GPS_RAW_INT at 5 Hz (what ArduCopter's SITL used);
-  the benchmark then asks for 10 Hz over a second GCS link (SET_MESSAGE_INTERVAL),
-  as a GCS would for a 10 Hz RTK receiver.
+  started. ``fly`` asks for GPS_RAW_INT at 10 Hz; the benchmark asks again over
+  a second GCS link (SET_MESSAGE_INTERVAL), as a GCS would for a 10 Hz RTK receiver.
 
 Measured over the same window of wall time: the CPU of the ``fly`` process
 (user + system, psutil, as a fraction of one core), its peak RSS, frames sent
@@ -316,7 +315,8 @@ def analyse_run(path: Path, utc0_ns: int, utc1_ns: int, camera: MjpegCamera) -> 
         fixes = np.array([f.timestamp_ns for f in run.iter_fixes()], np.int64)
         telemetry = [t for _name, t, _f in run.iter_mavlink({"HEARTBEAT", "ATTITUDE", "GLOBAL_POSITION_INT", "GPS_RAW_INT"})]
         truncated = run.truncated
-    recording_start_ns = min(telemetry) if telemetry else utc0_ns
+        declared_start = run.metadata.extra.get("recording.start_ns")
+    recording_start_ns = int(declared_start) if declared_start else (min(telemetry) if telemetry else utc0_ns)
     stamps_a = np.array(stamps, np.int64)
     known = np.array(sorted(s for s in seqs if s is not None), np.int64)
     missing = np.setdiff1d(np.arange(known.min(), known.max() + 1), known) if len(known) else np.zeros(0, np.int64)
