@@ -13,6 +13,7 @@ from dronecal_field.pipeline.points import (
     drop_outlying_scatter,
     enu_from_frd,
     lever_arm_enu,
+    marker_track_at,
     robust_centre,
     window_point,
 )
@@ -108,3 +109,24 @@ def test_outlying_scatter_is_dropped_in_metres_at_the_marker():
     dropped = [k for k, p in enumerate(out) if not p.used]
     assert dropped == [5]
     assert "image scatter" in out[5].dropped
+
+
+def test_paired_point_follows_the_drift_where_separate_medians_do_not():
+    # The marker drifts 4 cm east over the hold; the camera sees u = 100 px per metre east.
+    # Fixes at 5 Hz and frames at 10 Hz sample the drift at different instants and cover
+    # different parts of it, so separate medians disagree; paired samples keep u = 100 x.
+    w = HoverWindow(index=0, start_ns=0, end_ns=5 * S, source="event", seq=1)
+    fix_t = np.arange(0, 5 * S + 1, S // 5, dtype=np.int64)
+    east = lambda t: 0.04 * (t / (5 * S)) ** 3  # noqa: E731 - slow then fast: medians differ
+    antenna = np.c_[east(fix_t), np.full(len(fix_t), 8.0), np.full(len(fix_t), 2.0)]
+    det_capture = np.arange(int(1.05 * S), int(4.0 * S), S // 10, dtype=np.int64)
+    uv = np.c_[100.0 * east(det_capture), np.full(len(det_capture), 200.0)]
+    offset = 250_000_000
+    det_marker, ok = marker_track_at(det_capture, fix_t, antenna, np.zeros(3), None, None)
+    assert ok.all() and np.abs(det_marker[:, 0] - east(det_capture)).max() < 2e-4  # linear between 0.2 s fixes
+    args = (w, w.stable(1.0, 0.2), fix_t, antenna, np.full((len(fix_t), 3), 0.008), ["rtk_fixed"] * len(fix_t),
+            det_capture + offset, uv, offset)
+    paired = window_point(*args, PointOptions(), det_marker_enu_m=det_marker)
+    unpaired = window_point(*args, PointOptions(paired=False))
+    assert abs(paired.uv_px[0] - 100.0 * paired.marker_enu_m[0]) < 0.01
+    assert abs(unpaired.uv_px[0] - 100.0 * unpaired.marker_enu_m[0]) > 0.1

@@ -67,6 +67,7 @@ def select_model(
     loss: str = "huber",
     loss_scale_px: float = 2.0,
     significance: float = 0.01,
+    max_pp_inflation: float = 1.5,
 ):
     """Calibrate with the richest distortion model the data support: (CalibrationResult, reason).
 
@@ -76,9 +77,21 @@ def select_model(
     model fits the noise: it halves the RMS while moving the principal point
     by pixels, which the F-test refuses.
 
+    Tangential terms (p1, p2) face a second test: they trade off almost
+    exactly against the principal point, so a fit that takes them also
+    scatters (cx, cy). They are kept only when the principal point's standard
+    deviation grows by at most ``max_pp_inflation`` (measured: on a pinhole
+    camera with 2 cm hover drift, p1 and p2 passed the F-test, inflated the
+    principal point's std ~3x and moved it by 20 px).
+
     Parameters
     ----------
     points_world : (N, 3) metres, pixels : (N, 2)
+    significance : float
+        F-test level for each added group of terms.
+    max_pp_inflation : float
+        Largest accepted ratio of the principal point's std (the norm of
+        std cx, std cy) with the tangential terms to without.
     """
     from dataclasses import replace
 
@@ -112,12 +125,23 @@ def select_model(
             continue
         F = ((rss_b - rss_c) / dp) / (rss_c / dof)
         p = float(stats.f.sf(F, dp, dof)) if F > 0 else 1.0
-        if p < significance:
-            best = candidate
-        else:
+        if p >= significance:
             rejected.append(f"{name} (p={p:.2g})")
+            continue
+        if "p1" in candidate.model.free_names() and "p1" not in best.model.free_names():
+            inflation = _pp_std(candidate) / max(_pp_std(best), 1e-12)
+            if inflation > max_pp_inflation:
+                rejected.append(f"{name} (p={p:.2g} but the principal point's std grows {inflation:.1f}x)")
+                continue
+        best = candidate
     reason = why + (f"; not significant: {', '.join(rejected)}" if rejected else "")
     return best, reason
+
+
+def _pp_std(result) -> float:
+    """Norm of the principal point's (cx, cy) standard deviations of a CalibrationResult, px."""
+    cov = result.camera.covariance
+    return float(np.hypot(np.sqrt(max(cov[2, 2], 0.0)), np.sqrt(max(cov[3, 3], 0.0))))
 
 
 @dataclass(frozen=True, eq=False)

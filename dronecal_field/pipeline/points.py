@@ -1,10 +1,19 @@
 """Per-waypoint 3D-2D points: robust positions, measured sigmas, and why a window was dropped.
 
 For each hover window, over its settled part:
-- 3D: the marker's ENU position from the fixes (GNSS antenna + the
-  ``marker.offset_frd_m`` lever arm rotated by the vehicle's attitude), the
-  per-axis median, and its scatter (1.4826 MAD);
-- 2D: the marker centre's per-axis median over the detections, and its scatter.
+- 3D: the marker's ENU position (GNSS antenna + the ``marker.offset_frd_m``
+  lever arm rotated by the vehicle's attitude) AT EACH DETECTION'S CAPTURE
+  TIME (track and attitude interpolated there, see :func:`marker_track_at`),
+  paired with the marker centre's pixel in that frame; the point is the mean
+  of the paired samples without the wild ones (:func:`paired_centre`). The
+  3D scatter (1.4826 MAD) is measured on the fixes, the 2D scatter on the
+  detections;
+Pairing matters because the drone drifts by centimetres during a hold: the
+median of the fixes and the median of the detections are taken at different
+instants, so they describe slightly different marker positions, and that
+mismatch (not the RTK noise) limited the principal point. Without a usable
+pairing (fixes too sparse around the detections) the window falls back to
+the two separate medians.
 The scatter becomes the point's sigma for the Monte-Carlo, floored by the
 receiver's own reported accuracy (an RTK bias is invisible in the scatter)
 and by the detector's sub-pixel precision.
@@ -107,6 +116,8 @@ class PointOptions:
     outlier_factor: float = 4.0  # scatter above this many times the median window's is outlying
     outlier_floor_m: float = 0.05  # ... and above this (a calm hold is not an outlier)
     outlier_floor_px: float = 1.0
+    paired: bool = True  # 3D at the detection instants (False: separate medians of fixes and detections)
+    pair_max_gap_s: float = 0.5  # a detection pairs only when fixes lie this close on both sides
 
 
 @dataclass(frozen=True, eq=False)
@@ -149,6 +160,74 @@ def robust_centre(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return med, MAD_TO_STD * np.median(np.abs(v - med), axis=0)
 
 
+def paired_centre(xyz_m: np.ndarray, uv_px: np.ndarray, k: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+    """Centres (3,), (2,) of paired 3D/2D samples (K, 3), (K, 2): the mean of the samples that are not wild.
+
+    A mean, not a per-axis median: the projection is nearly linear over a
+    few centimetres of drift, so the means of paired samples correspond
+    (medians per axis need not), and the mean uses every sample (measured
+    on the issue 5 benchmark: half the principal point error of the
+    medians). Samples beyond ``k`` robust std (1.4826 MAD) of the median on
+    any axis, 3D or 2D, are left out (a detector flipping between corners).
+    """
+    v = np.c_[np.asarray(xyz_m, float), np.asarray(uv_px, float)]
+    med, std = robust_centre(v)
+    keep = np.all(np.abs(v - med) <= k * std + 1e-9, axis=1)
+    centre = v[keep].mean(0) if keep.any() else med
+    return centre[:3], centre[3:]
+
+
+def marker_track_at(
+    t_ns: np.ndarray,
+    fix_t_ns: np.ndarray,
+    antenna_enu_m: np.ndarray,
+    offset_frd_m: np.ndarray,
+    att_t_ns: np.ndarray | None,
+    att_rpy_rad: np.ndarray | None,
+    max_gap_s: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The marker's ENU position at arbitrary instants, and whether the fixes bracket each closely.
+
+    The antenna track is interpolated linearly between fixes; the lever arm
+    is rotated by the attitude interpolated at the same instant.
+
+    Parameters
+    ----------
+    t_ns : (M,) int64
+        Instants on the GNSS clock (e.g. detection stamps minus the camera offset).
+    fix_t_ns : (N,) int64 increasing, antenna_enu_m : (N, 3) metres
+        The GNSS antenna track.
+    offset_frd_m : (3,) metres
+        Antenna to marker centre in the body frame (FRD).
+    att_t_ns : (K,) int64 increasing, att_rpy_rad : (K, 3), or None
+        Attitude samples (roll, pitch, yaw); None: no lever-arm rotation
+        (the marker is taken at the antenna).
+    max_gap_s : float
+        An instant is ``bracketed`` when fixes exist before and after it,
+        each within this many seconds.
+
+    Returns
+    -------
+    marker_enu_m : (M, 3) metres
+    bracketed : (M,) bool
+    """
+    t = np.asarray(t_ns, np.int64)
+    ft = np.asarray(fix_t_ns, np.int64)
+    ant = np.asarray(antenna_enu_m, float)
+    if len(ft) == 0:
+        return np.full((len(t), 3), np.nan), np.zeros(len(t), bool)
+    x = (t - ft[0]).astype(float)
+    xp = (ft - ft[0]).astype(float)
+    out = np.stack([np.interp(x, xp, ant[:, k]) for k in range(3)], -1)
+    if att_t_ns is not None and att_rpy_rad is not None and len(att_t_ns):
+        out = out + lever_arm_enu(offset_frd_m, attitude_at(t, att_t_ns, att_rpy_rad))
+    k = np.searchsorted(ft, t, side="right")
+    before = np.where(k > 0, t - ft[np.clip(k - 1, 0, len(ft) - 1)], np.iinfo(np.int64).max)
+    after = np.where(k < len(ft), ft[np.clip(k, 0, len(ft) - 1)] - t, np.iinfo(np.int64).max)
+    limit = int(max_gap_s * 1e9)
+    return out, (before <= limit) & (after <= limit)
+
+
 def window_point(
     window: HoverWindow,
     stable_ns: tuple[int, int],
@@ -162,6 +241,7 @@ def window_point(
     options: PointOptions,
     det_size_px: np.ndarray | None = None,
     marker_size_m: float | None = None,
+    det_marker_enu_m: np.ndarray | None = None,
 ) -> WaypointPoint:
     """The correspondence of one window (before the across-window outlier test).
 
@@ -181,6 +261,12 @@ def window_point(
         The marker's apparent and true size: they turn the image scatter into
         metres at the marker (``scatter_image_m``), comparable across
         distances and cameras.
+    det_marker_enu_m : (M, 3) metres, optional
+        The marker's position at each detection's capture time
+        (:func:`marker_track_at`; NaN rows where it could not be paired).
+        When given and ``options.paired``, the 3D centre is taken over the
+        detections' instants, paired with their pixels; the fixes still
+        decide the drops, the scatter and the sigma.
     """
     a, b = stable_ns
     fix_t_ns = np.asarray(fix_t_ns, np.int64)
@@ -202,11 +288,19 @@ def window_point(
     xyz, scatter_m = robust_centre(np.asarray(marker_enu_m, float)[in_fix])
     reported = np.median(np.asarray(fix_sigma_m, float)[in_fix], axis=0)
     sigma_m = np.maximum(np.maximum(scatter_m, np.nan_to_num(reported, nan=0.0)), options.sigma_m_floor)
-    uv, scatter_uv = robust_centre(np.asarray(det_uv_px, float)[in_det])
+    pick = in_det
+    if options.paired and det_marker_enu_m is not None:
+        paired = in_det & np.all(np.isfinite(np.asarray(det_marker_enu_m, float)), axis=1)
+        if paired.sum() >= options.min_detections:
+            # 3D and 2D over the same instants: the hover drift moves both alike.
+            pick = paired
+    uv, scatter_uv = robust_centre(np.asarray(det_uv_px, float)[pick])
+    if pick is not in_det:
+        xyz, uv = paired_centre(np.asarray(det_marker_enu_m, float)[pick], np.asarray(det_uv_px, float)[pick])
     scatter_px = float(np.sqrt(np.mean(scatter_uv**2)))
     scatter_image_m = None
     if det_size_px is not None and marker_size_m:
-        size = float(np.median(np.asarray(det_size_px, float)[in_det]))
+        size = float(np.median(np.asarray(det_size_px, float)[pick]))
         scatter_image_m = scatter_px * marker_size_m / size if size > 0 else None
     return WaypointPoint(
         **base,

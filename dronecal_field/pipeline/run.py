@@ -38,6 +38,7 @@ from dronecal_field.pipeline.points import (
     attitude_at,
     drop_outlying_scatter,
     lever_arm_enu,
+    marker_track_at,
     window_point,
 )
 from dronecal_field.pipeline.sampling import SamplingOptions
@@ -391,10 +392,12 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
             arr = np.asarray(att, float)
             att_t = arr[:, 0].astype(np.int64)
             order = np.argsort(att_t, kind="stable")
-            rpy = attitude_at(fix_t, att_t[order], arr[order, 1:])
+            att_track = (att_t[order], arr[order, 1:])
+            rpy = attitude_at(fix_t, *att_track)
             marker = antenna + lever_arm_enu(offset_frd, rpy)
             attitude_source = f"vehicle attitude ({len(att)} samples)"
         else:
+            att_track = (None, None)
             marker = antenna.copy()
             attitude_source = "none in the run"
         timings["read_track_s"] = time.perf_counter() - tick
@@ -438,11 +441,16 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
 
     tick = time.perf_counter()
 
-    def build_points(marker_enu: np.ndarray) -> list[WaypointPoint]:
+    def build_points(marker_enu: np.ndarray, attitude: tuple) -> list[WaypointPoint]:
+        # The marker at each detection's capture time, to pair 3D with 2D through the hover drift.
+        det_marker, bracketed = marker_track_at(
+            det_t - offset.offset_ns, fix_t, antenna, offset_frd, *attitude, max_gap_s=point_options.pair_max_gap_s
+        )
+        det_marker[~bracketed] = np.nan
         pts = [
             window_point(
                 w, w.stable(point_options.settle_s, point_options.tail_s), fix_t, marker_enu, fix_sigma, fix_types,
-                det_t, det_uv, offset.offset_ns, point_options, det_size, marker_size_m,
+                det_t, det_uv, offset.offset_ns, point_options, det_size, marker_size_m, det_marker,
             )
             for w in windows
         ]
@@ -461,7 +469,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
             result = calibrate(X, uv, md.width, md.height, model=options.model, loss=options.loss, loss_scale_px=options.loss_scale_px)
         return result, reason
 
-    points = build_points(marker)
+    points = build_points(marker, att_track)
     result, model_reason = solve(points)
     if not att and np.linalg.norm(offset_frd) > 0:
         # No attitude: assume level flight with the nose at the camera (the
@@ -470,7 +478,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
         yaw = np.arctan2(centre[0] - antenna[:, 0], centre[1] - antenna[:, 1])
         rpy = np.c_[np.zeros(len(yaw)), np.zeros(len(yaw)), yaw]
         marker = antenna + lever_arm_enu(offset_frd, rpy)
-        points = build_points(marker)
+        points = build_points(marker, (fix_t, rpy))
         result, model_reason = solve(points)
         attitude_source = "none in the run: assumed level with the nose towards the calibrated camera"
         warnings.append("no attitude in the run: the marker lever arm assumes level flight facing the camera")
