@@ -262,21 +262,8 @@ def parse_qgc_plan(text: str, source: str = "mission.plan") -> Mission:
         seq = len(items)
         if "doJumpId" in raw and raw["doJumpId"] is not None:
             jump_ids[int(raw["doJumpId"])] = seq
-        items.append(
-            MissionItem(
-                seq=seq,
-                frame=frame,
-                command=command,
-                p1=p[0],
-                p2=p[1],
-                p3=p[2],
-                p4=p[3],
-                x=_encode_xy(p[4], frame),
-                y=_encode_xy(p[5], frame),
-                z=0.0 if math.isnan(p[6]) else p[6],
-                autocontinue=bool(raw.get("autoContinue", True)),
-            )
-        )
+        p[6] = 0.0 if math.isnan(p[6]) else p[6]
+        items.append(_item_from_params(seq, frame, command, p, bool(raw.get("autoContinue", True))))
     # QGC stores DO_JUMP's target as a doJumpId; on the wire it is the target's seq.
     for i, item in enumerate(items):
         if item.command == CMD_DO_JUMP and not math.isnan(item.p1):
@@ -285,6 +272,14 @@ def parse_qgc_plan(text: str, source: str = "mission.plan") -> Mission:
                 raise InputError(f"{source}: DO_JUMP at seq {item.seq} targets doJumpId {int(item.p1)}, which no item has; fix the jump")
             items[i] = replace(item, p1=float(target))
     return Mission(items=tuple(items), home_lat_deg=home_lat, home_lon_deg=home_lon, home_alt_m=home_alt, source_format="plan")
+
+
+def _item_from_params(seq: int, frame: int, command: int, p: list[float], autocontinue: bool) -> MissionItem:
+    """A MissionItem from a file's seven params (lat/lon as degrees in global frames)."""
+    return MissionItem(
+        seq=seq, frame=frame, command=command, p1=p[0], p2=p[1], p3=p[2], p4=p[3],
+        x=_encode_xy(p[4], frame), y=_encode_xy(p[5], frame), z=p[6], autocontinue=autocontinue,
+    )
 
 
 def parse_waypoints(text: str, source: str = "mission.waypoints") -> Mission:
@@ -314,21 +309,7 @@ def parse_waypoints(text: str, source: str = "mission.waypoints") -> Mission:
             raise InputError(f"{source}:{lineno}: non-numeric column; fix the line") from None
         if seq != len(items):
             raise InputError(f"{source}:{lineno}: seq {seq} out of order (expected {len(items)}); renumber the items")
-        items.append(
-            MissionItem(
-                seq=seq,
-                frame=frame,
-                command=command,
-                p1=p[0],
-                p2=p[1],
-                p3=p[2],
-                p4=p[3],
-                x=_encode_xy(p[4], frame),
-                y=_encode_xy(p[5], frame),
-                z=p[6],
-                autocontinue=autocontinue,
-            )
-        )
+        items.append(_item_from_params(seq, frame, command, p, autocontinue))
     if len(items) < 2:
         raise InputError(f"{source}: needs home (item 0) and at least one more item; plan a waypoint")
     home = items[0]
