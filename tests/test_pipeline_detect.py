@@ -7,6 +7,7 @@ import pytest
 
 from contract_writer import MarkerLook, Renderer, encode_jpeg, grid_waypoints, make_flight, pole_camera
 from dronecal_field.pipeline.detect import (
+    centres_under_distortion,
     decode_gray,
     detect_aruco,
     detect_led,
@@ -41,6 +42,27 @@ def test_diagonal_intersection_is_the_projected_centre_not_the_corner_mean():
     truth = apply(centre[None])[0]
     assert np.linalg.norm(diagonal_intersection(corners) - truth) < 1e-9
     assert np.linalg.norm(corners.mean(0) - truth) > 0.5
+
+
+def test_centre_under_distortion_is_the_projected_centre_where_the_plain_crossing_is_not():
+    # A 0.4 m square tilted 30 degrees, 6 m away near the corner of a k1 = -0.2 camera.
+    from scipy.spatial.transform import Rotation
+
+    camera = pole_camera(width=1920, height=1080, f_px=1400.0, position_enu=(0.0, 0.0, 4.0), tilt_deg=15.0,
+                         distortion=(-0.20, 0.05, -3e-4, -1e-4, 0.0))
+    centres_world = np.array([[3.4, 5.8, 0.9], [-3.4, 5.8, 3.9], [0.0, 9.0, 2.0]])
+    half = 0.2 * np.array([[-1, 0, 1], [1, 0, 1], [1, 0, -1], [-1, 0, -1]], float)
+    tilt = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    corners = np.stack([camera.project(c + half @ tilt.T) for c in centres_world])
+    truth = camera.project(centres_world)
+    i = camera.intrinsics
+    refined = centres_under_distortion(corners, np.array([i.fx, i.fy, i.cx, i.cy]), camera.distortion.as_array())
+    plain = np.array([diagonal_intersection(c) for c in corners])
+    assert np.abs(refined - truth).max() < 1e-6
+    assert np.linalg.norm(plain[0] - truth[0]) > 0.1  # the bent diagonals near the edge
+    # Without distortion the two agree.
+    zero = centres_under_distortion(corners, np.array([i.fx, i.fy, i.cx, i.cy]), np.zeros(5))
+    np.testing.assert_allclose(zero, plain, atol=1e-9)
 
 
 def test_aruco_centres_are_subpixel_on_small_markers(scene):

@@ -15,6 +15,7 @@ from dronecal_field.pipeline.points import (
     lever_arm_enu,
     marker_track_at,
     robust_centre,
+    track_at,
     window_point,
 )
 from dronecal_field.sim.scene import R_enu_from_frd as sim_R_enu_from_frd
@@ -130,3 +131,40 @@ def test_paired_point_follows_the_drift_where_separate_medians_do_not():
     unpaired = window_point(*args, PointOptions(paired=False))
     assert abs(paired.uv_px[0] - 100.0 * paired.marker_enu_m[0]) < 0.01
     assert abs(unpaired.uv_px[0] - 100.0 * unpaired.marker_enu_m[0]) > 0.1
+
+
+def test_pairing_at_the_fixes_uses_every_fix_with_the_image_track_between_frames():
+    # RTK noise is white, so the 3D centre is best as the mean of every fix in the
+    # settled part; frames decoded sparsely (0.4 s apart) give the image track at
+    # each fix by interpolation, following the same drift.
+    rng = np.random.default_rng(3)
+    w = HoverWindow(index=0, start_ns=0, end_ns=5 * S, source="event", seq=1)
+    fix_t = np.arange(0, 5 * S + 1, S // 10, dtype=np.int64)
+    east = lambda t: 0.03 * np.sin(t / S)  # noqa: E731 - a slow drift
+    antenna = np.c_[east(fix_t), np.full(len(fix_t), 8.0), np.full(len(fix_t), 2.0)] + rng.normal(0, 0.008, (len(fix_t), 3))
+    det_capture = np.arange(int(0.7 * S), int(5.2 * S), 2 * S // 5, dtype=np.int64)
+    uv = np.c_[100.0 * east(det_capture), np.full(len(det_capture), 200.0)]
+    offset = 250_000_000
+    det_marker, ok = marker_track_at(det_capture, fix_t, antenna, np.zeros(3), None, None)
+    det_marker[~ok] = np.nan
+    args = (w, w.stable(1.0, 0.2), fix_t, antenna, np.full((len(fix_t), 3), 0.008), ["rtk_fixed"] * len(fix_t),
+            det_capture + offset, uv, offset)
+    at_fixes = window_point(*args, PointOptions(pair_at="fixes"), det_marker_enu_m=det_marker)
+    at_detections = window_point(*args, PointOptions(pair_at="detections"), det_marker_enu_m=det_marker)
+    settled = (fix_t >= 1 * S) & (fix_t <= 4.8 * S)
+    assert at_fixes.n_fixes == settled.sum() == 39
+    np.testing.assert_allclose(at_fixes.marker_enu_m, antenna[settled].mean(0), atol=1e-12)
+    # The image track at the fixes is the drift there (interpolation error < 0.05 px on 3 px of drift).
+    assert abs(at_fixes.uv_px[0] - 100.0 * east(fix_t[settled]).mean()) < 0.05
+    # Against the truth of the mean drift: the noise of 39 fixes, not of the 10 frame instants.
+    truth_err = abs(at_fixes.marker_enu_m[2] - 2.0)
+    assert truth_err < 3 * 0.008 / np.sqrt(39)
+    assert at_detections.n_detections == 10
+
+
+def test_track_at_interpolates_and_says_where_samples_bracket_the_instant():
+    t = np.array([0, 1, 2, 4], np.int64) * S
+    v = np.array([[0.0, 0.0], [1.0, 10.0], [2.0, 20.0], [4.0, 40.0]])
+    at, ok = track_at(np.array([-1, 0, 0.5 * S, 3 * S, 4 * S, 5 * S], np.int64), t[::-1], v[::-1], max_gap_s=0.9)
+    np.testing.assert_allclose(at[1:5, 0], [0.0, 0.5, 3.0, 4.0])
+    assert ok.tolist() == [False, True, True, False, True, False]  # 3 s lies 1 s from the samples either side

@@ -23,7 +23,7 @@ import numpy as np
 from dronecal_field.errors import ContractError, DegenerateGeometryError, DronecalError, InputError
 from dronecal_field.geodesy import EnuOrigin, geodetic_to_enu
 from dronecal_field.pipeline.align import TimeOffset, estimate_time_offset
-from dronecal_field.pipeline.detect import Detection
+from dronecal_field.pipeline.detect import Detection, centres_under_distortion
 from dronecal_field.pipeline.hover import (
     HoverWindow,
     TrackThresholds,
@@ -61,6 +61,7 @@ class CalibrateOptions:
     annotate: bool = False
     hover_source: str = "auto"
     max_offset_s: float = 1.0
+    recentre: bool = True  # marker centres again under the first calibration's distortion
     points: PointOptions = field(default_factory=PointOptions)
     sampling: SamplingOptions = field(default_factory=SamplingOptions)
     track: TrackThresholds = field(default_factory=TrackThresholds)
@@ -441,7 +442,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
 
     tick = time.perf_counter()
 
-    def build_points(marker_enu: np.ndarray, attitude: tuple) -> list[WaypointPoint]:
+    def build_points(marker_enu: np.ndarray, attitude: tuple, centres_px: np.ndarray) -> list[WaypointPoint]:
         # The marker at each detection's capture time, to pair 3D with 2D through the hover drift.
         det_marker, bracketed = marker_track_at(
             det_t - offset.offset_ns, fix_t, antenna, offset_frd, *attitude, max_gap_s=point_options.pair_max_gap_s
@@ -450,7 +451,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
         pts = [
             window_point(
                 w, w.stable(point_options.settle_s, point_options.tail_s), fix_t, marker_enu, fix_sigma, fix_types,
-                det_t, det_uv, offset.offset_ns, point_options, det_size, marker_size_m, det_marker,
+                det_t, centres_px, offset.offset_ns, point_options, det_size, marker_size_m, det_marker,
             )
             for w in windows
         ]
@@ -469,7 +470,8 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
             result = calibrate(X, uv, md.width, md.height, model=options.model, loss=options.loss, loss_scale_px=options.loss_scale_px)
         return result, reason
 
-    points = build_points(marker, att_track)
+    attitude_used = att_track
+    points = build_points(marker, attitude_used, det_uv)
     result, model_reason = solve(points)
     if not att and np.linalg.norm(offset_frd) > 0:
         # No attitude: assume level flight with the nose at the camera (the
@@ -478,10 +480,18 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
         yaw = np.arctan2(centre[0] - antenna[:, 0], centre[1] - antenna[:, 1])
         rpy = np.c_[np.zeros(len(yaw)), np.zeros(len(yaw)), yaw]
         marker = antenna + lever_arm_enu(offset_frd, rpy)
-        points = build_points(marker, (fix_t, rpy))
+        attitude_used = (fix_t, rpy)
+        points = build_points(marker, attitude_used, det_uv)
         result, model_reason = solve(points)
         attitude_source = "none in the run: assumed level with the nose towards the calibrated camera"
         warnings.append("no attitude in the run: the marker lever arm assumes level flight facing the camera")
+    corners = [d.corners_px for d in detections]
+    if options.recentre and np.any(result.camera.distortion.as_array() != 0.0) and all(c is not None for c in corners):
+        # Distortion bends the marker's diagonals: take the centres again under the calibrated distortion.
+        i = result.camera.intrinsics
+        centres = centres_under_distortion(np.array(corners), np.array([i.fx, i.fy, i.cx, i.cy]), result.camera.distortion.as_array())
+        points = build_points(marker, attitude_used, centres)
+        result, model_reason = solve(points)
     camera = result.camera.with_(enu_origin=tuple(origin.as_list()))
     result = _with_camera(result, camera)
     timings["calibration_s"] = time.perf_counter() - tick
