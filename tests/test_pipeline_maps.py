@@ -69,3 +69,30 @@ def test_uncertainty_maps_grow_away_from_the_points_and_vanish_without_noise():
     assert 0 < s["ground_cm_median"] < 50 and 0.3 < s["ground_fraction_of_image"] < 0.9
     zero = uncertainty_maps(camera, np.zeros((15, 15)), nu=8, nv=6, samples=20)
     assert np.nanmax(zero.projection_px) < 1e-9 and np.nanmax(zero.ground_cm) < 1e-9
+
+
+def test_tangential_terms_are_refused_when_they_inflate_the_principal_points_std():
+    # A camera with real tangential distortion, seen at well-spread points with 0.2 px noise: the
+    # F-test wants p1, p2; they are then kept only if the principal point's std (with p1, p2 over
+    # without) grows by at most max_pp_inflation. Thresholds just above and below the measured ratio.
+    from dronecal_field.core.synthetic import visible
+    from dronecal_field.pipeline.maps import select_model
+
+    camera = pole_camera(width=1920, height=1080, f_px=1400.0, position_enu=(0.0, 0.0, 4.0), tilt_deg=15.0,
+                         distortion=(-0.2, 0.05, 2e-3, -1.5e-3, 0.0))
+    e, n, u = np.meshgrid(np.linspace(-3.5, 3.5, 6), np.linspace(4.5, 12, 5), [0.8, 2.5, 4.5])
+    X = np.c_[e.ravel(), n.ravel(), u.ravel()]
+    X = X[visible(camera, X, 20.0)]
+    uv = camera.project(X) + np.random.default_rng(2).normal(0, 0.2, (len(X), 2))
+    from dronecal_field.core.calibrate import calibrate
+    from dronecal_field.pipeline.maps import _pp_std
+
+    without = calibrate(X, uv, 1920, 1080, model=CalibrationModel(distortion="k1k2"), loss="huber")
+    with_p = calibrate(X, uv, 1920, 1080, model=CalibrationModel(distortion="k1k2p1p2"), loss="huber")
+    inflation = _pp_std(with_p) / _pp_std(without)
+    taken, reason = select_model(X, uv, 1920, 1080, max_pp_inflation=1.05 * inflation)
+    assert taken.model.distortion == "k1k2p1p2", reason
+    assert abs(taken.camera.distortion.p1 - 2e-3) < 5e-4
+    refused, reason = select_model(X, uv, 1920, 1080, max_pp_inflation=0.95 * inflation)
+    assert refused.model.distortion == "k1k2"
+    assert "principal point's std grows" in reason
