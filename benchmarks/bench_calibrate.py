@@ -9,7 +9,8 @@
 and 3 seeds each: a 24-waypoint flight (4 x 3 x 2 lattice 6-12 m out, holds
 as long as ``plan`` makes them by default: 1 s to settle + 40 frames, so 5 s at
 10 fps) with 2 cm hover drift (std per horizontal axis), RTK noise (8 mm
-horizontal, 12 mm vertical), a 0.25 s camera latency the file calls
+horizontal, 12 mm vertical, white, at 10 Hz as ``fly`` asks for; ``--gnss-hz
+5`` for ArduPilot's default GPS_RATE_MS), a 0.25 s camera latency the file calls
 ``unknown``, and a 0.4 m ArUco marker 0.27 m from the antenna. The run is
 written by the tests' INDEPENDENT contract writer (tests/contract_writer.py:
 raw mcap + Foxglove protobuf classes) with the simulator's renderer (sensor
@@ -312,7 +313,8 @@ def main() -> None:
     parser.add_argument("--only", choices=("accuracy", "speed"))
     parser.add_argument("--seeds", type=int, default=3, help="seeds per camera for the accuracy part (default 3)")
     parser.add_argument("--accuracy-fps", type=float, default=10.0, help="frame rate of the accuracy runs (default 10)")
-    parser.add_argument("--gnss-hz", type=float, default=5.0, help="GNSS rate of the accuracy runs (default 5, what fly asks for)")
+    parser.add_argument("--gnss-hz", type=float, default=10.0,
+                        help="GNSS rate of the accuracy runs (default 10, what fly asks for; 5 is ArduPilot's GPS_RATE_MS default)")
     parser.add_argument("--minutes", type=float, default=10.0, help="length of the speed run (default 10)")
     parser.add_argument("--fps", type=float, default=30.0, help="frame rate of the speed run (default 30)")
     parser.add_argument("--move-hz", type=float, default=10.0, help="distinct renderings per second while moving (default 10)")

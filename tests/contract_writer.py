@@ -349,6 +349,7 @@ class RunSpec:
     chunk_size: int = 256 * 1024
     renderer: str = "homography"  # or "sim": the simulator's exact ray-traced renderer (ArUco only)
     fix_type: str = "rtk_fixed"
+    repeat_fixes: int = 1  # each fix sent this many times, evenly between fixes (a stream faster than the receiver)
 
 
 def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook, spec: RunSpec) -> dict:
@@ -389,6 +390,11 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
         sigma[inside] *= 25.0  # a float or DGPS fix wanders by decimetres
     noise = rng.normal(size=pos.shape) * sigma
     geo = enu_to_geodetic(pos + noise, ORIGIN)
+    if spec.repeat_fixes > 1:
+        period = int(round(1e9 / spec.gnss_hz / spec.repeat_fixes))
+        idx = np.repeat(np.arange(len(fix_t)), spec.repeat_fixes)
+        fix_t = fix_t[idx] + np.tile(np.arange(spec.repeat_fixes) * period, len(geo))
+        geo, sigma, fix_type = geo[idx], sigma[idx], fix_type[idx]
     for k, t in enumerate(fix_t):
         msg = LocationFix()
         _stamp(msg.timestamp, int(t))

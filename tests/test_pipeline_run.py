@@ -237,6 +237,24 @@ def test_led_run_calibrates(tmp_path):
     assert abs(report.camera.intrinsics.fx / camera.intrinsics.fx - 1) < 0.02
 
 
+def test_repeated_fixes_are_left_out_with_a_warning(tmp_path):
+    # 5 Hz fixes sent twice each (ArduPilot streaming GPS_RAW_INT at 10 Hz with GPS_RATE_MS = 200):
+    # the stale repeats are left out, so the points are those of the plain 5 Hz run.
+    camera = pole_camera()
+    flight = make_flight(camera, grid_waypoints(**WIDE_GRID), seed=16)
+    reports = []
+    for repeat in (1, 2):
+        path = tmp_path / f"repeat{repeat}.mcap"
+        write_run(path, camera, flight, MarkerLook(), RunSpec(site_origin=ORIGIN, repeat_fixes=repeat))
+        reports.append(calibrate_run(path, CalibrateOptions(trials=0)))
+    plain, repeated = reports
+    assert [p.n_fixes for p in repeated.points] == [p.n_fixes for p in plain.points]
+    np.testing.assert_allclose([p.marker_enu_m for p in repeated.used_points], [p.marker_enu_m for p in plain.used_points], atol=1e-9)
+    warning = [w for w in repeated.warnings if "repeat the previous one" in w]
+    assert warning and "GPS_RATE_MS" in warning[0]
+    assert not [w for w in plain.warnings if "repeat the previous one" in w]
+
+
 # --------------------------------------------------------------------------
 # Failures: one clear error each
 

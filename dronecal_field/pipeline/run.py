@@ -173,9 +173,13 @@ def _read_track(run) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, np.ndarr
     sig_a = np.asarray(sig, float).reshape(-1, 3)[order]
     types = [types[i] for i in order]
     t_ns = t_ns[order]
-    # Duplicated stamps (a receiver repeating a fix) would break interpolation.
+    # Duplicated stamps would break interpolation. A fix repeated bit for bit
+    # under a later stamp is a stream faster than the receiver (ArduPilot sends
+    # GPS_RAW_INT at the asked rate, new fixes come at GPS_RATE_MS): the
+    # repeat is stale, so the first one is kept.
     keep = np.r_[True, np.diff(t_ns) > 0] if len(t_ns) else np.zeros(0, bool)
-    usable = np.array([ty != "no_fix" for ty in types], bool) & keep
+    repeated = np.r_[False, np.all(np.diff(lla_a, axis=0) == 0.0, axis=1)] if len(t_ns) else np.zeros(0, bool)
+    usable = np.array([ty != "no_fix" for ty in types], bool) & keep & ~repeated
     return t_ns, lla_a, sig_a, types, usable
 
 
@@ -377,6 +381,12 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
                 f"{path.name}: no usable GNSS fix ({len(fix_types)} fixes"
                 + (f", types {', '.join(seen)}" if seen else "")
                 + "): fly with a working GNSS receiver and record /gnss/fix"
+            )
+        n_repeated = int(np.sum(np.r_[False, np.all(np.diff(lla, axis=0) == 0.0, axis=1)])) if len(lla) else 0
+        if n_repeated > 0.1 * len(lla):
+            warnings.append(
+                f"{n_repeated} of {len(lla)} GNSS fixes repeat the previous one exactly (left out): the receiver is slower than "
+                "the telemetry stream; set ArduPilot's GPS_RATE_MS to 100 for 10 Hz fixes if the receiver supports it"
             )
         fix_t, lla, fix_sigma = fix_t[usable], lla[usable], fix_sigma[usable]
         fix_types = [t for t, u in zip(fix_types, usable) if u]
