@@ -174,9 +174,9 @@ def _read_track(run) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, np.ndarr
     types = [types[i] for i in order]
     t_ns = t_ns[order]
     # Duplicated stamps would break interpolation. A fix repeated bit for bit
-    # under a later stamp is a stream faster than the receiver (ArduPilot sends
-    # GPS_RAW_INT at the asked rate, new fixes come at GPS_RATE_MS): the
-    # repeat is stale, so the first one is kept.
+    # under a later stamp comes from a logger or stream faster than the
+    # receiver (new fixes come at ArduPilot's GPS_RATE_MS): the repeat is
+    # stale, so the first one is kept.
     keep = np.r_[True, np.diff(t_ns) > 0] if len(t_ns) else np.zeros(0, bool)
     repeated = np.r_[False, np.all(np.diff(lla_a, axis=0) == 0.0, axis=1)] if len(t_ns) else np.zeros(0, bool)
     usable = np.array([ty != "no_fix" for ty in types], bool) & keep & ~repeated
