@@ -97,7 +97,9 @@ def test_dry_run_prints_the_checklist_and_touches_nothing(tmp_path, camera, caps
         sim.stop()
     printed = capsys.readouterr().out
     assert rc == 0
-    assert printed.count("[ OK ]") == 8 and "dry run: nothing uploaded" in printed
+    assert printed.count("[ OK ]") == 9 and "dry run: nothing uploaded" in printed
+    rate = float(printed.split("gnss_rate")[1].split("new fixes/s")[0])
+    assert 9.0 <= rate <= 10.5  # fly asked for 10 Hz; the simulated receiver follows
     assert not out.exists() and not out.with_suffix(".tlog").exists()
     assert count.count == 1  # only the vehicle's home: nothing was uploaded
 

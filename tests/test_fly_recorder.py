@@ -10,7 +10,7 @@ import pytest
 
 from dronecal_field.mavlink.link import mavlink_dialect, open_link
 from dronecal_field.mavlink.missionfile import parse_qgc_plan
-from dronecal_field.mavlink.preflight import VehicleSnapshot, VideoStatus, evaluate_preflight, format_checklist
+from dronecal_field.mavlink.preflight import GnssRateMeter, VehicleSnapshot, VideoStatus, evaluate_preflight, format_checklist
 from dronecal_field.recording.recorder import Recorder
 from dronecal_field.recording.status import RecorderStatus, VehicleClock, fix_from_gps_raw, format_status, hover_event, remaining_s
 from dronecal_field.runfile.reader import open_run
@@ -134,6 +134,30 @@ def test_preflight_table(change, min_fix, failing, warning):
     assert text.count("\n") == 7 and ("[WARN]" in text) == bool(warning)
     if "ready_to_arm" in failing:
         assert "Throttle below failsafe" in text
+
+
+def test_gnss_rate_counts_new_fixes_and_warns_below_8_hz():
+    # A 10 Hz stream from a 5 Hz receiver repeats every fix; a 10 Hz receiver does not.
+    mav = mavlink_dialect().MAVLink(None)
+    rng = np.random.default_rng(0)
+    rates = {}
+    for receiver_hz in (5, 10):
+        meter = GnssRateMeter()
+        lat = lon = 0
+        for k in range(40):  # 4 s of a 10 Hz stream
+            if k % (10 // receiver_hz) == 0:
+                lat, lon = -353632610 + int(rng.integers(-3, 4)), 1491652300 + int(rng.integers(-3, 4))
+            alt = 584000 + (k // (10 // receiver_hz)) % 7
+            meter.feed(mav.gps_raw_int_encode(1_000_000 + k * 100_000, 6, lat, lon, alt, 65535, 65535, 0, 0, 20, alt_ellipsoid=alt))
+        rates[receiver_hz] = meter.rate_hz()
+    assert rates[5] == pytest.approx(5.0, abs=0.6) and rates[10] == pytest.approx(10.0, abs=0.6)
+    slow = evaluate_preflight(VehicleSnapshot(**{**GOOD.__dict__, "gnss_rate_hz": rates[5]}), MISSION, VIDEO)
+    line = [r for r in slow if r.name == "gnss_rate"][0]
+    assert line.ok and line.warning and "GPS_RATE_MS" in line.detail
+    fast = evaluate_preflight(VehicleSnapshot(**{**GOOD.__dict__, "gnss_rate_hz": rates[10]}), MISSION, VIDEO)
+    assert [(r.ok, r.warning) for r in fast if r.name == "gnss_rate"] == [(True, False)]
+    assert GnssRateMeter().rate_hz() is None  # nothing measured: no line
+    assert "gnss_rate" not in [r.name for r in evaluate_preflight(GOOD, MISSION, VIDEO)]
 
 
 def test_preflight_video_without_frames_fails():

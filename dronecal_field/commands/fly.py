@@ -132,6 +132,13 @@ def _probe_video(url: str, first_timeout_s: float = 5.0, probe_s: float = 1.0):
     return source, first, VideoStatus(url=url, frames=frames, fps=fps, width=width, height=height)
 
 
+def _wait_for_gnss_rate(meter, timeout_s: float) -> None:
+    """Give the GNSS stream up to ``timeout_s`` to show its rate (a second of fixes at the asked rate)."""
+    deadline = time.monotonic() + timeout_s
+    while meter.rate_hz() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+
+
 def _mission_over(recorder, mission) -> bool:
     """The last item was reached (and the vehicle is down if it was a landing item), or it landed after flying."""
     from dronecal_field.mavlink.missionfile import CMD_NAV_LAND, CMD_NAV_RETURN_TO_LAUNCH
@@ -152,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
     from dronecal_field.mavlink.link import open_link
     from dronecal_field.mavlink.mission import upload_and_verify
     from dronecal_field.mavlink.missionfile import read_mission
-    from dronecal_field.mavlink.preflight import format_checklist, require_preflight, run_preflight
+    from dronecal_field.mavlink.preflight import GnssRateMeter, format_checklist, require_preflight, run_preflight
 
     mission_path = Path(args.mission)
     mission = read_mission(mission_path)
@@ -188,7 +195,10 @@ def run(args: argparse.Namespace) -> int:
         hb = link.wait_heartbeat(args.heartbeat_timeout)
         print(f"vehicle: {describe_heartbeat(hb)} (sysid {link.target_system}) on {link.endpoint}", flush=True)
         request_telemetry(link)
+        gnss_meter = GnssRateMeter()
+        link.add_listener(lambda direction, _stamp_ns, msg: gnss_meter.feed(msg) if direction == "in" else None)
         source, first, video_status = _probe_video(args.video)
+        _wait_for_gnss_rate(gnss_meter, timeout_s=3.0)
         if first is not None:
             for flag, expected, actual in (("--camera-width", args.camera_width, video_status.width), ("--camera-height", args.camera_height, video_status.height)):
                 if expected is not None and expected != actual:
@@ -201,6 +211,7 @@ def run(args: argparse.Namespace) -> int:
             min_battery_pct=args.min_battery,
             max_home_distance_m=args.max_home_distance,
             wait_s=args.ready_timeout,
+            gnss_meter=gnss_meter,
         )
         print("pre-flight:\n" + format_checklist(results), flush=True)
         require_preflight(results)

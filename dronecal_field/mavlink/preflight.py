@@ -7,7 +7,8 @@ the vehicle.
 
 Checks, in order: ``heartbeat`` (an ArduPilot autopilot), ``disarmed``,
 ``gnss`` (fix at least ``min_fix``; RTK float or 3D pass with a loud warning
-when allowed), ``ekf`` (EKF3 healthy, as 0x033f in the recording), ``battery``,
+when allowed), ``gnss_rate`` (new fixes per second when measured: under 8
+warns, each hold's point averages its fixes), ``ekf`` (EKF3 healthy, as 0x033f in the recording), ``battery``,
 ``ready_to_arm`` (SYS_STATUS pre-arm bit), ``home`` (within ``max_home_distance_m``
 of the mission's first position) and ``video`` (opened and producing frames).
 """
@@ -15,8 +16,10 @@ of the mission's first position) and ``video`` (opened and producing frames).
 from __future__ import annotations
 
 import math
+import threading
 import time
 from dataclasses import dataclass
+from typing import Any
 
 from dronecal_field.errors import InputError, PreflightError
 from dronecal_field.mavlink import ardupilot as ap
@@ -24,6 +27,7 @@ from dronecal_field.mavlink.link import MavLink
 from dronecal_field.mavlink.missionfile import GLOBAL_FRAMES, Mission
 
 MIN_FIX_CHOICES = ("rtk_fixed", "rtk_float", "3d")
+MIN_GNSS_RATE_HZ = 8.0  # fly asks for 10 Hz; a 5 Hz receiver (ArduPilot's default GPS_RATE_MS) warns
 
 
 @dataclass(frozen=True)
@@ -80,6 +84,8 @@ class VehicleSnapshot:
         HOME_POSITION.
     last_text : str or None
         Latest STATUSTEXT (often the PreArm reason).
+    gnss_rate_hz : float or None
+        New GNSS fixes per vehicle second (:class:`GnssRateMeter`), None if not measured.
     """
 
     autopilot: int | None = None
@@ -97,6 +103,46 @@ class VehicleSnapshot:
     home_lat_deg: float | None = None
     home_lon_deg: float | None = None
     last_text: str | None = None
+    gnss_rate_hz: float | None = None
+
+
+class GnssRateMeter:
+    """New fixes per second in a GPS_RAW_INT stream, over the vehicle's own clock.
+
+    A message is a new fix when its position differs from the previous one's
+    (a stream asked for faster than the receiver makes fixes carries
+    nothing new; ArduPilot's GPS_RATE_MS sets the receiver's rate). Seconds
+    are the messages' ``time_usec`` (the fix time), so a simulator running
+    faster than real time reads the same.
+    """
+
+    def __init__(self, window_s: float = 2.0) -> None:
+        self.window_s = window_s
+        self._samples: list[tuple[float, bool]] = []  # (fix time s, new)
+        self._last_key: tuple | None = None
+        self._lock = threading.Lock()
+
+    def feed(self, msg: Any) -> None:
+        """One GPS_RAW_INT message (other types are ignored)."""
+        if msg.get_type() != "GPS_RAW_INT" or not msg.time_usec or msg.fix_type < 2:
+            return
+        key = (msg.lat, msg.lon, msg.alt, getattr(msg, "alt_ellipsoid", 0))
+        with self._lock:
+            self._samples.append((msg.time_usec * 1e-6, key != self._last_key))
+            self._last_key = key
+            t_end = self._samples[-1][0]
+            while self._samples and self._samples[0][0] < t_end - self.window_s:
+                self._samples.pop(0)
+
+    def rate_hz(self, min_span_s: float = 1.0) -> float | None:
+        """New fixes per second over the last ``window_s``, or None with under ``min_span_s`` of stream."""
+        with self._lock:
+            if len(self._samples) < 2:
+                return None
+            span = self._samples[-1][0] - self._samples[0][0]
+            if span < min_span_s:
+                return None
+            return sum(new for _t, new in self._samples[1:]) / span
 
 
 @dataclass(frozen=True)
@@ -204,6 +250,18 @@ def evaluate_preflight(
         else:
             out.append(CheckResult("gnss", False, f"{seen}, need {min_fix}; wait for the RTK base/corrections or pass --min-fix"))
 
+    if vehicle.gnss_rate_hz is not None:
+        rate = vehicle.gnss_rate_hz
+        if rate < MIN_GNSS_RATE_HZ:
+            out.append(CheckResult(
+                "gnss_rate", True,
+                f"WARNING: {rate:.1f} new fixes/s: each hold averages fewer fixes (the calibration is worse); "
+                "set GPS_RATE_MS (GPS1_RATE_MS) to 100 if the receiver does 10 Hz, or fly longer holds (plan --hover)",
+                warning=True,
+            ))
+        else:
+            out.append(CheckResult("gnss_rate", True, f"{rate:.1f} new fixes/s"))
+
     if vehicle.ekf_flags is None:
         out.append(CheckResult("ekf", False, "no EKF_STATUS_REPORT received; wait for the EKF to start"))
     else:
@@ -251,8 +309,8 @@ def evaluate_preflight(
     return out
 
 
-def snapshot_from_link(link: MavLink) -> VehicleSnapshot:
-    """The latest telemetry the link has seen, as a snapshot."""
+def snapshot_from_link(link: MavLink, gnss_meter: GnssRateMeter | None = None) -> VehicleSnapshot:
+    """The latest telemetry the link has seen, as a snapshot (with the GNSS rate when a meter is fed)."""
     hb = link.vehicle_heartbeat
     gps = link.latest("GPS_RAW_INT")
     ekf = link.latest("EKF_STATUS_REPORT")
@@ -281,6 +339,7 @@ def snapshot_from_link(link: MavLink) -> VehicleSnapshot:
         home_lat_deg=None if home is None else home.latitude * 1e-7,
         home_lon_deg=None if home is None else home.longitude * 1e-7,
         last_text=None if text is None else str(text.text),
+        gnss_rate_hz=None if gnss_meter is None else gnss_meter.rate_hz(),
     )
 
 
@@ -293,6 +352,7 @@ def run_preflight(
     min_battery_pct: int = 30,
     max_home_distance_m: float = 500.0,
     wait_s: float = 60.0,
+    gnss_meter: GnssRateMeter | None = None,
 ) -> list[CheckResult]:
     """Evaluate the checklist, waiting up to ``wait_s`` seconds for a booting vehicle to pass.
 
@@ -304,7 +364,7 @@ def run_preflight(
     asked_home = False
     while True:
         results = evaluate_preflight(
-            snapshot_from_link(link), mission, video, min_fix=min_fix, min_battery_pct=min_battery_pct, max_home_distance_m=max_home_distance_m
+            snapshot_from_link(link, gnss_meter), mission, video, min_fix=min_fix, min_battery_pct=min_battery_pct, max_home_distance_m=max_home_distance_m
         )
         failing = {r.name for r in results if not r.ok}
         if not failing or failing & {"video", "disarmed", "heartbeat"} or time.monotonic() >= deadline:
