@@ -114,6 +114,9 @@ def test_main_run_writes_every_output(main_run):
     assert data["time_offset"]["offset_s"] == pytest.approx(report.offset.offset_s)
     dropped = data["hover_windows"]["dropped"]
     assert all(d["reason"] for d in dropped)
+    assert data["gnss"]["fix_rate_hz"] == pytest.approx(5.0, abs=0.3) and data["gnss"]["repeated_fixes_left_out"] == 0
+    assert data["points"]["pairing"].startswith("at each fix")
+    assert "under the first calibration's distortion" in data["points"]["marker_centre"]  # the camera is distorted
 
     html = (out / "report.html").read_text()
     assert html.count("data:image/png;base64,") == 5 and "<script" not in html
@@ -250,6 +253,7 @@ def test_repeated_fixes_are_left_out_with_a_warning(tmp_path):
     plain, repeated = reports
     assert [p.n_fixes for p in repeated.points] == [p.n_fixes for p in plain.points]
     np.testing.assert_allclose([p.marker_enu_m for p in repeated.used_points], [p.marker_enu_m for p in plain.used_points], atol=1e-9)
+    assert repeated.fixes_repeated == repeated.track.t_ns.size == plain.track.t_ns.size
     warning = [w for w in repeated.warnings if "repeat the previous one" in w]
     assert warning and "GPS_RATE_MS" in warning[0]
     assert not [w for w in plain.warnings if "repeat the previous one" in w]

@@ -142,6 +142,16 @@ def report_dict(report) -> dict:
             "fix_types": {t or "unknown": int(sum(1 for x in report.track.fix_types if x == t)) for t in sorted(set(report.track.fix_types), key=str)},
             "min_fix": report.options.min_fix,
             "attitude": report.attitude_source,
+            "fix_rate_hz": _fix_rate_hz(report),
+            "repeated_fixes_left_out": report.fixes_repeated,
+        },
+        "points": {
+            "pairing": (
+                "at each fix: the marker's ENU position with its pixel interpolated along the image track"
+                if report.options.points.paired and report.options.points.pair_at == "fixes"
+                else "at each detection: the GNSS track interpolated at the frame" if report.options.points.paired else "separate medians"
+            ),
+            "marker_centre": report.centres,
         },
         "hover_windows": {
             "source": report.window_source,
@@ -403,3 +413,15 @@ def write_outputs(report, out_dir: Path) -> dict[str, str]:
     _atomic_write(out_dir / REPORT_JSON, json.dumps(data, indent=1, allow_nan=False))
     _atomic_write(out_dir / REPORT_HTML, report_html(report, data))
     return outputs
+
+
+def _fix_rate_hz(report) -> float | None:
+    """Median fixes per second over the used hover windows' settled parts (None without them)."""
+    t = np.asarray(report.track.t_ns, np.int64)
+    rates = []
+    for p in report.used_points:
+        a, b = p.stable_ns
+        n = int(np.sum((t >= a) & (t <= b)))
+        if b > a and n >= 2:
+            rates.append((n - 1) / ((b - a) * 1e-9))
+    return float(np.median(rates)) if rates else None

@@ -142,6 +142,8 @@ class CalibrationReport:
     options: CalibrateOptions
     background: np.ndarray | None = field(default=None, repr=False)  # (H, W) a frame with the marker
     outputs: dict[str, str] = field(default_factory=dict)
+    fixes_repeated: int = 0  # fixes left out as bit-for-bit repeats of the previous one
+    centres: str = "diagonals"  # or "diagonals under the calibrated distortion"
 
     @property
     def camera(self):
@@ -495,6 +497,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
         result, model_reason = solve(points)
         attitude_source = "none in the run: assumed level with the nose towards the calibrated camera"
         warnings.append("no attitude in the run: the marker lever arm assumes level flight facing the camera")
+    centres_method = "diagonals' crossing" if md.marker.kind == "aruco" else "blob centroid"
     corners = [d.corners_px for d in detections]
     if options.recentre and np.any(result.camera.distortion.as_array() != 0.0) and all(c is not None for c in corners):
         # Distortion bends the marker's diagonals: take the centres again under the calibrated distortion.
@@ -502,6 +505,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
         centres = centres_under_distortion(np.array(corners), np.array([i.fx, i.fy, i.cx, i.cy]), result.camera.distortion.as_array())
         points = build_points(marker, attitude_used, centres)
         result, model_reason = solve(points)
+        centres_method = "diagonals' crossing under the first calibration's distortion"
     camera = result.camera.with_(enu_origin=tuple(origin.as_list()))
     result = _with_camera(result, camera)
     timings["calibration_s"] = time.perf_counter() - tick
@@ -548,6 +552,8 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
         warnings=warnings,
         options=options,
         background=background,
+        fixes_repeated=n_repeated,
+        centres=centres_method,
     )
     if options.out_dir is not None:
         from dronecal_field.pipeline.report import write_outputs
