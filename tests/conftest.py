@@ -6,13 +6,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
-
-
-@pytest.fixture(scope="session")
-def shared_dir() -> Path:
-    if not SHARED.is_dir():
-        pytest.skip("../shared is not beside the repository")
-    return SHARED
+# The recorded ArduCopter SITL session the simulator copies and the tests read.
+REPLAYS = SHARED / "replays" / "arducopter-sitl"
+needs_replays = pytest.mark.skipif(not REPLAYS.is_dir(), reason="../shared/replays/arducopter-sitl is not beside the repository")
 
 
 def run_cli(*args: str, timeout: float = 120, **kw):

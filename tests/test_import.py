@@ -24,8 +24,8 @@ from dronecal_field.runfile.importer import (
 )
 from dronecal_field.runfile.reader import open_run
 from dronecal_field.runfile.records import MarkerSpec
+from conftest import REPLAYS, needs_replays
 
-REPLAYS = Path("/work/shared/replays/arducopter-sitl")
 MARKER = MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.3, offset_frd_m=(0.0, 0.0, 0.1))
 
 
@@ -48,6 +48,7 @@ def _write_video(path: Path, n: int, fps: float = 10.0) -> None:
 # --- the SITL recordings ------------------------------------------------------------
 
 
+@needs_replays
 def test_rtk_tlog_hover_windows_match_the_checks(rtk_log):
     """70 grid holds of 3.0 s ending at MISSION_ITEM_REACHED, on the vehicle clock (speedup 5 undone)."""
     expected = {seq: t for seq, t, _ in _checks("calib-grid-rtk")["reached"] if 4 <= seq <= 73}
@@ -67,6 +68,7 @@ def test_rtk_tlog_hover_windows_match_the_checks(rtk_log):
     assert first.metadata["frame"] == "6"
 
 
+@needs_replays
 def test_rtk_tlog_fixes_and_clock(rtk_log):
     checks = _checks("calib-grid-rtk")
     assert len(rtk_log.fixes) == checks["fix_type_counts"]["6"] == 2938
@@ -90,6 +92,7 @@ def test_rtk_tlog_fixes_and_clock(rtk_log):
     assert len(rtk_log.messages) == 54106 and {"MISSION_ITEM_INT", "SIMSTATE", "STATUSTEXT"} <= names
 
 
+@needs_replays
 def test_gpsloss_tlog():
     log = read_tlog(REPLAYS / "calib-grid-gpsloss.tlog")
     expected = {seq: t for seq, t, _ in _checks("calib-grid-gpsloss")["reached"] if seq >= 4}
@@ -101,6 +104,7 @@ def test_gpsloss_tlog():
     assert gap == pytest.approx(185.45 - 177.45, abs=0.25)  # the outage, in vehicle seconds
 
 
+@needs_replays
 @pytest.mark.parametrize("name, n_holds", [("calib-grid-rtk", 70), ("calib-grid-gpsloss", 19)])
 def test_dataflash_hover_windows(name, n_holds):
     log = read_dataflash(REPLAYS / f"{name}.BIN")
@@ -118,6 +122,7 @@ def test_dataflash_hover_windows(name, n_holds):
     assert len(log.attitudes) > 1000
 
 
+@needs_replays
 def test_dataflash_and_tlog_share_one_utc(rtk_log):
     bin_log = read_dataflash(REPLAYS / "calib-grid-rtk.BIN")
     # Same flight, two clocks: SYSTEM_TIME in the tlog, GPS week/ms in the log; they agree to tens of ms.
@@ -129,6 +134,7 @@ def test_dataflash_and_tlog_share_one_utc(rtk_log):
 # --- the command, end to end -------------------------------------------------------------
 
 
+@needs_replays
 def test_import_command_end_to_end(tmp_path, capsys):
     video = tmp_path / "camera.mp4"
     _write_video(video, 20, fps=10.0)
@@ -158,6 +164,7 @@ def test_import_command_end_to_end(tmp_path, capsys):
         assert run.attachment("mission.waypoints").decode().splitlines()[5].split("\t")[3] == "16"
 
 
+@needs_replays
 def test_import_dataflash_without_video(tmp_path):
     out = tmp_path / "bin.mcap"
     log = read_dataflash(REPLAYS / "calib-grid-gpsloss.BIN")
@@ -169,6 +176,7 @@ def test_import_dataflash_without_video(tmp_path):
         assert "/dataflash/CMD" in run.topics and run.topics["/dataflash/CMD"] == "dataflash.CMD"
 
 
+@needs_replays
 def test_video_start_defaults_to_first_fix_with_warning(tmp_path):
     from dronecal_field.runfile.importer import FlightLog
 

@@ -17,14 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
+from conftest import REPLAYS  # noqa: F401 - the recorded ArduCopter SITL session, re-exported for the sim tests
 from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic
 from dronecal_field.mavlink.link import open_link
 from dronecal_field.sim.vehicle import SimVehicle, VehicleConfig
 from dronecal_field.sim.vehicle_flight import CopterParams
 
 HOME = (-35.363261, 149.165230, 584.0)  # SITL's CMAC site, AMSL
-# the recorded ArduCopter SITL session (shared/ beside the repository, as tests/conftest.py expects)
-REPLAYS = Path(__file__).resolve().parents[1].parent / "shared" / "replays" / "arducopter-sitl"
 # MAVLink ids of the mission protocol: ITEM, REQUEST, SET_CURRENT, REQUEST_LIST, COUNT, CLEAR_ALL, ACK, REQUEST_INT, ITEM_INT
 MISSION_MSG_IDS = frozenset({39, 40, 41, 43, 44, 45, 47, 51, 73})
 

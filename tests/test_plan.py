@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import REPLAYS as REPLAY, needs_replays
 from dronecal_field.errors import InputError, PlanError
 from dronecal_field.plan.route import FlightModel, detour, leg_time_s, order_points, plan_route
 from dronecal_field.plan.site import CameraSite, LensGuess, guess_camera, load_site_file, resolve_focal_px
@@ -24,7 +25,6 @@ from dronecal_field.plan.strategies import (
 )
 
 REPO = Path(__file__).resolve().parents[1]
-REPLAY = REPO.parent / "shared" / "replays" / "arducopter-sitl"
 CMAC = dict(lat_deg=-35.363261, lon_deg=149.165230, ground_h_m=584.0)
 
 
@@ -181,6 +181,7 @@ def test_order_is_boustrophedon_per_level_with_one_climb():
     assert p[-1, 0] == 4.0
 
 
+@needs_replays
 def test_flight_time_model_matches_the_sitl_replay():
     checks = json.loads((REPLAY / "calib-grid-rtk.checks.json").read_text())
     reached = {int(r[0]): float(r[1]) for r in checks["reached"]}  # [seq, SITL s, ...]

@@ -9,6 +9,7 @@ import jsonschema
 import numpy as np
 import pytest
 
+from conftest import REPLAYS, needs_replays
 from dronecal_field.camerafile import read_camera
 from dronecal_field.cli import main
 from dronecal_field.geodesy import EnuOrigin, geodetic_to_enu
@@ -106,9 +107,10 @@ def test_mission_planner_file_line_by_line(distorted):
         assert row["params"][6] == pytest.approx(it["params"][6], abs=1e-6)
 
 
+@needs_replays
 def test_same_structure_as_the_accepted_sitl_mission(distorted):
     """Our item sequence follows shared/replays/arducopter-sitl/calib-grid.waypoints (an accepted upload)."""
-    ref = parse_waypoints((REPO.parent / "shared" / "replays" / "arducopter-sitl" / "calib-grid.waypoints").read_text())
+    ref = parse_waypoints((REPLAYS / "calib-grid.waypoints").read_text())
     ours = parse_waypoints((distorted / "mission.waypoints").read_text())
     for r, o in zip(ref[:4], ours[:4]):
         assert (r["command"], r["frame"]) == (o["command"], o["frame"])

@@ -10,9 +10,8 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mav2
 
+from conftest import REPLAYS, needs_replays
 from dronecal_field.runfile.tlog import TlogWriter
-
-REPLAYS = Path("/work/shared/replays/arducopter-sitl")
 
 
 def test_written_tlog_reads_back_with_pymavlink(tmp_path):
@@ -63,6 +62,7 @@ def _records(data: bytes):
         pos = start + size
 
 
+@needs_replays
 @pytest.mark.parametrize("name", ["calib-grid-gpsloss.tlog"])
 def test_rewriting_a_real_tlog_is_byte_identical(tmp_path, name):
     src = (REPLAYS / name).read_bytes()
