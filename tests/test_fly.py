@@ -104,6 +104,23 @@ def test_dry_run_prints_the_checklist_and_touches_nothing(tmp_path, camera, caps
     assert count.count == 1  # only the vehicle's home: nothing was uploaded
 
 
+def test_dry_run_warns_about_a_5_hz_receiver(tmp_path, camera, capsys):
+    # ArduPilot's default GPS_RATE_MS = 200: asked for 10 Hz, the stream still carries 5 new fixes/s.
+    sim = start_sim(speedup=20.0, boot_s=1.0, gps_rate_ms=200.0)
+    plan = write_plan(tmp_path / "mission.plan", SMALL)
+    (tmp_path / "plan.json").write_text(json.dumps({"marker": {"size_m": 0.25, "dictionary": "DICT_4X4_50", "id": 0, "offset_frd_m": [0.1, 0, 0]}}))
+    try:
+        rc = main(["fly", "--connect", sim.addresses()[0], "--mission", str(plan), "--video", camera.url, "--out", str(tmp_path / "run.mcap"), "--dry-run"])
+    finally:
+        sim.stop()
+    captured = capsys.readouterr()
+    printed = captured.out
+    assert rc == 0, captured.err  # a warning, not a failure
+    line = [ln for ln in printed.splitlines() if "gnss_rate" in ln][0]
+    assert line.startswith("[WARN]") and "GPS_RATE_MS" in line
+    assert 4.5 <= float(line.split("WARNING:")[1].split("new fixes/s")[0]) <= 5.5
+
+
 def test_a_mission_the_vehicle_rejects_exits_2_with_one_line(tmp_path, camera):
     sim = start_sim(speedup=20.0, boot_s=1.0)
     extra = [{"type": "SimpleItem", "command": 31999, "frame": 2, "params": [0, 0, 0, 0, 0, 0, 0], "autoContinue": True, "doJumpId": 0}]

@@ -33,6 +33,8 @@ def register(sims: argparse._SubParsersAction) -> None:
     parser.add_argument("--heading", type=float, default=353.0, metavar="DEG", help="initial heading on the ground (default 353, as SITL's CMAC)")
     parser.add_argument("--wp-speed", type=float, default=5.0, metavar="M/S", help="waypoint speed before any DO_CHANGE_SPEED (default 5)")
     parser.add_argument("--rtl-alt", type=float, default=15.0, metavar="M", help="RTL climb height above home (RTL_ALT, default 15)")
+    parser.add_argument("--gps-rate-ms", type=float, default=100.0, metavar="MS",
+                        help="the receiver's fix interval, as ArduPilot's GPS_RATE_MS: GPS_RAW_INT never comes faster (default 100; ArduPilot's own default is 200)")
     parser.add_argument("--max-items", type=int, default=700, metavar="N", help="mission capacity including home (default 700)")
     parser.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     parser.add_argument("--signing-key", metavar="KEY", help="MAVLink 2 signing: 64 hex characters or a passphrase; unsigned messages are then ignored")
@@ -64,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         max_items=args.max_items,
         heading_deg=args.heading,
+        gps_rate_ms=args.gps_rate_ms,
         signing_key=signing_key_bytes(args.signing_key) if args.signing_key else None,
         params=CopterParams(wp_speed_mps=args.wp_speed, rtl_alt_m=args.rtl_alt),
     )
