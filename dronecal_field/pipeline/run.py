@@ -143,7 +143,7 @@ class CalibrationReport:
     background: np.ndarray | None = field(default=None, repr=False)  # (H, W) a frame with the marker
     outputs: dict[str, str] = field(default_factory=dict)
     fixes_repeated: int = 0  # fixes left out as bit-for-bit repeats of the previous one
-    centres: str = "diagonals"  # or "diagonals under the calibrated distortion"
+    centres: str = "diagonals' crossing"  # how marker centres were taken (report.json "points")
 
     @property
     def camera(self):
@@ -158,8 +158,8 @@ class CalibrationReport:
 # Reading the run
 
 
-def _read_track(run) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, np.ndarray]:
-    """(t_ns, lat/lon/alt (N, 3), sigma_enu (N, 3), fix types, all-usable mask) of every fix."""
+def _read_track(run) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, np.ndarray, int]:
+    """(t_ns, lat/lon/alt (N, 3), sigma_enu (N, 3), fix types, all-usable mask, repeated fixes) of every fix."""
     t, lla, sig, types = [], [], [], []
     for fix in run.iter_fixes():
         if not (np.isfinite(fix.lat_deg) and np.isfinite(fix.lon_deg) and np.isfinite(fix.alt_m)):
@@ -182,7 +182,7 @@ def _read_track(run) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, np.ndarr
     keep = np.r_[True, np.diff(t_ns) > 0] if len(t_ns) else np.zeros(0, bool)
     repeated = np.r_[False, np.all(np.diff(lla_a, axis=0) == 0.0, axis=1)] if len(t_ns) else np.zeros(0, bool)
     usable = np.array([ty != "no_fix" for ty in types], bool) & keep & ~repeated
-    return t_ns, lla_a, sig_a, types, usable
+    return t_ns, lla_a, sig_a, types, usable, int(repeated.sum())
 
 
 def _plan_info(run) -> tuple[dict[int, float] | None, tuple[float, float] | None]:
@@ -376,7 +376,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
         if run.truncated:
             warnings.append(f"the run is cut off at byte {run.truncated_at}: using the complete part")
         holds, roi = _plan_info(run)
-        fix_t, lla, fix_sigma, fix_types, usable = _read_track(run)
+        fix_t, lla, fix_sigma, fix_types, usable, n_repeated = _read_track(run)
         if not usable.any():
             seen = sorted({str(t) for t in fix_types}) if fix_types else []
             raise InputError(
@@ -384,7 +384,6 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
                 + (f", types {', '.join(seen)}" if seen else "")
                 + "): fly with a working GNSS receiver and record /gnss/fix"
             )
-        n_repeated = int(np.sum(np.r_[False, np.all(np.diff(lla, axis=0) == 0.0, axis=1)])) if len(lla) else 0
         if n_repeated > 0.1 * len(lla):
             warnings.append(
                 f"{n_repeated} of {len(lla)} GNSS fixes repeat the previous one exactly (left out): the receiver is slower than "
