@@ -13,8 +13,8 @@ median of the fixes and the median of the detections are taken at different
 instants, so they describe slightly different marker positions, and that
 mismatch (not the RTK noise) limited the principal point. Pairing at the
 fixes rather than at the decoded frames (``pair_at="detections"``, the GNSS
-track interpolated at each frame) keeps every fix: the RTK noise is white,
-so the 3D centre's error falls with the number of fixes averaged, and a few
+track interpolated at each frame) keeps every fix: where the RTK noise is
+white the 3D centre's error falls with the number of fixes averaged, and a few
 evenly spaced frames are enough to follow a drift that is smooth over
 tenths of a second (measured on the issue 5 benchmark: the principal point
 error of the worst run 11.5 -> 6.8 px, projection error 0.33 -> 0.19 px).
@@ -357,6 +357,7 @@ def window_point(
 
 
 def _point(base: dict, xyz, sigma_m, uv, scatter_m, scatter_uv, pick, det_size_px, marker_size_m, options: PointOptions) -> WaypointPoint:
+    """A used WaypointPoint from its centres and scatters (``pick``: the detections the image scatter in metres is sized on)."""
     scatter_px = float(np.sqrt(np.mean(scatter_uv**2)))
     scatter_image_m = None
     if det_size_px is not None and marker_size_m:
