@@ -96,3 +96,12 @@ def test_tangential_terms_are_refused_when_they_inflate_the_principal_points_std
     refused, reason = select_model(X, uv, 1920, 1080, max_pp_inflation=0.95 * inflation)
     assert refused.model.distortion == "k1k2"
     assert "principal point's std grows" in reason
+
+
+def test_sigma_consistency_says_which_way_the_fit_departs_from_the_measured_sigmas():
+    from dronecal_field.pipeline.report import sigma_consistency
+
+    assert "conservative" in sigma_consistency(0.9, 3.0)["note"]
+    assert "lever arm" in sigma_consistency(4.0, 2.0)["note"]
+    assert sigma_consistency(1.0, 1.1)["note"].endswith("consistent")
+    assert sigma_consistency(1.0, None) is None

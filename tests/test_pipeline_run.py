@@ -116,10 +116,14 @@ def test_main_run_writes_every_output(main_run):
     assert all(d["reason"] for d in dropped)
     assert data["gnss"]["fix_rate_hz"] == pytest.approx(5.0, abs=0.3) and data["gnss"]["repeated_fixes_left_out"] == 0
     assert data["points"]["pairing"].startswith("at each fix")
+    consistency = data["uncertainty"]["consistency"]
+    assert consistency["ratio"] == pytest.approx(report.result.rms_px / report.monte_carlo.rms_mean)
+    assert consistency["note"].startswith(f"fit RMS {report.result.rms_px:.2f} px")
     assert "under the first calibration's distortion" in data["points"]["marker_centre"]  # the camera is distorted
 
     html = (out / "report.html").read_text()
     assert html.count("data:image/png;base64,") == 5 and "<script" not in html
+    assert "fit vs measured sigmas" in html and "from the fit's residuals" in html
 
     info = (out / "camera_info.yaml").read_text()
     assert "distortion_model: plumb_bob" in info and f"image_width: {camera.width}" in info

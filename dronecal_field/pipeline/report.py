@@ -194,6 +194,7 @@ def report_dict(report) -> dict:
             },
             "monte_carlo": unc(mc),
             "linearised": unc(lin),
+            "consistency": sigma_consistency(report.result.rms_px, None if headline is None else headline.rms_mean),
             "image_map": report.maps.summary(),
             "at_15m": None if headline is None else {
                 "method": headline.method,
@@ -333,12 +334,14 @@ def report_html(report, data: dict) -> str:
         ("camera position ENU", " ".join(f"{v:.3f}" for v in cam.pose.position_world) + " m"),
         ("ENU origin", f"{report.origin.lat_deg:.8f}, {report.origin.lon_deg:.8f}, {report.origin.h_m:.3f} m ({report.altitude_datum}; {report.origin_source})"),
         ("camera time offset", f"{_fmt(off['offset_s'], '+.3f', ' s')} ± {_fmt(off['std_s'], '.3f', ' s')} ({off['method']})"),
+        ("fit vs measured sigmas", html.escape((unc.get("consistency") or {}).get("note", "-"))),
         ("MC RMS mean / p95", f"{_fmt(mc.get('rms_mean'), '.3f')} / {_fmt((mc.get('rms_percentiles') or {}).get('95'), '.3f')} px ({mc.get('trials', 0)} trials)"),
         ("ground position error at 15 m", f"{_fmt(at15.get('ground_position_error_cm'), '.2f', ' cm')} RMS, p95 {_fmt(at15.get('ground_position_error_cm_p95'), '.2f', ' cm')}"),
         ("speed error at 15 m (50 km/h)", f"{_fmt(at15.get('speed_error_kmh_at_50kmh'), '.3f', ' km/h')} RMS, p95 {_fmt(at15.get('speed_error_kmh_p95'), '.3f', ' km/h')}"),
         ("frames decoded / read", f"{report.frames.frames_decoded} / {report.frames.frames_read} ({report.frames.frames_corrupt} corrupt)"),
     ])
     std_rows = [(k, f"{cal['parameter_std_from_measured_sigmas'][k]:.4g}") for k in PARAM_NAMES[:9] if cal["parameter_std_from_measured_sigmas"][k] > 0]
+    resid_rows = [(k, f"{cal['parameter_std_from_residuals'][k]:.4g}") for k in PARAM_NAMES[:9] if cal["parameter_std_from_residuals"][k] > 0]
     mc_std = mc.get("param_std") or {}
     mc_rows = [(k, f"{v:.4g}") for k, v in mc_std.items() if v is not None]
     dropped = "".join(
@@ -365,6 +368,7 @@ def report_html(report, data: dict) -> str:
         f"<h2>Warnings</h2><ul>{warnings}</ul>"
         f"<h2>Dropped hover windows</h2><table><tr><th>window</th><th>seq</th><th>reason</th></tr>{dropped}</table>"
         "<h2>Parameter standard deviations</h2><div style='display:flex;gap:2em'>"
+        f"<div><h3>from the fit's residuals</h3>{_table(resid_rows)}</div>"
         f"<div><h3>linearised, measured sigmas</h3>{_table(std_rows)}</div>"
         f"<div><h3>Monte-Carlo</h3>{_table(mc_rows)}</div></div>"
         "<h2>Figures</h2>" + "".join(figs)
@@ -425,3 +429,26 @@ def _fix_rate_hz(report) -> float | None:
         if b > a and n >= 2:
             rates.append((n - 1) / ((b - a) * 1e-9))
     return float(np.median(rates)) if rates else None
+
+
+def sigma_consistency(fit_rms_px: float, expected_rms_px: float | None) -> dict | None:
+    """How the fit's RMS compares with the RMS the measured per-point sigmas predict, and what that means.
+
+    The Monte-Carlo perturbs each point by its measured scatter; when the
+    fit is much better than that predicts, the scatter overstates each
+    point's error (hover drift is seen by GNSS and camera alike and pairs
+    out), so the Monte-Carlo figures are conservative. Much worse points to
+    an error the sigmas do not hold: lever arm, time offset, model.
+    """
+    if expected_rms_px is None or not np.isfinite(expected_rms_px) or expected_rms_px <= 0:
+        return None
+    ratio = fit_rms_px / expected_rms_px
+    if ratio < 0.67:
+        note = (f"fit RMS {fit_rms_px:.2f} px, {ratio:.2f}x the {expected_rms_px:.2f} px the measured sigmas predict: "
+                "they overstate each point's error, so the Monte-Carlo figures are conservative (the std from the residuals is the tighter estimate)")
+    elif ratio > 1.5:
+        note = (f"fit RMS {fit_rms_px:.2f} px, {ratio:.2f}x the {expected_rms_px:.2f} px the measured sigmas predict: "
+                "an error the sigmas do not hold (lever arm, time offset, distortion model); check the residual figure")
+    else:
+        note = f"fit RMS {fit_rms_px:.2f} px against {expected_rms_px:.2f} px predicted by the measured sigmas: consistent"
+    return {"fit_rms_px": float(fit_rms_px), "expected_rms_px": float(expected_rms_px), "ratio": float(ratio), "note": note}
