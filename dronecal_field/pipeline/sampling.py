@@ -5,7 +5,10 @@ streaming pass over the hover windows only, and of those this selector
 decodes:
 
 - a few evenly spaced frames inside each window, widened by the largest
-  camera offset (the offset is not known yet), which give the points; and
+  camera offset (the offset is not known yet), which give the points: up to
+  ``max_frames_per_window``, but never further apart than ``max_period_s``
+  (each GNSS fix is paired with the image track between frames, which must
+  bracket it closely; a long hold costs more frames); and
 - every frame around a dozen transitions between consecutive windows, where
   the marker moves and the time alignment finds its signal. A transition is
   taken only once the window before it has shown the marker, so the frames
@@ -27,6 +30,7 @@ class SamplingOptions:
     """How many frames to spend where."""
 
     max_frames_per_window: int = 24
+    max_period_s: float = 0.4  # ... but frames in a window at most this far apart
     margin_s: float = 1.2  # each side of a window: covers a camera offset up to 1 s
     dense_s: float = 2.0  # decode every frame this long into each transition
     dense_period_s: float = 1.0 / 15.0  # but no faster than this (15 Hz resolves a 1 s offset to ms)
@@ -57,7 +61,7 @@ class FrameSelector:
         self._zones: list[_Zone] = []
         for k, w in enumerate(self.windows):
             a, b = w.start_ns - m, w.end_ns + m
-            period = max(1, (b - a) // max(1, options.max_frames_per_window))
+            period = min(max(1, (b - a) // max(1, options.max_frames_per_window)), int(options.max_period_s * 1e9))
             self._zones.append(_Zone(a, b, int(period), group=k, dense=False))
         self._detected = [0] * len(self.windows)
         n_trans = max(0, len(self.windows) - 1)
