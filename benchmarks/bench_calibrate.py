@@ -118,7 +118,7 @@ def errors_against_truth(report, truth, seed: int = 0) -> dict:
 # (a) accuracy
 
 
-def accuracy(seeds: int, fps: float, gnss_hz: float, workdir: Path) -> list[dict]:
+def accuracy(seeds: int, fps: float, gnss_hz: float, workdir: Path, rtk_tau_s: float = 0.0) -> list[dict]:
     from dronecal_field.pipeline.run import CalibrateOptions, calibrate_run
 
     waypoints = grid_waypoints(east_m=(-3.5, -1.2, 1.2, 3.5), north_m=(6.0, 9.0, 12.0), up_m=(1.0, 4.0))
@@ -129,7 +129,8 @@ def accuracy(seeds: int, fps: float, gnss_hz: float, workdir: Path) -> list[dict
         for seed in range(seeds):
             flight = make_flight(truth, waypoints, hold_s=hold_s, move_s=2.0, drift_m=0.02, offset_frd_m=OFFSET_FRD_M, seed=seed)
             spec = RunSpec(fps=fps, gnss_hz=gnss_hz, latency_s=LATENCY_S, declared_latency="unknown",
-                           gnss_sigma_m=(0.008, 0.008, 0.012), renderer="sim", site_origin=ORIGIN, seed=100 + seed)
+                           gnss_sigma_m=(0.008, 0.008, 0.012), renderer="sim", site_origin=ORIGIN, seed=100 + seed,
+                           gnss_noise_tau_s=rtk_tau_s)
             path = workdir / f"{kind}-{seed}.mcap"
             t = time.perf_counter()
             written = write_run(path, truth, flight, LOOK, spec)
@@ -315,6 +316,8 @@ def main() -> None:
     parser.add_argument("--accuracy-fps", type=float, default=10.0, help="frame rate of the accuracy runs (default 10)")
     parser.add_argument("--gnss-hz", type=float, default=10.0,
                         help="GNSS rate of the accuracy runs (default 10, what fly asks for; 5 is ArduPilot's GPS_RATE_MS default)")
+    parser.add_argument("--rtk-tau", type=float, default=0.0, metavar="S",
+                        help="RTK noise correlation time of the accuracy runs, seconds (default 0: white noise)")
     parser.add_argument("--minutes", type=float, default=10.0, help="length of the speed run (default 10)")
     parser.add_argument("--fps", type=float, default=30.0, help="frame rate of the speed run (default 30)")
     parser.add_argument("--move-hz", type=float, default=10.0, help="distinct renderings per second while moving (default 10)")
@@ -327,8 +330,8 @@ def main() -> None:
     try:
         if args.only in (None, "accuracy"):
             print(f"(a) accuracy: {WIDTH}x{HEIGHT}, f {FOCAL_PX:g} px, 24 waypoints, {math.ceil(1 + 40 / args.accuracy_fps)} s holds, 2 cm drift, "
-                  f"RTK noise, {LATENCY_S} s unknown latency, {args.accuracy_fps:g} fps, {args.gnss_hz:g} Hz GNSS, {args.seeds} seeds per camera", flush=True)
-            rows = accuracy(args.seeds, args.accuracy_fps, args.gnss_hz, workdir)
+                  f"RTK noise ({'white' if not args.rtk_tau else f'correlated over {args.rtk_tau:g} s'}), {LATENCY_S} s unknown latency, {args.accuracy_fps:g} fps, {args.gnss_hz:g} Hz GNSS, {args.seeds} seeds per camera", flush=True)
+            rows = accuracy(args.seeds, args.accuracy_fps, args.gnss_hz, workdir, args.rtk_tau)
             print_accuracy(rows)
         if args.only in (None, "speed"):
             print(f"\n(b) speed: a {args.minutes:g}-minute {WIDTH}x{HEIGHT} {args.fps:g} fps run through `dronecal-field calibrate`", flush=True)

@@ -350,6 +350,7 @@ class RunSpec:
     renderer: str = "homography"  # or "sim": the simulator's exact ray-traced renderer (ArUco only)
     fix_type: str = "rtk_fixed"
     repeat_fixes: int = 1  # each fix sent this many times, evenly between fixes (a stream faster than the receiver)
+    gnss_noise_tau_s: float = 0.0  # RTK noise correlation time (first-order Gauss-Markov); 0: white
 
 
 def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook, spec: RunSpec) -> dict:
@@ -388,7 +389,13 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
         inside = (fix_t >= a - 500_000_000) & (fix_t < b + 500_000_000)
         fix_type[inside] = kind
         sigma[inside] *= 25.0  # a float or DGPS fix wanders by decimetres
-    noise = rng.normal(size=pos.shape) * sigma
+    white = rng.normal(size=pos.shape)
+    if spec.gnss_noise_tau_s > 0 and len(fix_t) > 1:
+        # Multipath and atmosphere make RTK errors wander over seconds: AR(1) with the same std.
+        a = np.exp(-np.diff(fix_t, prepend=fix_t[0]).astype(float) * 1e-9 / spec.gnss_noise_tau_s)
+        for k in range(1, len(white)):
+            white[k] = a[k] * white[k - 1] + np.sqrt(1.0 - a[k] ** 2) * white[k]
+    noise = white * sigma
     geo = enu_to_geodetic(pos + noise, ORIGIN)
     if spec.repeat_fixes > 1:
         period = int(round(1e9 / spec.gnss_hz / spec.repeat_fixes))
