@@ -8,9 +8,10 @@ the vehicle.
 Checks, in order: ``heartbeat`` (an ArduPilot autopilot), ``disarmed``,
 ``gnss`` (fix at least ``min_fix``; RTK float or 3D pass with a loud warning
 when allowed), ``gnss_rate`` (new fixes per second when measured: under 8
-warns, each hold's point averages its fixes), ``ekf`` (EKF3 healthy, as 0x033f in the recording), ``battery``,
-``ready_to_arm`` (SYS_STATUS pre-arm bit), ``home`` (within ``max_home_distance_m``
-of the mission's first position) and ``video`` (opened and producing frames).
+warns, each hold's point averages its fixes), ``ekf`` (EKF3 healthy, as
+0x033f in the recording), ``battery``, ``ready_to_arm`` (SYS_STATUS pre-arm
+bit), ``home`` (within ``max_home_distance_m`` of the mission's first
+position) and ``video`` (opened and producing frames).
 """
 
 from __future__ import annotations

@@ -89,14 +89,18 @@ def diagonal_intersection(corners_px: np.ndarray) -> np.ndarray:
 
     Falls back to the corners' mean for a degenerate (parallel-diagonal) quad.
     """
-    c = np.asarray(corners_px, float).reshape(4, 2)
+    return _diagonal_crossings(np.asarray(corners_px, float).reshape(1, 4, 2))[0]
+
+
+def _diagonal_crossings(quads: np.ndarray) -> np.ndarray:
+    """(M, 2) crossings of the diagonals 0-2 and 1-3 of quadrilaterals (M, 4, 2); the corners' mean where they are parallel."""
+    q = np.concatenate([quads, np.ones(quads.shape[:2] + (1,))], -1)  # homogeneous corners
     # Homogeneous lines through opposite corners; their cross product is the crossing.
-    l1 = np.cross(np.append(c[0], 1.0), np.append(c[2], 1.0))
-    l2 = np.cross(np.append(c[1], 1.0), np.append(c[3], 1.0))
-    x = np.cross(l1, l2)
-    if abs(x[2]) < 1e-12:
-        return c.mean(axis=0)
-    return x[:2] / x[2]
+    x = np.cross(np.cross(q[:, 0], q[:, 2]), np.cross(q[:, 1], q[:, 3]))
+    flat = np.abs(x[:, 2]) < 1e-12
+    out = quads.mean(axis=1)
+    out[~flat] = x[~flat, :2] / x[~flat, 2:]
+    return out
 
 
 def centres_under_distortion(corners_px: np.ndarray, intrinsics: np.ndarray, distortion: np.ndarray) -> np.ndarray:
@@ -111,13 +115,8 @@ def centres_under_distortion(corners_px: np.ndarray, intrinsics: np.ndarray, dis
     fx, fy, cx, cy = (float(v) for v in intrinsics)
     dist = np.asarray(distortion, float).reshape(1, 5)
     x, y = undistort_normalised(((c[..., 0] - cx) / fx).reshape(1, -1), ((c[..., 1] - cy) / fy).reshape(1, -1), dist)
-    q = np.stack([x.reshape(-1, 4), y.reshape(-1, 4), np.ones((len(c), 4))], -1)  # (M, 4, 3) homogeneous
-    l1 = np.cross(q[:, 0], q[:, 2])
-    l2 = np.cross(q[:, 1], q[:, 3])
-    m = np.cross(l1, l2)
-    flat = np.abs(m[:, 2]) < 1e-12
-    m[flat] = np.c_[q[flat, :, :2].mean(1), np.ones(int(flat.sum()))]
-    xd, yd, _, _ = _distort((m[:, 0] / m[:, 2])[None], (m[:, 1] / m[:, 2])[None], dist)
+    m = _diagonal_crossings(np.stack([x.reshape(-1, 4), y.reshape(-1, 4)], -1))
+    xd, yd, _, _ = _distort(m[:, 0][None], m[:, 1][None], dist)
     return np.c_[fx * xd[0] + cx, fy * yd[0] + cy]
 
 

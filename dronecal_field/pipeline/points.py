@@ -214,7 +214,7 @@ def marker_track_at(
         (the marker is taken at the antenna).
     max_gap_s : float
         An instant is ``bracketed`` when fixes exist before and after it,
-        each within this many seconds.
+        each within this many seconds, or a fix falls on it (:func:`track_at`).
 
     Returns
     -------
@@ -222,20 +222,10 @@ def marker_track_at(
     bracketed : (M,) bool
     """
     t = np.asarray(t_ns, np.int64)
-    ft = np.asarray(fix_t_ns, np.int64)
-    ant = np.asarray(antenna_enu_m, float)
-    if len(ft) == 0:
-        return np.full((len(t), 3), np.nan), np.zeros(len(t), bool)
-    x = (t - ft[0]).astype(float)
-    xp = (ft - ft[0]).astype(float)
-    out = np.stack([np.interp(x, xp, ant[:, k]) for k in range(3)], -1)
-    if att_t_ns is not None and att_rpy_rad is not None and len(att_t_ns):
+    out, bracketed = track_at(t, fix_t_ns, np.asarray(antenna_enu_m, float).reshape(-1, 3), max_gap_s)
+    if len(fix_t_ns) and att_t_ns is not None and att_rpy_rad is not None and len(att_t_ns):
         out = out + lever_arm_enu(offset_frd_m, attitude_at(t, att_t_ns, att_rpy_rad))
-    k = np.searchsorted(ft, t, side="right")
-    before = np.where(k > 0, t - ft[np.clip(k - 1, 0, len(ft) - 1)], np.iinfo(np.int64).max)
-    after = np.where(k < len(ft), ft[np.clip(k, 0, len(ft) - 1)] - t, np.iinfo(np.int64).max)
-    limit = int(max_gap_s * 1e9)
-    return out, (before <= limit) & (after <= limit)
+    return out, bracketed
 
 
 def track_at(t_ns: np.ndarray, sample_t_ns: np.ndarray, values: np.ndarray, max_gap_s: float = 0.5) -> tuple[np.ndarray, np.ndarray]:

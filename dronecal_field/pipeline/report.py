@@ -421,13 +421,11 @@ def write_outputs(report, out_dir: Path) -> dict[str, str]:
 
 def _fix_rate_hz(report) -> float | None:
     """Median fixes per second over the used hover windows' settled parts (None without them)."""
-    t = np.asarray(report.track.t_ns, np.int64)
-    rates = []
-    for p in report.used_points:
-        a, b = p.stable_ns
-        n = int(np.sum((t >= a) & (t <= b)))
-        if b > a and n >= 2:
-            rates.append((n - 1) / ((b - a) * 1e-9))
+    rates = [
+        (p.n_fixes - 1) / ((p.stable_ns[1] - p.stable_ns[0]) * 1e-9)
+        for p in report.used_points
+        if p.stable_ns[1] > p.stable_ns[0] and p.n_fixes >= 2
+    ]
     return float(np.median(rates)) if rates else None
 
 

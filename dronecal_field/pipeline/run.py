@@ -454,11 +454,13 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
     tick = time.perf_counter()
 
     def build_points(marker_enu: np.ndarray, attitude: tuple, centres_px: np.ndarray) -> list[WaypointPoint]:
-        # The marker at each detection's capture time, to pair 3D with 2D through the hover drift.
-        det_marker, bracketed = marker_track_at(
-            det_t - offset.offset_ns, fix_t, antenna, offset_frd, *attitude, max_gap_s=point_options.pair_max_gap_s
-        )
-        det_marker[~bracketed] = np.nan
+        det_marker = None  # pairing at the fixes interpolates the image track instead
+        if point_options.paired and point_options.pair_at == "detections":
+            # The marker at each detection's capture time, to pair 3D with 2D through the hover drift.
+            det_marker, bracketed = marker_track_at(
+                det_t - offset.offset_ns, fix_t, antenna, offset_frd, *attitude, max_gap_s=point_options.pair_max_gap_s
+            )
+            det_marker[~bracketed] = np.nan
         pts = [
             window_point(
                 w, w.stable(point_options.settle_s, point_options.tail_s), fix_t, marker_enu, fix_sigma, fix_types,
