@@ -235,7 +235,7 @@ class SimVehicle:
             self.model.say,
             config.max_items,
         )
-        self.periods_s = {name: 1.0 / hz for name, hz in config.rates_hz if hz > 0}
+        self.periods_s = {name: self._stream_period(name, 1.0 / hz) for name, hz in config.rates_hz if hz > 0}
         self._next_due = {name: 0.0 for name in self.periods_s}
         self.home_set = False
         self.fix_type = 0
@@ -403,13 +403,15 @@ class SimVehicle:
         elif interval_us == 0:
             default = dict(self.config.rates_hz).get(name)
             if default:
-                self.periods_s[name] = 1.0 / default
+                self.periods_s[name] = self._stream_period(name, 1.0 / default)
         else:
-            self.periods_s[name] = interval_us * 1e-6
-        if name == "GPS_RAW_INT" and name in self.periods_s:
-            self.periods_s[name] = max(self.periods_s[name], self.config.gps_rate_ms * 1e-3)  # no fix newer than the receiver's
+            self.periods_s[name] = self._stream_period(name, interval_us * 1e-6)
         self._next_due.setdefault(name, self.model.time_s)
         return ap.MAV_RESULT_ACCEPTED
+
+    def _stream_period(self, name: str, period_s: float) -> float:
+        """The period a stream really runs at: GPS_RAW_INT carries no fix newer than the receiver's."""
+        return max(period_s, self.config.gps_rate_ms * 1e-3) if name == "GPS_RAW_INT" else period_s
 
     # ----- sending -----
     def _send_to(self, link: Any, msg: Any) -> None:
