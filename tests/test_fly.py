@@ -81,10 +81,15 @@ def test_fly_start_flies_and_records_a_whole_mission(tmp_path, camera, capsys):
     assert sum(m.get_type() == "MISSION_ITEM_INT" for m in sent) == 9 and sum(m.get_type() == "HEARTBEAT" for m in sent) >= 2
 
 
+def _write_marker(folder: Path) -> None:
+    """The plan.json beside the mission that fly reads the marker from."""
+    (folder / "plan.json").write_text(json.dumps({"marker": {"size_m": 0.25, "dictionary": "DICT_4X4_50", "id": 0, "offset_frd_m": [0.1, 0, 0]}}))
+
+
 def test_dry_run_prints_the_checklist_and_touches_nothing(tmp_path, camera, capsys):
     sim = start_sim(speedup=20.0, boot_s=1.0)
     plan = write_plan(tmp_path / "mission.plan", SMALL)
-    (tmp_path / "plan.json").write_text(json.dumps({"marker": {"size_m": 0.25, "dictionary": "DICT_4X4_50", "id": 0, "offset_frd_m": [0.1, 0, 0]}}))
+    _write_marker(tmp_path)
     out = tmp_path / "run.mcap"
     try:
         rc = main(["fly", "--connect", sim.addresses()[0], "--mission", str(plan), "--video", camera.url, "--out", str(out), "--dry-run"])
@@ -108,7 +113,7 @@ def test_dry_run_warns_about_a_5_hz_receiver(tmp_path, camera, capsys):
     # ArduPilot's default GPS_RATE_MS = 200: asked for 10 Hz, the stream still carries 5 new fixes/s.
     sim = start_sim(speedup=20.0, boot_s=1.0, gps_rate_ms=200.0)
     plan = write_plan(tmp_path / "mission.plan", SMALL)
-    (tmp_path / "plan.json").write_text(json.dumps({"marker": {"size_m": 0.25, "dictionary": "DICT_4X4_50", "id": 0, "offset_frd_m": [0.1, 0, 0]}}))
+    _write_marker(tmp_path)
     try:
         rc = main(["fly", "--connect", sim.addresses()[0], "--mission", str(plan), "--video", camera.url, "--out", str(tmp_path / "run.mcap"), "--dry-run"])
     finally:
