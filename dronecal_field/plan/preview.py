@@ -17,7 +17,7 @@ def render_preview(result, path: str | os.PathLike) -> None:
     from matplotlib.figure import Figure
     from matplotlib.patches import Circle, Polygon
 
-    from dronecal_field.plan.strategies import marker_corners
+    from dronecal_field.sampling.lattice import marker_corners
 
     req, route, chosen = result.request, result.route, result.chosen
     R = req.site.R_enu_from_site  # plot the top view in ENU: east right, north up, like a map

@@ -1,7 +1,7 @@
 """Which sampling strategies the survey runs, and how a strategy becomes 3D points for a camera.
 
 The strategies themselves (X range, Y step, number of heights) are
-``plan.strategies.Strategy``: one definition for ``plan`` and the survey.
+``sampling.lattice.Strategy``: one definition for ``plan`` and the survey.
 This module adds what the study needs on top:
 
 - the *catalogue*: the strategies behind every comparison of the paper's
@@ -24,7 +24,7 @@ import numpy as np
 
 from dronecal_field.core.camera import Camera
 from dronecal_field.errors import InputError
-from dronecal_field.plan.strategies import Limits, Strategy, fold_radius, make_strategy, paper_strategies, sample_grid, xy_lattice
+from dronecal_field.sampling.lattice import Limits, Strategy, fold_radius, make_strategy, paper_strategies, sample_grid, xy_lattice
 
 # The paper's comparisons (section IV.B), each a tuple whose first entry is the paper's winner.
 # The baseline lattice (section III.B) is 1 m along X and Y, X out to 8 m: 'full' here.
@@ -53,7 +53,7 @@ def catalogue(spec: str = "paper") -> tuple[Strategy, ...]:
     """Strategies from a ``--strategies`` value.
 
     ``paper``: the six strategies of the paper's three comparisons;
-    ``all``: the 18 of ``plan.strategies.paper_strategies()``;
+    ``all``: the 18 of ``sampling.lattice.paper_strategies()``;
     ``recommended``: the paper's recommended one only;
     otherwise a comma-separated list of names (see :func:`strategy_from_name`).
     Order is kept and duplicates dropped.
@@ -119,13 +119,13 @@ class PaperLattice:
 
 @dataclass(frozen=True)
 class PlanLattice:
-    """What ``plan`` would fly: ``plan.strategies.sample_grid`` with these limits."""
+    """What ``plan`` would fly: ``sampling.lattice.sample_grid`` with these limits."""
 
     limits: Limits = Limits()
     name: str = field(default="plan", init=False)
 
     def heights(self, strategy: Strategy, camera: Camera) -> tuple[float, ...]:
-        from dronecal_field.plan.strategies import choose_heights
+        from dronecal_field.sampling.lattice import choose_heights
 
         return choose_heights(strategy, camera, self.limits)
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from dronecal_field.core.camera import Camera
 from dronecal_field.errors import CalibrationError, DegenerateGeometryError, DronecalError
-from dronecal_field.plan.strategies import Strategy
+from dronecal_field.sampling.lattice import Strategy
 from dronecal_field.survey.catalogue import PaperLattice, Sampler
 from dronecal_field.survey.design import SurveyCamera
 

@@ -45,7 +45,7 @@ def distance_curve(distances_m=FIG10_DISTANCES_M, settings: MonteCarloSettings =
     +-3 m, at the paper lattice's two heights, those the camera sees; the
     curve without GNSS noise sets sigma_3d to 0 (2D detection noise only).
     """
-    from dronecal_field.plan.strategies import Strategy
+    from dronecal_field.sampling.lattice import Strategy
 
     from dronecal_field.core.synthetic import pole_camera
 

@@ -14,7 +14,7 @@ from typing import IO, Any
 
 from dronecal_field.cluster import map_with_progress, run_on_every_worker, worker_count
 from dronecal_field.errors import InputError
-from dronecal_field.plan.strategies import Strategy
+from dronecal_field.sampling.lattice import Strategy
 from dronecal_field.survey.catalogue import PaperLattice, PlanLattice, Sampler
 from dronecal_field.survey.design import DesignSpace, latin_hypercube
 from dronecal_field.survey.evaluate import (
@@ -202,7 +202,7 @@ def score_strategies(
     Parameters
     ----------
     camera : core.camera.Camera in the site frame
-    strategies : candidates (plan.strategies.Strategy)
+    strategies : candidates (sampling.lattice.Strategy)
     sampler : how a strategy becomes points for this camera
     settings : noise model and trials
     client : ``distributed.Client``, or None to compute in this process
