@@ -8,6 +8,15 @@ Flight time is fitted to that real ArduCopter flight: WPNAV's jerk-limited
 S-curve makes a 1 m leg peak at 0.57 m/s and take ~4 s, so a 3 s hold cycle
 takes 6.9-7.2 s; lift-off comes 3.4 s after arming; NAV_LAND descends at
 LAND_SPEED 0.5 m/s below 10 m.
+
+Pass-through points (hold 0: NAV_WAYPOINT param 1 = 0 followed by another
+waypoint) are timed as ArduCopter flies them (SCurve, Copter 4.1+): each leg
+is planned rest to rest, and the next leg starts while this one brakes, so a
+straight run of pass-through points is flown at constant cruise and a turn
+of angle theta is rounded at cruise x cos(theta / 2), its apex at most
+WPNAV_RADIUS from the point (the overlap shrinks until it is). Only the
+points where the drone holds cost an acceleration and a braking. The
+simulated vehicle (``sim.vehicle_flight.Leg``) flies the same profiles.
 """
 
 from __future__ import annotations
@@ -40,6 +49,10 @@ class FlightModel:
     rtl_alt_m: float = 15.0  # RTL_ALT
     rtl_climb_m_s: float = 2.5  # WPNAV_SPEED_UP
     rtl_loiter_s: float = 5.0  # RTL_LOIT_TIME
+    wp_radius_m: float = 2.0  # WPNAV_RADIUS: the farthest a rounded corner's apex lies from its point
+    corner_accel_m_s2: float | None = None  # WPNAV_ACCEL_C; None = 2 x accel_m_s2 (ArduCopter's default)
+    climb_m_s: float = 2.5  # WPNAV_SPEED_UP on sloping legs
+    descent_m_s: float = 1.5  # WPNAV_SPEED_DN on sloping legs
 
 
 def leg_time_s(distance_m: np.ndarray | float, flight: FlightModel) -> np.ndarray:
@@ -49,6 +62,68 @@ def leg_time_s(distance_m: np.ndarray | float, flight: FlightModel) -> np.ndarra
     d_ramp = v * v / a  # accelerate + brake distance
     t = np.where(d < d_ramp, 2.0 * np.sqrt(np.maximum(d, 0.0) / a), d / v + v / a)
     return np.where(d > 1e-6, t + flight.leg_overhead_s, 0.0)
+
+
+def _leg_cruise_m_s(unit: np.ndarray, speed_m_s: float, flight: FlightModel) -> float:
+    """Cruise along a leg of direction ``unit`` (3,): the horizontal speed or the climb/descent limit."""
+    h = float(np.hypot(unit[0], unit[1]))
+    limits = [speed_m_s / h] if h > 1e-9 else []
+    if abs(unit[2]) > 1e-9:
+        limits.append((flight.climb_m_s if unit[2] > 0 else flight.descent_m_s) / abs(unit[2]))
+    return min(limits) if limits else speed_m_s
+
+
+def path_time_s(path: np.ndarray, stop: np.ndarray, speeds_m_s: np.ndarray, flight: FlightModel) -> float:
+    """Time (s) to fly a polyline from rest, stopping only where ``stop`` says (holds excluded).
+
+    Parameters
+    ----------
+    path : (M, 3) positions, m; the drone is at rest at ``path[0]``
+    stop : (M,) bool; True where the drone stops (``stop[-1]`` is always taken as True)
+    speeds_m_s : (M-1,) horizontal cruise commanded on each leg, m/s
+    flight : timing model (``accel_m_s2``, ``leg_overhead_s`` per stop, ``wp_radius_m``, ``corner_accel_m_s2``)
+
+    Each leg is a rest-to-rest trapezoid (``leg_time_s``); at a point flown
+    through, the next leg starts when this one starts braking (ArduCopter's
+    SCurve blend), which saves the overlap ``tau = min(ramp_in, ramp_out)``,
+    shortened so the turn's apex stays within ``wp_radius_m`` (apex offset
+    ``accel * tau^2 / 8 * |u_out - u_in|``); a turn needing more than the
+    corner acceleration (a reversal) stops instead.
+    """
+    P = np.asarray(path, float)
+    if len(P) < 2:
+        return 0.0
+    a = flight.accel_m_s2
+    corner = flight.corner_accel_m_s2 if flight.corner_accel_m_s2 is not None else 2.0 * a
+    d = np.diff(P, axis=0)
+    lengths = np.linalg.norm(d, axis=1)
+    units = np.where(lengths[:, None] > 1e-9, d / np.maximum(lengths, 1e-12)[:, None], 0.0)
+    cruise = np.array([_leg_cruise_m_s(u, float(v), flight) for u, v in zip(units, np.asarray(speeds_m_s, float))])
+    peak = np.minimum(cruise, np.sqrt(a * lengths))
+    ramp = peak / a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ends = np.where(peak > 1e-9, 2.0 * ramp + (lengths - peak * peak / a) / np.maximum(peak, 1e-12), 0.0)
+    total = float(ends.sum())
+    stops = np.asarray(stop, bool).copy()
+    stops[-1] = True
+    for j in range(1, len(P) - 1):
+        through = not stops[j] and lengths[j - 1] > 1e-9 and lengths[j] > 0.01
+        if through:
+            du = units[j] - units[j - 1]
+            if a * float(np.hypot(du[0], du[1])) >= corner or abs(a * du[2]) > a * (1 + 1e-6):
+                through = False
+        if not through:
+            if lengths[j - 1] > 1e-6:
+                total += flight.leg_overhead_s
+            continue
+        tau = min(ramp[j - 1], ramp[j])
+        n = float(np.linalg.norm(du))
+        if n > 1e-9:
+            tau = min(tau, math.sqrt(8.0 * flight.wp_radius_m / (a * n)))
+        total -= tau
+    if lengths[-1] > 1e-6:
+        total += flight.leg_overhead_s
+    return total
 
 
 def takeoff_time_s(alt_m: float, flight: FlightModel) -> float:
@@ -135,7 +210,10 @@ class Route:
     ``points`` (K, 3) are every position the mission commands after take-off (grid
     holds, detours, the point above the take-off point); ``kind`` (K,) is
     'grid' | 'detour' | 'home'; ``grid_index`` (K,) the index into the planned
-    grid points (-1 for others); ``hold_s`` (K,) the holds.
+    grid points (-1 for others); ``hold_s`` (K,) the holds in whole seconds
+    (0 = flown through when another waypoint follows); ``speed_m_s`` (K,) the
+    horizontal cruise commanded on the leg that arrives at each point;
+    ``through`` (K,) True where the drone passes without stopping.
     """
 
     takeoff_site: np.ndarray  # (3,) on the ground
@@ -147,6 +225,8 @@ class Route:
     end: str  # 'land' | 'rtl'
     flight_time_s: float
     path_length_m: float
+    speed_m_s: np.ndarray | None = None  # (K,)
+    through: np.ndarray | None = None  # (K,) bool
 
     @property
     def grid_order(self) -> np.ndarray:
@@ -200,23 +280,51 @@ def plan_route(
     flight: FlightModel,
     takeoff_site: np.ndarray | None = None,
     end: str = "land",
+    hold_s: np.ndarray | None = None,
+    ordered: bool = False,
     takeoff_alt_m: float | None = None,
+    leg_speed_m_s: float | None = None,
 ) -> Route:
-    """Order the grid, add the take-off point and keep-out detours, and time the flight.
+    """Order the points, add the take-off point and keep-out detours, and time the flight.
 
     Parameters
     ----------
-    vehicle : (N, 3) drone positions of the grid points, site frame, m
+    vehicle : (N, 3) drone positions of the points, site frame, m
     marker : (N, 3) marker centres (only for grouping into levels), m
     limits : ``plan.strategies.Limits`` (keep-out, range, geofence)
     flight : timing model
-    takeoff_site : (3,) take-off point on the ground, site frame; default beside the grid
+    takeoff_site : (3,) take-off point on the ground, site frame; default beside the points
     end : 'land' (fly above the take-off point, NAV_LAND) or 'rtl'
+    hold_s : (N,) hold per point, s, rounded to whole seconds (ArduCopter's
+        NAV_WAYPOINT param 1); 0 = fly through without stopping (when another
+        waypoint follows). None = ``flight.hover_s`` everywhere.
+    ordered : True keeps the given order (designed legs); False orders the
+        points level by level (``order_points``), starting nearest the take-off point
     takeoff_alt_m : NAV_TAKEOFF altitude above the take-off point; default max(2 m, first point)
+    leg_speed_m_s : horizontal speed on the legs into, between and out of
+        pass-through points (DO_CHANGE_SPEED at each stop where it changes);
+        None = ``flight.speed_m_s`` everywhere
+
+    Notes
+    -----
+    A run of pass-through points should start at a point where the drone
+    holds (or at the take-off climb): the drone accelerates from there and
+    keeps the leg speed through the run. Detours round the keep-out are
+    flown through as well (hold 0), as ArduCopter does.
     """
     vehicle = np.asarray(vehicle, float)
     marker = np.asarray(marker, float)
-    if takeoff_site is None:
+    n = len(vehicle)
+    holds_in = np.full(n, float(flight.hover_s)) if hold_s is None else np.asarray(hold_s, float).reshape(-1)
+    if len(holds_in) != n:
+        raise PlanError(f"hold_s has {len(holds_in)} values for {n} points: give one hold (s) per point")
+    if np.any(holds_in < 0) or not np.all(np.isfinite(holds_in)):
+        raise PlanError("hold_s has negative or non-finite holds: give 0 (fly through) or a hold in seconds per point")
+    holds_in = np.round(holds_in)  # ArduCopter stores the hold as whole seconds
+    if ordered:
+        order = np.arange(n)
+        takeoff = default_takeoff(vehicle, order, limits) if takeoff_site is None else np.asarray(takeoff_site, float).copy()
+    elif takeoff_site is None:
         order = order_points(marker)
         takeoff = default_takeoff(vehicle, order, limits)
     else:
@@ -249,14 +357,27 @@ def plan_route(
         holds.append(hold)
 
     for i in order:
-        add_leg(vehicle[i], "grid", int(i), flight.hover_s)
+        add_leg(vehicle[i], "grid", int(i), float(holds_in[i]))
     if end == "land":
         add_leg(np.array([takeoff[0], takeoff[1], pts[-1][2]]), "home", -1, 0.0)
     P = np.asarray(pts)
+    H = np.asarray(holds, float)
+    G = np.asarray(gidx, int)
     start = np.array([takeoff[0], takeoff[1], takeoff[2] + takeoff_alt_m])
     path = np.concatenate([start[None], P])
     legs = np.linalg.norm(np.diff(path, axis=0), axis=1)
-    t = takeoff_time_s(takeoff_alt_m, flight) + float(leg_time_s(legs, flight).sum()) + float(np.sum(holds))
+    # the drone flies through a hold-0 point when a waypoint with some length follows (the last one precedes LAND/RTL)
+    next_len = np.append(legs[1:], 0.0)
+    through = (H <= 0.0) & (next_len > 0.01)
+    through[-1] = False
+    # leg speed on the legs that arrive at or leave a pass-through grid point
+    speeds = np.full(len(P), float(flight.speed_m_s))
+    if leg_speed_m_s is not None:
+        in_run = through & (G >= 0)
+        arrive = in_run | np.concatenate([[False], in_run[:-1]])
+        speeds[arrive] = float(leg_speed_m_s)
+    stop = np.concatenate([[True], ~through])
+    t = takeoff_time_s(takeoff_alt_m, flight) + path_time_s(path, stop, speeds, flight) + float(H.sum())
     if end == "land":
         t += descent_time_s(float(P[-1, 2] - takeoff[2]), flight)
     else:
@@ -269,9 +390,11 @@ def plan_route(
         takeoff_alt_m=float(takeoff_alt_m),
         points=P,
         kind=tuple(kinds),
-        grid_index=np.asarray(gidx, int),
-        hold_s=np.asarray(holds, float),
+        grid_index=G,
+        hold_s=H,
         end=end,
         flight_time_s=float(t),
         path_length_m=float(legs.sum()),
+        speed_m_s=speeds,
+        through=through,
     )

@@ -35,6 +35,14 @@ class CopterParams:
         Horizontal waypoint speed [WPNAV_SPEED]; DO_CHANGE_SPEED overrides it.
     wp_accel_mps2 : float
         Acceleration and braking on legs [WPNAV_ACCEL].
+    wp_radius_m : float
+        Largest distance of a rounded corner's apex from a pass-through
+        waypoint [WPNAV_RADIUS, 4.7: WP_RADIUS_M].
+    corner_accel_mps2 : float or None
+        Largest acceleration through a rounded corner [WPNAV_ACCEL_C]; None
+        = 2 x ``wp_accel_mps2`` (ArduCopter's default for WPNAV_ACCEL_C 0).
+    descent_mps : float
+        Descent rate on sloping legs [WPNAV_SPEED_DN].
     takeoff_climb_mps : float
         Climb rate during NAV_TAKEOFF (about 1 m/s in the recording).
     climb_mps : float
@@ -62,6 +70,9 @@ class CopterParams:
 
     wp_speed_mps: float = 5.0
     wp_accel_mps2: float = 1.0
+    wp_radius_m: float = 2.0
+    corner_accel_mps2: float | None = None
+    descent_mps: float = 1.5
     takeoff_climb_mps: float = 1.0
     climb_mps: float = 2.5
     land_speed_mps: float = 0.5
@@ -91,15 +102,145 @@ def bearing_deg(from_en: np.ndarray, to_en: np.ndarray) -> float:
 
 
 @dataclass
+class Leg:
+    """One straight mission leg flown on a time-symmetric speed profile.
+
+    ArduCopter (AC_WPNav + SCurve, Copter 4.1+) plans every leg from rest to
+    rest; a pass-through ("fast") waypoint is flown by starting the next leg's
+    profile while this one brakes, the target being the sum of the two: on a
+    straight continuation the braking and the accelerating halves add up to
+    constant speed, at a turn of angle theta the apex speed is cruise x
+    cos(theta / 2) and the corner is cut by at most WPNAV_RADIUS. The jerk-limited
+    S-curve is modelled as a trapezoid (acceleration ``accel_mps2``).
+
+    Attributes
+    ----------
+    origin, dest : (3,) ENU metres
+    speed_mps : float
+        Cruise along the track (m/s): the horizontal speed, or the climb /
+        descent limit on steep legs, whichever binds.
+    accel_mps2 : float
+        Acceleration and braking along the track, m/s^2.
+    t_s : float
+        Time since the leg started, s (0 = not started).
+    """
+
+    origin: np.ndarray
+    dest: np.ndarray
+    speed_mps: float
+    accel_mps2: float
+    t_s: float = 0.0
+
+    @classmethod
+    def plan(cls, origin: np.ndarray, dest: np.ndarray, speed_h_mps: float, accel_mps2: float, climb_mps: float, descent_mps: float) -> "Leg":
+        """A leg from ``origin`` to ``dest`` (ENU m) with ArduCopter's horizontal and vertical speed limits."""
+        origin = np.asarray(origin, float).copy()
+        dest = np.asarray(dest, float).copy()
+        delta = dest - origin
+        length = float(np.linalg.norm(delta))
+        speed = speed_h_mps
+        if length > 1e-9:
+            u = delta / length
+            h = float(np.hypot(u[0], u[1]))
+            limits = [speed_h_mps / h] if h > 1e-9 else []
+            vz = climb_mps if u[2] > 0 else descent_mps
+            if abs(u[2]) > 1e-9:
+                limits.append(vz / abs(u[2]))
+            speed = min(limits)
+        return cls(origin=origin, dest=dest, speed_mps=float(speed), accel_mps2=float(accel_mps2))
+
+    @property
+    def length_m(self) -> float:
+        return float(np.linalg.norm(self.dest - self.origin))
+
+    @property
+    def unit(self) -> np.ndarray:
+        L = self.length_m
+        return (self.dest - self.origin) / L if L > 1e-9 else np.zeros(3)
+
+    @property
+    def peak_mps(self) -> float:
+        """Speed reached: cruise, or less on a leg too short to reach it."""
+        return min(self.speed_mps, math.sqrt(self.accel_mps2 * self.length_m))
+
+    @property
+    def ramp_s(self) -> float:
+        """Duration of the acceleration (= the braking), s."""
+        return self.peak_mps / self.accel_mps2
+
+    @property
+    def end_s(self) -> float:
+        v = self.peak_mps
+        if v <= 0.0:
+            return 0.0
+        return 2.0 * self.ramp_s + (self.length_m - v * v / self.accel_mps2) / v
+
+    @property
+    def decel_start_s(self) -> float:
+        return self.end_s - self.ramp_s
+
+    @property
+    def remaining_s(self) -> float:
+        return max(0.0, self.end_s - self.t_s)
+
+    @property
+    def finished(self) -> bool:
+        return self.t_s >= self.end_s - 1e-9
+
+    def state_at(self, t_s: float) -> tuple[float, float, float]:
+        """(distance m, speed m/s, acceleration m/s^2) along the track at leg time ``t_s``."""
+        a, v, L = self.accel_mps2, self.peak_mps, self.length_m
+        tr, te = self.ramp_s, self.end_s
+        if v <= 0.0 or t_s >= te:
+            return L, 0.0, 0.0
+        if t_s <= 0.0:
+            return 0.0, 0.0, 0.0
+        if t_s < tr:
+            return 0.5 * a * t_s * t_s, a * t_s, a
+        if t_s <= te - tr:
+            return 0.5 * v * tr + v * (t_s - tr), v, 0.0
+        tau = te - t_s
+        return L - 0.5 * a * tau * tau, a * tau, -a
+
+
+def corner_ok(this: Leg, nxt: Leg, wp_radius_m: float, corner_accel_mps2: float, accel_z_mps2: float) -> bool:
+    """ArduCopter's test for starting the next leg now (SCurve::advance_target_along_track).
+
+    The turn's mid point, if the next leg started now, must lie within
+    ``wp_radius_m`` of the waypoint, be no faster than the slower leg's cruise
+    and need no more than the corner acceleration (horizontal) and the
+    vertical acceleration limit.
+    """
+    half = 0.5 * this.remaining_s
+    s1, v1, a1 = this.state_at(this.t_s + half)
+    s2, v2, a2 = nxt.state_at(half)
+    u1, u2 = this.unit, nxt.unit
+    pos = (s1 - this.length_m) * u1 + s2 * u2
+    vel = v1 * u1 + v2 * u2
+    acc = a1 * u1 + a2 * u2
+    speed_min = min(this.speed_mps, nxt.speed_mps)
+    return (
+        float(np.linalg.norm(pos)) < wp_radius_m
+        and float(np.linalg.norm(vel)) <= speed_min * (1.0 + 1e-6)
+        and float(np.hypot(acc[0], acc[1])) < corner_accel_mps2
+        and abs(float(acc[2])) < accel_z_mps2 * (1.0 + 1e-6)
+    )
+
+
+@dataclass
 class _Nav:
     """The active navigation task."""
 
-    phase: str = "idle"  # idle | spool | climb | goto | hold | hover | rtl_climb | rtl_return | rtl_loiter | descend | touchdown
+    phase: str = "idle"  # idle | spool | climb | goto | leg | hold | hover | rtl_climb | rtl_return | rtl_loiter | descend | touchdown
     target: np.ndarray = field(default_factory=lambda: np.zeros(3))
     timer_s: float = 0.0
     hold_s: float = 0.0
     seq: int | None = None  # mission seq this task belongs to (AUTO), else None
     kind: str = ""  # takeoff | waypoint | rtl | land | guided
+    # phase "leg" (AUTO waypoints): the leg being finished after a pass-through, this one, the next one
+    prev_leg: Leg | None = None
+    leg: Leg | None = None
+    next_leg: Leg | None = None  # set when this waypoint is a pass-through ("fast") one
 
 
 class CopterModel:
@@ -308,6 +449,7 @@ class CopterModel:
         if item.command == mf.CMD_DO_CHANGE_SPEED:
             if item.p2 > 0:
                 self.speed_mps = float(item.p2)
+                self._replan_unstarted_legs()
         elif item.command in (mf.CMD_DO_SET_ROI, mf.CMD_DO_SET_ROI_LOCATION):
             target = self.to_enu(item)
             self.roi = None if target is None else np.asarray(target, float)
@@ -330,7 +472,7 @@ class CopterModel:
         elif item.command in (mf.CMD_NAV_WAYPOINT, mf.CMD_NAV_LOITER_TIME):
             self.yaw_fixed_deg = None  # ArduCopter resets a fixed yaw at each waypoint (an ROI stays)
             hold = item.hold_s if item.command == mf.CMD_NAV_WAYPOINT else max(0.0, item.p1)
-            self.nav = _Nav(phase="goto", target=self._item_target(item), hold_s=hold, seq=index, kind="waypoint")
+            self.nav = self._waypoint_nav(index, self._item_target(item), hold)
         elif item.command == mf.CMD_NAV_RETURN_TO_LAUNCH:
             self._start_rtl(seq=index)
         elif item.command == mf.CMD_NAV_LAND:
@@ -339,6 +481,58 @@ class CopterModel:
         else:  # NAV_DELAY and friends: nothing to fly
             self.nav = _Nav(phase="hover", target=self.pos.copy(), seq=index, kind="waypoint")
             self._nav_complete()
+
+    def _plan_leg(self, origin: np.ndarray, dest: np.ndarray) -> Leg:
+        p = self.p
+        return Leg.plan(origin, dest, self.speed_mps, p.wp_accel_mps2, p.climb_mps, p.descent_mps)
+
+    def _waypoint_nav(self, index: int, target: np.ndarray, hold_s: float) -> _Nav:
+        """The leg task for a NAV_WAYPOINT: carries on a pass-through already under way, plans the next leg if this one is one."""
+        old = self.nav
+        if old.phase == "leg" and old.next_leg is not None and old.next_leg.t_s > 0.0 and bool(np.allclose(old.next_leg.dest, target, atol=1e-6)):
+            # ArduCopter: past the apex of a pass-through the next leg becomes this leg, the old one finishes its braking
+            prev, leg = old.leg, old.next_leg
+        else:
+            prev, leg = None, self._plan_leg(self.pos, target)
+        nxt = None
+        if hold_s <= 0.0:
+            # ArduCopter (ModeAuto::do_nav_wp): no delay and a next NAV item with a position -> "fast" waypoint
+            after = self._next_fast_target(index)
+            if after is not None:
+                candidate = self._plan_leg(target, after)
+                if candidate.length_m > 0.01:
+                    nxt = candidate
+        return _Nav(phase="leg", target=np.asarray(target, float).copy(), hold_s=hold_s, seq=index, kind="waypoint", prev_leg=prev, leg=leg, next_leg=nxt)
+
+    def _next_fast_target(self, index: int) -> np.ndarray | None:
+        """Position of the next NAV item if ArduCopter would fly through item ``index`` into it, else None.
+
+        ArduCopter also flies through into a NAV_LAND with a position and into
+        RTL; this simulator stops there (our missions put the last waypoint
+        straight above the landing point, so that leg has no length anyway),
+        and it stops before a DO_JUMP.
+        """
+        j = index + 1
+        while j < len(self.items):
+            item = self.items[j]
+            if item.command == mf.CMD_DO_JUMP:
+                return None
+            if item.is_nav:
+                if item.command in (mf.CMD_NAV_WAYPOINT, mf.CMD_NAV_LOITER_TIME) and (item.x != 0 or item.y != 0):
+                    return self._item_target(item)
+                return None
+            j += 1
+        return None
+
+    def _replan_unstarted_legs(self) -> None:
+        """A new speed (DO_CHANGE_SPEED) for the legs not yet under way (ArduCopter re-plans the current one too)."""
+        nav = self.nav
+        if nav.phase != "leg":
+            return
+        if nav.leg is not None and nav.leg.t_s == 0.0 and nav.prev_leg is None:
+            nav.leg = self._plan_leg(nav.leg.origin, nav.leg.dest)
+        if nav.next_leg is not None and nav.next_leg.t_s == 0.0:
+            nav.next_leg = self._plan_leg(nav.next_leg.origin, nav.next_leg.dest)
 
     def _item_alt(self, item: MissionItem) -> float:
         target = self.to_enu(item)
@@ -453,7 +647,7 @@ class CopterModel:
         elif self.roi is not None and self.nav.kind != "rtl":
             if float(np.hypot(*(self.roi[:2] - here[:2]))) > 0.3:
                 desired = bearing_deg(here, self.roi)
-        elif self.nav.phase == "goto" and float(np.hypot(*(self.nav.target[:2] - self.pos[:2]))) > 1.0:
+        elif self.nav.phase in ("goto", "leg") and float(np.hypot(*(self.nav.target[:2] - self.pos[:2]))) > 1.0:
             desired = bearing_deg(self.pos, self.nav.target)  # WP_YAW_BEHAVIOR 2: face the next waypoint
         if desired is None:
             return
@@ -480,6 +674,56 @@ class CopterModel:
         self.pos = self.pos + direction * step
         self.vel = direction * v
         return False
+
+    def _step_legs(self, dt: float) -> None:
+        """Advance the leg profiles of an AUTO waypoint; the target is the sum of the legs under way."""
+        nav = self.nav
+        p = self.p
+        leg = nav.leg
+        assert leg is not None
+        prev, nxt = nav.prev_leg, nav.next_leg
+        if prev is not None:
+            prev.t_s += dt
+            if prev.finished:
+                nav.prev_leg = prev = None
+        leg.t_s = min(leg.t_s + dt, leg.end_s)
+        done = leg.finished
+        if nxt is not None:
+            if nxt.t_s > 0.0:
+                nxt.t_s += dt
+            elif not done and leg.t_s >= leg.decel_start_s - 1e-9 and leg.remaining_s <= nxt.ramp_s + 1e-9:
+                corner = p.corner_accel_mps2 if p.corner_accel_mps2 is not None else 2.0 * p.wp_accel_mps2
+                if corner_ok(leg, nxt, p.wp_radius_m, corner, p.wp_accel_mps2):
+                    nxt.t_s = dt
+            if nxt.t_s > 0.0 and nxt.t_s >= leg.remaining_s:
+                done = True  # ArduCopter: a fast waypoint is reached half way through the turn (SCurve)
+        s1, v1, _ = leg.state_at(leg.t_s)
+        u1 = leg.unit
+        pos = leg.origin + s1 * u1
+        vel = v1 * u1
+        if prev is not None:
+            s0, v0, _ = prev.state_at(prev.t_s)
+            pos = pos - (prev.length_m - s0) * prev.unit
+            vel = vel + v0 * prev.unit
+        if nxt is not None and nxt.t_s > 0.0:
+            s2, v2, _ = nxt.state_at(nxt.t_s)
+            pos = pos + s2 * nxt.unit
+            vel = vel + v2 * nxt.unit
+        self.pos = pos
+        self.vel = vel
+        if not done:
+            return
+        if nxt is not None and nxt.t_s > 0.0:
+            self._nav_complete()  # MISSION_ITEM_REACHED without stopping; the next waypoint takes the legs over
+            return
+        if prev is not None:
+            return  # a short leg can end before the braking of the one before it: wait for it
+        self.pos = leg.dest.copy()
+        self.vel[:] = 0.0
+        nav.phase = "hold"  # ArduCopter: the hold timer starts when the target reaches the point
+        nav.timer_s = 0.0
+        if nav.hold_s <= 0.0:
+            self._nav_complete()
 
     def _vertical(self, target_alt: float, rate: float, dt: float) -> bool:
         dz = target_alt - self.pos[2]
@@ -522,6 +766,9 @@ class CopterModel:
                         self._nav_complete()
                 else:
                     self._hover_here()
+            return
+        if nav.phase == "leg":
+            self._step_legs(dt)
             return
         if nav.phase == "hold":
             self.vel[:] = 0.0
