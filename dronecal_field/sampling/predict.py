@@ -1,0 +1,261 @@
+"""Predicted projection error over the ROI: the linearised noise term and the model-extrapolation term.
+
+Two errors decide how well a calibration serves the ROI:
+
+- *noise*: RTK and detection noise on the samples, propagated to the
+  camera parameters to first order (``core.uncertainty.parameter_covariance``)
+  and then to the projection of every ROI point. Milliseconds per candidate,
+  so hundreds of layouts can be ranked. Each sample has its own sigma: RTK
+  1 cm horizontal / 1.5 cm vertical and 2 px (the paper), plus for a fix taken
+  in motion the timing term (speed x 0.01 s) along the horizontal.
+- *extrapolation*: a first-order noise figure is tight wherever the
+  parameters are, including where no sample was; but outside the sampled
+  hull the *model* itself is extrapolated. The real lens is not the guess:
+  plausible lenses of the guessed level are drawn (k1, k2, k3, p1, p2 around
+  the level's nominal, k3 and a different k2 being what the lean model
+  cannot express), the planned samples are projected through each, the model
+  ``calibrate`` fits is fitted to those exact projections (batched
+  Levenberg-Marquardt, no noise), and the ROI projection of the fit is
+  compared with the draw's. The RMS over draws is the extrapolation term.
+
+Both are combined per ROI point as a root-sum-square. Ground errors (cm) are
+the ground displacement of a fixed pixel on the z = 0 ROI points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from dronecal_field.core.calibrate import BatchState, levenberg_marquardt, resolve_model
+from dronecal_field.core.camera import Camera, project_batch, project_batch_jacobians
+from dronecal_field.core.uncertainty import parameter_covariance
+from dronecal_field.sampling.lattice import PLAN_FOLD_MIN_SLOPE, fold_radius
+
+N_LENS_DRAWS = 20
+MAX_FIT_POINTS = 400  # samples used by the extrapolation fits (noise-free: more add nothing)
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Noise of one sample (the paper's: RTK 1 cm / 1.5 cm vertical, 2 px) and the calibration model."""
+
+    sigma_px: float = 2.0
+    sigma_h_m: float = 0.01
+    sigma_v_m: float = 0.015
+    model: str = "auto"
+
+
+K3_RADIUS_SHARE = 0.85  # samples reaching this share of the ROI's radius make k3 observable
+
+
+def prediction_model(camera: Camera, samples: np.ndarray, roi_points: np.ndarray, model: str) -> str:
+    """The distortion model ``calibrate`` is expected to fit to these samples.
+
+    ``'auto'``: the full model (k3 free) when the samples reach
+    :data:`K3_RADIUS_SHARE` of the ROI's largest normalised radius (k3 is then
+    observable and ``calibrate --model auto`` frees it), else k1k2p1p2 (the
+    lean model, which then extrapolates); any other name is kept.
+    """
+    if model != "auto":
+        return model
+    if len(samples) < 16:
+        return "default"
+    reach = float(np.max(normalised_radius(camera, samples)))
+    need = float(np.max(normalised_radius(camera, roi_points)))
+    return "full" if reach >= K3_RADIUS_SHARE * need else "default"
+
+
+@dataclass(frozen=True, eq=False)
+class RoiPrediction:
+    """Predicted errors at the ROI evaluation points.
+
+    ``px_lin``, ``px_extrap``, ``px_combined`` (M,) px per point;
+    ``ground_cm_lin``, ``ground_cm_extrap``, ``ground_cm_combined`` (G,) cm on the
+    ground points (``on_ground``, (M,) bool).
+    """
+
+    px_lin: np.ndarray
+    px_extrap: np.ndarray
+    px_combined: np.ndarray
+    on_ground: np.ndarray
+    ground_cm_lin: np.ndarray
+    ground_cm_extrap: np.ndarray
+    ground_cm_combined: np.ndarray
+    n_samples: int
+    model: str = "default"
+
+    @property
+    def combined_rms_px(self) -> float:
+        return _rms(self.px_combined)
+
+    def summary(self) -> dict:
+        """JSON-ready figures (px over ROI points, cm over the ground part)."""
+        return {
+            "points": int(len(self.px_lin)), "ground_points": int(self.on_ground.sum()), "samples": self.n_samples, "model": self.model,
+            "linearised_px": _stats(self.px_lin), "extrapolation_px": _stats(self.px_extrap), "combined_px": _stats(self.px_combined),
+            "ground_linearised_cm": _stats(self.ground_cm_lin), "ground_extrapolation_cm": _stats(self.ground_cm_extrap),
+            "ground_combined_cm": _stats(self.ground_cm_combined),
+            "text": "projection error of the calibrated camera at the ROI points, px: linearised noise term (RTK + detection + timing), "
+                    "model-extrapolation term (spread over plausible lenses of the guessed level), combined root-sum-square",
+        }
+
+
+def _rms(v: np.ndarray) -> float:
+    v = np.asarray(v, float)
+    v = v[np.isfinite(v)]
+    return float(np.sqrt(np.mean(v**2))) if v.size else float("nan")
+
+
+def _stats(v: np.ndarray) -> dict:
+    v = np.asarray(v, float)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return {"rms": None, "p95": None, "max": None}
+    return {"rms": round(_rms(v), 4), "p95": round(float(np.percentile(v, 95)), 4), "max": round(float(v.max()), 4)}
+
+
+def sample_sigmas(samples_sigma_h_m: np.ndarray, noise: NoiseModel) -> np.ndarray:
+    """(S, 3) per-sample position std (m): RTK, with the timing term added in quadrature horizontally."""
+    extra = np.asarray(samples_sigma_h_m, float)
+    h = np.sqrt(noise.sigma_h_m**2 + extra**2)
+    return np.column_stack([h, h, np.full(len(extra), noise.sigma_v_m)])
+
+
+def _ground_maps(camera: Camera, roi_points: np.ndarray, on_ground: np.ndarray) -> np.ndarray:
+    """(G, 2, 2) maps from a pixel shift to the ground shift (m) of a fixed pixel, at the ground ROI points."""
+    g = roi_points[on_ground]
+    if not len(g):
+        return np.zeros((0, 2, 2))
+    _, _, Jx = project_batch_jacobians(*camera.batch_arrays(), g[None])
+    Jg = Jx[0][:, :, :2]  # d(uv)/d(x, y) on the ground plane
+    return np.linalg.pinv(Jg)
+
+
+def linearised_roi(camera: Camera, samples: np.ndarray, sigma_3d: np.ndarray, roi_points: np.ndarray, on_ground: np.ndarray,
+                   noise: NoiseModel) -> tuple[np.ndarray, np.ndarray]:
+    """Noise term: (M,) px and (G,) cm standard errors of the ROI projection, to first order.
+
+    Parameters
+    ----------
+    camera : guessed camera (site frame)
+    samples : (S, 3) marker centres of the samples, m
+    sigma_3d : (S, 3) their position std, m
+    roi_points : (M, 3) ROI evaluation points, m; ``on_ground`` (M,) bool
+    """
+    cov = parameter_covariance(camera, samples, sigma_3d, noise.sigma_px, noise.model)
+    _, J, _ = project_batch_jacobians(*camera.batch_arrays(), roi_points[None], with_points=False)
+    J = J[0]  # (M, 2, 15)
+    C = np.einsum("mip,pq,mjq->mij", J, cov, J)  # (M, 2, 2) pixel covariance
+    px = np.sqrt(np.maximum(np.trace(C, axis1=1, axis2=2), 0.0))
+    G = _ground_maps(camera, roi_points, on_ground)
+    Cg = np.einsum("gij,gjk,glk->gil", G, C[on_ground], G)
+    cm = 100.0 * np.sqrt(np.maximum(np.trace(Cg, axis1=1, axis2=2), 0.0))
+    return px, cm
+
+
+def lens_draws(camera: Camera, nominal: np.ndarray, radius_needed: float, n: int = N_LENS_DRAWS, seed: int = 0) -> np.ndarray:
+    """(n, 6) plausible lenses (k1, k2, p1, p2, k3, k4) around a guessed level's nominal coefficients.
+
+    k1 within ±40 % of the nominal (±0.08 absolute when the nominal is 0),
+    k2 nominal ± 0.08 (std), k3 ~ N(0, 0.03), p1, p2 ~ N(0, 5e-4), and an
+    eighth-order radial term k4 ~ N(0, 0.01) that no model of ``calibrate``
+    holds (real lenses are not exactly Brown-Conrady, so even the full model
+    extrapolates). A draw whose radial map folds (slope 5 %) inside
+    ``radius_needed`` (the normalised radius of the ROI's farthest point from
+    the axis) is drawn again: no real lens shows the ROI folded.
+    """
+    rng = np.random.default_rng(seed)
+    nominal = np.asarray(nominal, float)
+    r = np.linspace(0.0, 1.02 * radius_needed, 400)
+    out: list[np.ndarray] = []
+    tries = 0
+    while len(out) < n and tries < 50 * n:
+        tries += 1
+        k1 = nominal[0] * rng.uniform(0.6, 1.4) if abs(nominal[0]) > 1e-6 else rng.normal(0.0, 0.08)
+        d = np.array([k1, nominal[1] + rng.normal(0.0, 0.08), nominal[2] + rng.normal(0.0, 5e-4),
+                      nominal[3] + rng.normal(0.0, 5e-4), nominal[4] + rng.normal(0.0, 0.03), rng.normal(0.0, 0.01)])
+        r2 = r * r
+        slope = 1.0 + 3.0 * d[0] * r2 + 5.0 * d[1] * r2**2 + 7.0 * d[4] * r2**3 + 9.0 * d[5] * r2**4
+        if np.all(slope > PLAN_FOLD_MIN_SLOPE):
+            out.append(d)
+    if not out:  # the level itself folds inside the ROI: keep the nominal only
+        out.append(np.append(nominal, 0.0))
+    return np.asarray(out)
+
+
+def project_k4(camera: Camera, lenses: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(D, N, 2) pixels of points (N, 3) through ``camera`` with each lens (D, 6) (Brown-Conrady + k4 r^8)."""
+    Xc = points @ camera.pose.R_cam_from_world.T + camera.pose.t_cam_from_world
+    x = (Xc[:, 0] / Xc[:, 2])[None]
+    y = (Xc[:, 1] / Xc[:, 2])[None]
+    k1, k2, p1, p2, k3, k4 = (lenses[:, i : i + 1] for i in range(6))
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    i = camera.intrinsics
+    return np.stack([i.fx * xd + i.cx, i.fy * yd + i.cy], -1)
+
+
+def normalised_radius(camera: Camera, points: np.ndarray) -> np.ndarray:
+    """(N,) radius of points (N, 3) on the camera's z = 1 plane (undistorted)."""
+    Xc = points @ camera.pose.R_cam_from_world.T + camera.pose.t_cam_from_world
+    z = np.maximum(Xc[:, 2], 1e-6)
+    return np.hypot(Xc[:, 0] / z, Xc[:, 1] / z)
+
+
+def extrapolation_roi(camera: Camera, samples: np.ndarray, roi_points: np.ndarray, on_ground: np.ndarray, draws: np.ndarray,
+                      model: str = "default") -> tuple[np.ndarray, np.ndarray]:
+    """Model-extrapolation term: (M,) px and (G,) cm RMS over lens draws of (fit - draw) at the ROI points.
+
+    For each draw (D, 6) the samples (S, 3) are projected through the camera
+    with that lens, ``model`` is fitted to those exact pixels (batched
+    Levenberg-Marquardt from the draw, so only what the model cannot express
+    or the samples cannot pin moves), and the ROI points are projected
+    through both.
+    """
+    S = np.asarray(samples, float)
+    if len(S) > MAX_FIT_POINTS:
+        S = S[np.linspace(0, len(S) - 1, MAX_FIT_POINTS).round().astype(int)]
+    draws = np.asarray(draws, float)
+    D = len(draws)
+    pix = project_k4(camera, draws, S)
+    mdl = resolve_model(model, len(S))
+    A = mdl.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx)
+    start = BatchState.from_camera(camera, D)
+    start.distortion[:] = draws[:, :5]
+    for name, i in {"k1": 0, "k2": 1, "p1": 2, "p2": 3, "k3": 4}.items():
+        if name not in mdl.free_names():
+            start.distortion[:, i] = 0.0  # the fit cannot hold it: it starts (and stays) at 0
+    fit, _, _ = levenberg_marquardt(start, S[None], pix, A, max_iterations=60, tolerance=1e-10)
+    uv_true = project_k4(camera, draws, roi_points)
+    uv_fit = project_batch(fit.intrinsics, fit.distortion, fit.R, fit.t, roi_points[None])
+    diff = uv_fit - uv_true  # (D, M, 2)
+    ok = np.all(np.isfinite(diff), axis=(0, 2))
+    px = np.full(len(roi_points), np.nan)
+    px[ok] = np.sqrt(np.mean(np.sum(diff[:, ok] ** 2, axis=2), axis=0))
+    G = _ground_maps(camera, roi_points, on_ground)
+    dg = np.einsum("gij,dgj->dgi", G, diff[:, on_ground])
+    cm = 100.0 * np.sqrt(np.mean(np.sum(dg**2, axis=2), axis=0))
+    return px, cm
+
+
+def predict_roi(camera: Camera, samples: np.ndarray, samples_sigma_h_m: np.ndarray, roi_points: np.ndarray, on_ground: np.ndarray,
+                noise: NoiseModel, draws: np.ndarray | None) -> RoiPrediction:
+    """Both terms and their root-sum-square at the ROI points (see the module docstring).
+
+    ``draws`` None leaves the extrapolation term out (zeros): only for tests
+    of the noise term.
+    """
+    s3 = sample_sigmas(samples_sigma_h_m, noise)
+    model = prediction_model(camera, samples, roi_points, noise.model)
+    noise = replace(noise, model=model)
+    px_lin, cm_lin = linearised_roi(camera, samples, s3, roi_points, on_ground, noise)
+    if draws is None:
+        px_ex, cm_ex = np.zeros_like(px_lin), np.zeros_like(cm_lin)
+    else:
+        px_ex, cm_ex = extrapolation_roi(camera, samples, roi_points, on_ground, draws, model)
+    return RoiPrediction(px_lin=px_lin, px_extrap=px_ex, px_combined=np.hypot(px_lin, px_ex), on_ground=np.asarray(on_ground, bool),
+                         ground_cm_lin=cm_lin, ground_cm_extrap=cm_ex, ground_cm_combined=np.hypot(cm_lin, cm_ex), n_samples=int(len(samples)), model=model)
