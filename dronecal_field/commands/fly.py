@@ -175,6 +175,13 @@ def run(args: argparse.Namespace) -> int:
     if not out.parent.is_dir():
         raise InputError(f"--out {out}: directory {out.parent} does not exist; create it first")
     tlog_path = out.with_suffix(".tlog")
+    taken = [p for p in (out, tlog_path) if p.exists()]
+    if taken and not args.dry_run:
+        # A flight is the most expensive thing this tool makes: never write over one.
+        raise InputError(
+            f"--out {out}: {' and '.join(p.name for p in taken)} already exist (an earlier flight?); nothing was overwritten: "
+            f"choose a new name, e.g. --out {free_run_path(out)}"
+        )
 
     from dronecal_field.recording.status import VehicleClock
 
@@ -329,3 +336,15 @@ def _record_until_done(recorder, mission, timeout_s: float | None = None) -> boo
             done_since = done_since or now
             if now - done_since >= 1.0:  # a second more, to catch the final messages
                 return True
+
+
+def free_run_path(out: Path) -> Path:
+    """The first ``NAME-2.mcap``, ``NAME-3.mcap``... beside ``out`` whose run and .tlog are both free."""
+    from dronecal_field.errors import InputError
+
+    stem = out.stem
+    for n in range(2, 10000):
+        candidate = out.with_name(f"{stem}-{n}{out.suffix}")
+        if not candidate.exists() and not candidate.with_suffix(".tlog").exists():
+            return candidate
+    raise InputError(f"--out {out}: no free name {stem}-N{out.suffix} left in {out.parent}: choose another folder")
