@@ -91,3 +91,19 @@ def test_missing_camera_key(table1_files):
     (table1_files / "bad.yaml").write_text("%YAML:1.0\n---\nimage_width: 1280\nimage_height: 960\n")
     r = run_cli("uncertainty", "--camera", str(table1_files / "bad.yaml"), "--points", str(table1_files / "points.csv"))
     assert r.returncode == 2 and "has no 'camera_matrix'" in r.stderr
+
+
+def test_coplanarity_check_memory_is_linear_in_points() -> None:
+    """200,000 points: the plane fit must not build an N x N matrix (a full SVD needed 6.3 GB for 20,000)."""
+    import resource
+
+    import numpy as np
+
+    from dronecal_field.core.calibrate import _points_off_main_plane
+
+    X = np.random.default_rng(0).normal(size=(200_000, 3))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    n_off = _points_off_main_plane(X, 0.1)
+    grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+    assert 150_000 < n_off < 200_000
+    assert grown_mb < 500

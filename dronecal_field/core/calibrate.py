@@ -182,7 +182,7 @@ def _points_off_main_plane(X: np.ndarray, min_thickness_m: float) -> int:
     inliers = np.ones(len(X), dtype=bool)
     for _ in range(3):
         c = X[inliers].mean(axis=0)
-        normal = np.linalg.svd(X[inliers] - c)[2][-1]
+        normal = np.linalg.svd(X[inliers] - c, full_matrices=False)[2][-1]  # O(N) memory: no N x N U
         d = (X - c) @ normal
         med = np.median(d)
         mad = 1.4826 * np.median(np.abs(d - med))
@@ -220,7 +220,7 @@ def dlt(points_world: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     A[0::2, 8:12] = -uh[:, 0:1] * Xh
     A[1::2, 4:8] = Xh
     A[1::2, 8:12] = -uh[:, 1:2] * Xh
-    _, _, vt = np.linalg.svd(A)
+    _, _, vt = np.linalg.svd(A, full_matrices=False)  # (2N, 12): O(N) memory
     P = np.linalg.inv(T2) @ vt[-1].reshape(3, 4) @ T3
     if np.linalg.det(P[:, :3]) < 0:
         P = -P
