@@ -1,0 +1,769 @@
+"""Where a calibration can be trusted: the region of validity, its predicted error, degenerate geometry.
+
+A camera fitted to points that fill a third of the image is exact there and
+can be tens of pixels wrong at the edges, while its linearised uncertainty
+stays tight: a lean model's covariance only describes the directions that
+model can move in (mrcal's lesson). So the predicted error at a pixel is two
+terms, root-sum-square:
+
+- the linearised projection std of the chosen model under the measured
+  per-point sigmas (``core.uncertainty.parameter_covariance``);
+- the *model-extrapolation term*: how far the next richer model, fitted to
+  the same points, projects the same ground point. Inside the data both
+  models agree to the noise; where the data stop the richer model is free
+  to bend and the two part ways.
+
+The region of validity is the convex hull of the used points' pixels grown,
+direction by direction, for as long as that predicted error stays under a
+threshold (1 px, or twice its RMS inside the hull when the data are noisier);
+its ground footprint is where that region meets the plane z = 0.
+
+Pure numerical core on ``core.camera``: no I/O, no printing. Frames and
+pixel conventions: docs/conventions.md (world = ENU at the pole's foot).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from dronecal_field.core.calibrate import BatchState, CalibrationModel, CalibrationResult
+from dronecal_field.core.camera import Camera, intersect_plane_z, pixel_rays_batch, project_batch
+from dronecal_field.errors import DronecalError
+
+THRESHOLD_PX = 1.0
+HULL_FACTOR = 2.0  # the region may reach twice the predicted error RMS inside the hull
+# The richer model is fitted to the same limited points, so beyond them it
+# is itself about as far from the truth as from the chosen model: the term
+# counts twice. Measured on the wide 1080p camera (k1 chosen, k1k2 richer,
+# 8 seeds, tests/test_validity.py): with the term once, the predicted error
+# outside the region covered the true error at 74-100 % of the ground
+# pixels 3-30 m (one seed's k2 was 1.2 std off); twice, at 98-100 %.
+EXTRAPOLATION_FACTOR = 2.0
+PROBE_DISTANCE_M = 15.0  # where a ray misses the ground, its point this far out stands in
+MAX_GROUND_RANGE_M = 200.0
+VISIBLE_GROUND_M = (3.0, 30.0)  # the ground a pole camera is used on
+GROUND_STEP_M = 0.25
+DIRECTIONS = 96
+RADIAL_STEPS = 48
+
+# Next richer model in the family used by ``auto``; k3 last (it needs the corners).
+_RICHER = {"none": "k1", "k1": "k1k2", "k1k2": "k1k2p1p2", "k1k2p1p2": "full"}
+
+
+# --------------------------------------------------------------------------
+# The predicted error at pixels
+
+
+@dataclass(frozen=True, eq=False)
+class PixelErrors:
+    """Predicted errors at M pixels of the calibrated camera.
+
+    ``ground_enu_m`` (M, 3): the ground point (z = ``ground_z``) each pixel
+    sees, NaN where the ray misses the ground ahead or lands beyond 200 m
+    (the sky). ``std_px`` (M,): linearised RMS (sqrt of the trace) of where
+    the pixel's probe point (the ground point, else 15 m along the ray)
+    projects; ``extrapolation_px`` (M,): the distance between its projections
+    by the chosen and the richer model (0 without a richer model).
+    ``std_cm``, ``extrapolation_cm`` (M,): the same on the ground,
+    horizontal, cm (NaN in the sky).
+    """
+
+    uv_px: np.ndarray
+    ground_enu_m: np.ndarray
+    std_px: np.ndarray
+    extrapolation_px: np.ndarray
+    std_cm: np.ndarray
+    extrapolation_cm: np.ndarray
+
+    @property
+    def total_px(self) -> np.ndarray:
+        """(M,) predicted projection error, px: the two terms root-sum-square."""
+        return np.hypot(self.std_px, self.extrapolation_px)
+
+    @property
+    def total_cm(self) -> np.ndarray:
+        """(M,) predicted ground position error, cm (NaN in the sky)."""
+        return np.hypot(self.std_cm, self.extrapolation_cm)
+
+    @property
+    def on_ground(self) -> np.ndarray:
+        return np.all(np.isfinite(self.ground_enu_m), axis=1)
+
+
+def richer_model(model: CalibrationModel) -> CalibrationModel | None:
+    """The next model up from ``model`` (k1 -> k1k2 -> k1k2p1p2 -> full -> free aspect), None at the top."""
+    nxt = _RICHER.get(model.distortion)
+    if nxt is not None:
+        return replace(model, distortion=nxt)
+    if model.fix_aspect_ratio:
+        return replace(model, fix_aspect_ratio=False)
+    return None
+
+
+def fit_richer(result: CalibrationResult, loss_scale_px: float = 2.0) -> CalibrationResult | None:
+    """The next richer model fitted to ``result``'s own points, from its camera; None when it cannot be fitted.
+
+    Too few points for the richer model, or a solve that fails, leave the
+    extrapolation term at 0: the region is then the hull alone (see
+    :func:`assess_validity`).
+    """
+    from dronecal_field.core.calibrate import calibrate
+
+    richer = richer_model(result.model)
+    if richer is None:
+        return None
+    try:
+        return calibrate(
+            result.points_world, result.pixels, result.camera.width, result.camera.height,
+            model=richer, loss=result.loss, loss_scale_px=loss_scale_px, initial=result.camera,
+        )
+    except DronecalError:
+        return None
+
+
+def _probe_points(camera: Camera, uv: np.ndarray, ground_z: float) -> tuple[np.ndarray, np.ndarray]:
+    """Ground points (M, 3) (NaN in the sky) and probe points (M, 3) of pixels uv (M, 2)."""
+    arrays = camera.batch_arrays()
+    ground = intersect_plane_z(*arrays, uv[None], ground_z)[0]
+    centre = camera.pose.position_world
+    reach = np.linalg.norm(ground[:, :2] - centre[:2], axis=1)
+    on_ground = np.all(np.isfinite(ground), axis=1) & (reach < MAX_GROUND_RANGE_M)
+    ground[~on_ground] = np.nan
+    rays = pixel_rays_batch(arrays[0], arrays[1], arrays[2], uv[None])[0]
+    probe = np.where(on_ground[:, None], ground, centre + PROBE_DISTANCE_M * rays)
+    return ground, probe
+
+
+def _covariance_steps(covariance: np.ndarray) -> np.ndarray:
+    """(r, 15) one-sigma steps along the covariance's principal axes (rank r)."""
+    cov = 0.5 * (np.asarray(covariance, float) + np.asarray(covariance, float).T)
+    w, V = np.linalg.eigh(cov)
+    keep = w > max(float(w.max(initial=0.0)), 0.0) * 1e-14
+    return (V[:, keep] * np.sqrt(w[keep])).T
+
+
+def _linear_std(camera: Camera, covariance: np.ndarray, uv: np.ndarray, probe: np.ndarray, on_ground: np.ndarray, ground_z: float, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) linearised projection std of the probes, px, and ground std of the pixels' rays, m (NaN off the ground)."""
+    S = _covariance_steps(covariance)
+    std_px = np.zeros(len(uv))
+    std_m = np.where(on_ground, 0.0, np.nan)
+    if not len(S):
+        return std_px, std_m
+    r = len(S)
+    state = BatchState.from_camera(camera, 2 * r).stepped(np.concatenate([step * S, -step * S]))
+    args = (state.intrinsics, state.distortion, state.R, state.t)
+    q = project_batch(*args, probe[None])  # (2r, M, 2)
+    d = (q[:r] - q[r:]) / (2.0 * step)
+    std_px = np.sqrt(np.sum(d**2, axis=(0, 2)))
+    hits = intersect_plane_z(*args, uv[None], ground_z)[..., :2]  # (2r, M, 2)
+    dg = (hits[:r] - hits[r:]) / (2.0 * step)
+    # A stepped ray that misses the ground (near the horizon) leaves the std unbounded, not small.
+    std_m = np.sqrt(np.sum(np.where(np.isfinite(dg), dg**2, np.inf), axis=(0, 2)))
+    std_m[~on_ground] = np.nan
+    return std_px, std_m
+
+
+def pixel_errors(
+    camera: Camera,
+    covariance: np.ndarray,
+    uv_px: np.ndarray,
+    richer: Camera | None = None,
+    richer_covariance: np.ndarray | None = None,
+    ground_z: float = 0.0,
+    step: float = 1e-2,
+) -> PixelErrors:
+    """Linearised std and model-extrapolation term at pixels; see PixelErrors.
+
+    Parameters
+    ----------
+    camera : the calibrated camera (world = ENU)
+    covariance : (15, 15) parameter covariance over core.camera.PARAM_NAMES (measured sigmas)
+    uv_px : (M, 2) pixels
+    richer : the next richer model fitted to the same points (``fit_richer``), or None
+    richer_covariance : (15, 15) its covariance under the same sigmas, or None
+    step : central-difference step along each principal axis, in standard deviations
+
+    The std is propagated to first order along the covariance's principal
+    axes (central differences; the rotation is a left perturbation, as in
+    the covariance), so it is smooth over the image, unlike a sampled map.
+    The extrapolation term is the distance between the two models'
+    projections, root-sum-square with the std the richer model has beyond
+    the chosen one's: its extra terms are poorly pinned exactly where the
+    data stop, and the chosen model's covariance cannot say so.
+    """
+    uv = np.asarray(uv_px, float).reshape(-1, 2)
+    ground, probe = _probe_points(camera, uv, ground_z)
+    on_ground = np.all(np.isfinite(ground), axis=1)
+    std_px, std_m = _linear_std(camera, covariance, uv, probe, on_ground, ground_z, step)
+    extra_px = np.zeros(len(uv))
+    extra_m = np.where(on_ground, 0.0, np.nan)
+    if richer is not None:
+        extra_px = np.linalg.norm(richer.project(probe) - uv, axis=1)
+        g_r = intersect_plane_z(*richer.batch_arrays(), uv[None], ground_z)[0]
+        extra_m = np.linalg.norm(g_r[:, :2] - ground[:, :2], axis=1)
+        # The richer ray missing the ground where the chosen one hits is the
+        # most the two can disagree: unbounded, not small.
+        extra_m = np.where(on_ground & ~np.isfinite(extra_m), np.inf, extra_m)
+        if richer_covariance is not None:
+            r_px, r_m = _linear_std(richer, richer_covariance, uv, probe, on_ground, ground_z, step)
+            extra_px = np.sqrt(extra_px**2 + np.maximum(r_px**2 - std_px**2, 0.0))
+            with np.errstate(invalid="ignore"):
+                more = np.where(np.isinf(r_m), np.inf, np.maximum(r_m**2 - std_m**2, 0.0))
+                extra_m = np.sqrt(extra_m**2 + more)
+        extra_px = EXTRAPOLATION_FACTOR * extra_px
+        extra_m = EXTRAPOLATION_FACTOR * extra_m
+    return PixelErrors(
+        uv_px=uv, ground_enu_m=ground, std_px=std_px, extrapolation_px=extra_px,
+        std_cm=100.0 * std_m, extrapolation_cm=100.0 * extra_m,
+    )
+
+
+# --------------------------------------------------------------------------
+# Polygons
+
+
+def convex_hull(points: np.ndarray) -> np.ndarray:
+    """(H, 2) counter-clockwise convex hull of points (N, 2) (monotone chain; collinear points dropped)."""
+    P = np.unique(np.asarray(points, float).reshape(-1, 2), axis=0)
+    if len(P) < 3:
+        return P
+
+    def half(pts):
+        out: list[np.ndarray] = []
+        for p in pts:
+            while len(out) >= 2 and np.cross(out[-1] - out[-2], p - out[-2]) <= 0:
+                out.pop()
+            out.append(p)
+        return out
+
+    lower, upper = half(P), half(P[::-1])
+    return np.array(lower[:-1] + upper[:-1])
+
+
+def polygon_area(polygon: np.ndarray) -> float:
+    """Area of a simple polygon (K, 2) (shoelace), in its units squared."""
+    p = np.asarray(polygon, float)
+    if len(p) < 3:
+        return 0.0
+    x, y = p[:, 0], p[:, 1]
+    return float(0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def points_in_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """(N,) mask of points (N, 2) inside the simple polygon (K, 2) (even-odd rule)."""
+    pts = np.asarray(points, float).reshape(-1, 2)
+    poly = np.asarray(polygon, float)
+    inside = np.zeros(len(pts), bool)
+    if len(poly) < 3:
+        return inside
+    x, y = pts[:, 0:1], pts[:, 1:2]
+    x0, y0 = poly[:, 0][None], poly[:, 1][None]
+    x1, y1 = np.roll(poly[:, 0], -1)[None], np.roll(poly[:, 1], -1)[None]
+    crosses = (y0 > y) != (y1 > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x_at = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
+    return np.logical_xor.reduce(crosses & (x < x_at), axis=1)
+
+
+def _ray_exit(centre: np.ndarray, dirs: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """(D,) distance from ``centre`` (inside the convex polygon) along unit dirs (D, 2) to its boundary."""
+    a = polygon
+    b = np.roll(polygon, -1, axis=0)
+    e = b - a  # (K, 2)
+    w = a - centre  # (K, 2)
+    # centre + s d = a + u e  ->  solve for s, u per (direction, edge)
+    den = dirs[:, None, 0] * (-e[None, :, 1]) - dirs[:, None, 1] * (-e[None, :, 0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (w[None, :, 0] * (-e[None, :, 1]) - w[None, :, 1] * (-e[None, :, 0])) / den
+        u = (dirs[:, None, 0] * w[None, :, 1] - dirs[:, None, 1] * w[None, :, 0]) / den
+    ok = np.isfinite(s) & (s >= 0) & (u >= -1e-9) & (u <= 1 + 1e-9)
+    return np.where(ok, s, np.inf).min(axis=1)
+
+
+def grow_region(
+    supported,
+    hull_px: np.ndarray,
+    width: int,
+    height: int,
+    directions: int = DIRECTIONS,
+    steps: int = RADIAL_STEPS,
+) -> np.ndarray:
+    """(directions, 2) star-shaped polygon: the hull grown outward while the calibration stays supported.
+
+    Parameters
+    ----------
+    supported : callable mapping pixels (M, 2) to a mask (M,): the predicted error is small enough there
+    hull_px : (H, 2) convex hull of the used points' pixels
+
+    Along each direction from the hull's centroid the boundary moves from
+    the hull towards the image border and stops before the first pixel that
+    is not supported. The region always contains the hull: where the data
+    are, the fit is what it is.
+    """
+    hull = np.asarray(hull_px, float)
+    centre = hull.mean(axis=0)
+    theta = np.linspace(0.0, 2.0 * np.pi, directions, endpoint=False)
+    dirs = np.c_[np.cos(theta), np.sin(theta)]
+    frame = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [width - 0.5, height - 0.5], [-0.5, height - 0.5]])
+    r_hull = _ray_exit(centre, dirs, hull)
+    r_edge = np.maximum(_ray_exit(centre, dirs, frame), r_hull)
+    frac = np.linspace(0.0, 1.0, steps)[1:]
+    radii = r_hull[:, None] + (r_edge - r_hull)[:, None] * frac[None]  # (D, S)
+    pix = centre + radii[..., None] * dirs[:, None, :]
+    bad = ~np.asarray(supported(pix.reshape(-1, 2)), bool).reshape(radii.shape)
+    first_bad = np.where(bad.any(axis=1), bad.argmax(axis=1), len(frac))
+    radius = np.where(first_bad == 0, r_hull, radii[np.arange(directions), np.maximum(first_bad - 1, 0)])
+    radius = np.where(first_bad == len(frac), r_edge, radius)
+    return centre + radius[:, None] * dirs
+
+
+# --------------------------------------------------------------------------
+# Degenerate geometry
+
+
+@dataclass(frozen=True)
+class GeometryDiagnosis:
+    """Can the points separate focal length, principal point and pose?
+
+    From the linearised covariance with the measured sigmas:
+    ``focal_std_rel`` the focal length's std over its value; ``principal_point_std_px``
+    the norm of (std cx, std cy); ``focal_distance_correlation`` the
+    correlation between the focal length and the camera's distance to the
+    points' centroid (near 1: a longer lens farther away explains the points
+    as well); ``image_coverage`` the share of the image inside the points'
+    convex hull; ``thickness_m`` the points' extent along their thinnest
+    direction (two heights 0.4 m apart: 0.4). ``message`` is the warning, or
+    None when the geometry separates them.
+    """
+
+    focal_std_rel: float
+    principal_point_std_px: float
+    focal_distance_correlation: float
+    image_coverage: float
+    thickness_m: float
+    degenerate: bool
+    message: str | None
+
+    def to_dict(self) -> dict:
+        return {
+            "focal_std_percent": 100.0 * self.focal_std_rel,
+            "principal_point_std_px": self.principal_point_std_px,
+            "focal_distance_correlation": self.focal_distance_correlation,
+            "image_coverage": self.image_coverage,
+            "thickness_m": self.thickness_m,
+            "degenerate": self.degenerate,
+            "message": self.message,
+        }
+
+
+def diagnose_geometry(
+    camera: Camera,
+    covariance: np.ndarray,
+    points_world: np.ndarray,
+    pixels: np.ndarray,
+    max_focal_std_rel: float = 0.01,
+    max_pp_std_fraction: float = 0.02,
+) -> GeometryDiagnosis:
+    """Whether the points pin focal length, principal point and pose, from the measured-sigma covariance.
+
+    Parameters
+    ----------
+    camera : the calibrated camera
+    covariance : (15, 15) linearised covariance with the measured per-point sigmas
+    points_world : (N, 3) the used points, metres; pixels : (N, 2)
+    max_focal_std_rel : focal std (fraction of the focal length) above which the geometry is flagged
+    max_pp_std_fraction : principal point std (fraction of the image width) above which it is flagged
+
+    A thin band of points at one distance cannot tell a longer lens farther
+    away from a shorter one closer: the focal length and the camera's
+    distance move together (correlation near 1) and both have large stds.
+    Measured on the paper's Table 1 camera (2 m pole, tilt 30 deg) over its
+    4-8 m grid at heights 1.0 and 1.4 m with 1 cm / 0.3 px sigmas: focal std
+    of several per cent, correlation 0.99 (see tests/test_validity.py).
+    """
+    X = np.asarray(points_world, float)
+    uv = np.asarray(pixels, float)
+    cov = np.asarray(covariance, float)
+    i = camera.intrinsics
+    f = 0.5 * (i.fx + i.fy)
+    centroid = X.mean(axis=0)
+    S = _covariance_steps(cov)
+    focal_sd = dist_sd = corr = 0.0
+    if len(S):
+        r = len(S)
+        h = 1e-3
+        state = BatchState.from_camera(camera, 2 * r).stepped(np.concatenate([h * S, -h * S]))
+        focal = 0.5 * (state.intrinsics[:, 0] + state.intrinsics[:, 1])
+        centres = -np.einsum("kji,kj->ki", state.R, state.t)
+        dist = np.linalg.norm(centres - centroid, axis=1)
+        df = (focal[:r] - focal[r:]) / (2 * h)
+        dd = (dist[:r] - dist[r:]) / (2 * h)
+        focal_sd = float(np.sqrt(df @ df))
+        dist_sd = float(np.sqrt(dd @ dd))
+        corr = float(df @ dd / (focal_sd * dist_sd)) if focal_sd > 0 and dist_sd > 0 else 0.0
+    pp_sd = float(np.hypot(np.sqrt(max(cov[2, 2], 0.0)), np.sqrt(max(cov[3, 3], 0.0))))
+    coverage = polygon_area(convex_hull(uv)) / float(camera.width * camera.height)
+    axes = np.linalg.svd(X - centroid, full_matrices=False)[2]
+    extent = np.ptp((X - centroid) @ axes.T, axis=0)
+    thickness = float(extent.min())
+    focal_rel = focal_sd / f
+    degenerate = focal_rel > max_focal_std_rel or pp_sd > max_pp_std_fraction * camera.width
+    message = None
+    if degenerate:
+        what = (
+            f"focal length and camera distance are not separated (std {100 * focal_rel:.1f} %, correlation {abs(corr):.2f})"
+            if focal_rel > max_focal_std_rel
+            else f"the principal point is not pinned down (std {pp_sd:.0f} px)"
+        )
+        message = (
+            f"{what}: the points cover {coverage:.0%} of the image in a band {thickness:.1f} m thick; "
+            "fly more heights and lower/closer points (plan --strategy image)"
+        )
+    return GeometryDiagnosis(
+        focal_std_rel=float(focal_rel),
+        principal_point_std_px=pp_sd,
+        focal_distance_correlation=corr,
+        image_coverage=float(coverage),
+        thickness_m=thickness,
+        degenerate=bool(degenerate),
+        message=message,
+    )
+
+
+# --------------------------------------------------------------------------
+# The region of validity
+
+
+@dataclass(frozen=True, eq=False)
+class ValidityRegion:
+    """Where the calibration is supported by its points, in the image and on the ground.
+
+    ``polygon_px`` (K, 2): the region of validity, pixels (OpenCV: centre of
+    the top-left pixel at 0, 0); ``hull_px`` (H, 2): the convex hull of the
+    used points' pixels. ``ground_polygon_enu_m`` (L, 3): its footprint on
+    z = 0 (None when no part of it sees the ground within 200 m);
+    ``ground_polygon_wgs84`` (L, 3) [lat_deg, lon_deg, h_m] of that footprint
+    when the ENU origin is known. Fractions are of the image area and of the
+    visible ground 3-30 m from the pole (and of the given ROI). Errors
+    ``inside_*`` / ``outside_*`` are predicted (linearised std and model
+    extrapolation, root-sum-square) over the visible ground 3-30 m inside /
+    outside the region. ``richer`` is the richer model's fit (None without
+    one); ``geometry`` the degeneracy diagnosis.
+    """
+
+    polygon_px: np.ndarray
+    hull_px: np.ndarray
+    threshold_px: float
+    std_limit_px: float
+    image_fraction: float
+    hull_fraction: float
+    ground_polygon_enu_m: np.ndarray | None
+    ground_polygon_wgs84: np.ndarray | None
+    visible_ground_fraction: float | None
+    roi_fraction: float | None
+    inside_px_rms: float | None
+    inside_px_max: float | None
+    inside_cm_rms: float | None
+    inside_cm_max: float | None
+    outside_px_max: float | None
+    outside_cm_max: float | None
+    chosen_model: str
+    richer_model: str | None
+    geometry: GeometryDiagnosis
+    warnings: tuple[str, ...]
+    richer: CalibrationResult | None = field(default=None, repr=False)
+    richer_covariance: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def richer_camera(self) -> Camera | None:
+        return None if self.richer is None else self.richer.camera
+
+    def to_dict(self) -> dict:
+        """JSON-ready content of report.json's ``validity`` section."""
+        return {
+            "polygon_px": self.polygon_px.tolist(),
+            "hull_px": self.hull_px.tolist(),
+            "threshold_px": self.threshold_px,
+            "std_limit_px": self.std_limit_px,
+            "image_fraction": self.image_fraction,
+            "hull_fraction": self.hull_fraction,
+            "ground_polygon_enu_m": None if self.ground_polygon_enu_m is None else self.ground_polygon_enu_m.tolist(),
+            "ground_polygon_wgs84": None if self.ground_polygon_wgs84 is None else self.ground_polygon_wgs84.tolist(),
+            "visible_ground_m": list(VISIBLE_GROUND_M),
+            "visible_ground_fraction": self.visible_ground_fraction,
+            "roi_fraction": self.roi_fraction,
+            "predicted_error": {
+                "method": "linearised std (measured sigmas) and model extrapolation, root-sum-square",
+                "inside_px_rms": self.inside_px_rms, "inside_px_max": self.inside_px_max,
+                "inside_cm_rms": self.inside_cm_rms, "inside_cm_max": self.inside_cm_max,
+                "outside_px_max": self.outside_px_max, "outside_cm_max": self.outside_cm_max,
+            },
+            "chosen_model": self.chosen_model,
+            "richer_model": self.richer_model,
+            "geometry": self.geometry.to_dict(),
+            "warnings": list(self.warnings),
+        }
+
+    def geojson(self) -> dict | None:
+        """The ground footprint as a GeoJSON FeatureCollection (RFC 7946: [lon, lat], closed ring), None without one."""
+        if self.ground_polygon_wgs84 is None or len(self.ground_polygon_wgs84) < 3:
+            return None
+        ring = [[float(p[1]), float(p[0])] for p in self.ground_polygon_wgs84]
+        ring.append(ring[0])
+        return {
+            "type": "FeatureCollection",
+            "features": [{
+                "type": "Feature",
+                "geometry": {"type": "Polygon", "coordinates": [ring]},
+                "properties": {
+                    "name": "region of validity (ground z = 0)",
+                    "threshold_px": self.threshold_px,
+                    "visible_ground_fraction": self.visible_ground_fraction,
+                    "model": self.chosen_model,
+                },
+            }],
+        }
+
+
+def visible_ground(camera: Camera, ranges_m: tuple[float, float] = VISIBLE_GROUND_M, step_m: float = GROUND_STEP_M, ground_z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Ground points (N, 3) on a ``step_m`` grid between ``ranges_m`` of the pole's foot that the camera sees, and their pixels (N, 2)."""
+    c = camera.pose.position_world
+    r0, r1 = ranges_m
+    g = np.arange(-r1, r1 + 1e-9, step_m)
+    E, N = np.meshgrid(c[0] + g, c[1] + g)
+    rho = np.hypot(E - c[0], N - c[1])
+    keep = (rho >= r0) & (rho <= r1)
+    pts = np.c_[E[keep], N[keep], np.full(int(keep.sum()), ground_z)]
+    seen, uv = seen_on_ground(camera, pts, ground_z)
+    return pts[seen], uv[seen]
+
+
+def seen_on_ground(camera: Camera, points: np.ndarray, ground_z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) mask of ground points (N, 3) the camera sees, and their pixels (N, 2).
+
+    Seen: in front, inside the image, and the pixel's own ray comes back to
+    the point. The last test matters for a radial model fitted near the
+    centre: beyond its fold (k1 < 0 turns back at r^2 = -1/(3 k1)) it maps
+    points far outside the view into the middle of the image.
+    """
+    pts = np.asarray(points, float).reshape(-1, 3)
+    uv = np.full((len(pts), 2), np.nan)
+    front = camera.depth(pts) > 0.1
+    uv[front] = camera.project(pts[front])
+    with np.errstate(invalid="ignore"):
+        ok = front & (uv[:, 0] >= -0.5) & (uv[:, 0] <= camera.width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= camera.height - 0.5)
+    if ok.any():
+        back = intersect_plane_z(*camera.batch_arrays(), uv[ok][None], ground_z)[0]
+        reach = np.linalg.norm(pts[ok, :2] - camera.pose.position_world[:2], axis=1)
+        miss = ~(np.linalg.norm(back[:, :2] - pts[ok, :2], axis=1) <= 1e-3 * np.maximum(reach, 1.0))
+        ok[np.flatnonzero(ok)[miss]] = False
+    return ok, uv
+
+
+def ground_footprint(camera: Camera, polygon_px: np.ndarray, ground_z: float = 0.0, max_range_m: float = MAX_GROUND_RANGE_M) -> np.ndarray | None:
+    """(L, 3) polygon on z = ``ground_z`` of the ground the image polygon (K, 2) sees, ENU metres; None if none.
+
+    On each bearing from the pole's foot the ground the camera sees inside
+    the polygon is one interval of range; the footprint joins the near ends
+    and then the far ends, bearing by bearing.
+    """
+    c = camera.pose.position_world
+    ranges = np.geomspace(0.3, max_range_m, 240)
+    fwd = camera.pose.R_cam_from_world[2]
+    heading = np.arctan2(fwd[1], fwd[0])
+    bearings = heading + np.radians(np.linspace(-90.0, 90.0, 181))
+    B, Rg = np.meshgrid(bearings, ranges, indexing="ij")  # (nb, nr)
+    pts = np.stack([c[0] + Rg * np.cos(B), c[1] + Rg * np.sin(B), np.full(B.shape, ground_z)], -1).reshape(-1, 3)
+    seen, uv = seen_on_ground(camera, pts, ground_z)
+    inside = seen.copy()
+    inside[seen] = points_in_polygon(uv[seen], polygon_px)
+    inside = inside.reshape(B.shape)
+    rows = np.flatnonzero(inside.any(axis=1))
+    if len(rows) < 2:
+        return None
+    near = np.array([Rg[b, inside[b].argmax()] for b in rows])
+    far = np.array([Rg[b, len(ranges) - 1 - inside[b][::-1].argmax()] for b in rows])
+    bb = bearings[rows]
+    ring_b = np.r_[bb, bb[::-1]]
+    ring_r = np.r_[near, far[::-1]]
+    return np.c_[c[0] + ring_r * np.cos(ring_b), c[1] + ring_r * np.sin(ring_b), np.full(len(ring_b), ground_z)]
+
+
+def assess_validity(
+    result: CalibrationResult,
+    covariance: np.ndarray,
+    sigma_3d: np.ndarray,
+    sigma_2d: np.ndarray,
+    origin=None,
+    roi_ground_enu: np.ndarray | None = None,
+    richer: CalibrationResult | None | str = "fit",
+    threshold_px: float = THRESHOLD_PX,
+    loss_scale_px: float = 2.0,
+    ground_z: float = 0.0,
+) -> ValidityRegion:
+    """The region of validity of a calibration, its ground footprint, predicted errors and warnings.
+
+    Parameters
+    ----------
+    result : the calibration (its camera in ENU metres at the pole's foot; its points and pixels)
+    covariance : (15, 15) linearised covariance with the measured per-point sigmas
+        (``core.uncertainty.parameter_covariance``)
+    sigma_3d : (N, 3) or (3,) those sigmas of the points, metres; sigma_2d : (N,) or scalar, px
+        (for the richer model's covariance)
+    origin : geodesy.EnuOrigin of the ENU frame, for the WGS84 footprint (None: ENU only)
+    roi_ground_enu : (R, 2 or 3) polygon on the ground the camera is meant to serve (a plan's ROI), metres
+    richer : "fit" fits the next richer model (``fit_richer``); or a given fit, or None for no extrapolation term
+    threshold_px : model-extrapolation term allowed inside the region, px; the linearised
+        std may reach this or twice its RMS inside the hull, whichever is larger
+    loss_scale_px : robust loss scale for the richer fit, px
+
+    Returns
+    -------
+    ValidityRegion; its ``warnings`` say when the visible ground 3-30 m (or
+    the ROI) reaches beyond the region, by how much, and what to fly.
+
+    Examples
+    --------
+    >>> v = assess_validity(result, parameter_covariance(camera, X, s3, s2, result.model), s3, s2, origin)
+    >>> v.visible_ground_fraction, v.outside_px_max, v.warnings
+    """
+    camera = result.camera
+    w, h = camera.width, camera.height
+    if isinstance(richer, str):
+        richer = fit_richer(result, loss_scale_px)
+    richer_cam = None if richer is None else richer.camera
+    richer_cov = None
+    if richer is not None:
+        from dronecal_field.core.uncertainty import parameter_covariance
+
+        richer_cov = parameter_covariance(richer_cam, result.points_world, sigma_3d, sigma_2d, richer.model)
+    uv_used = np.asarray(result.pixels, float)
+
+    hull = convex_hull(uv_used)
+    if len(hull) < 3:  # points on a line in the image: nothing to grow from
+        hull = np.array([uv_used.min(0), [uv_used.max(0)[0], uv_used.min(0)[1]], uv_used.max(0)])
+    std_hull = pixel_errors(camera, covariance, _fill(hull, 200), None, None, ground_z).std_px
+    hull_rms = float(np.sqrt(np.nanmean(std_hull**2))) if np.isfinite(std_hull).any() else 0.0
+    std_limit = max(threshold_px, HULL_FACTOR * hull_rms)
+
+    def supported(uv: np.ndarray) -> np.ndarray:
+        e = pixel_errors(camera, covariance, uv, richer_cam, richer_cov, ground_z)
+        return (e.extrapolation_px <= threshold_px) & (e.std_px <= std_limit)
+
+    polygon = grow_region(supported, hull, w, h)
+    footprint = ground_footprint(camera, polygon, ground_z)
+    wgs84 = None
+    if footprint is not None and origin is not None:
+        from dronecal_field.geodesy import enu_to_geodetic
+
+        wgs84 = enu_to_geodetic(footprint, origin)
+
+    g, g_uv = visible_ground(camera, ground_z=ground_z)
+    stats: dict[str, float | None] = dict.fromkeys(
+        ("frac", "in_px_rms", "in_px_max", "in_cm_rms", "in_cm_max", "out_px_max", "out_cm_max")
+    )
+    if len(g):
+        inside = points_in_polygon(g_uv, polygon)
+        e = pixel_errors(camera, covariance, g_uv, richer_cam, richer_cov, ground_z)
+        px, cm = e.total_px, e.total_cm
+        stats["frac"] = float(inside.mean())
+        if inside.any():
+            stats["in_px_rms"] = float(np.sqrt(np.mean(px[inside] ** 2)))
+            stats["in_px_max"] = float(np.max(px[inside]))
+            stats["in_cm_rms"] = float(np.sqrt(np.nanmean(cm[inside] ** 2)))
+            stats["in_cm_max"] = float(np.nanmax(cm[inside]))
+        if (~inside).any():
+            stats["out_px_max"] = float(np.max(px[~inside]))
+            stats["out_cm_max"] = float(np.nanmax(cm[~inside]))
+    roi_fraction = None
+    if roi_ground_enu is not None and len(roi_ground_enu) >= 3:
+        roi_fraction = _roi_fraction(camera, np.asarray(roi_ground_enu, float), polygon, ground_z)
+
+    geometry = diagnose_geometry(camera, covariance, result.points_world, result.pixels)
+    warnings = _warnings(stats, roi_fraction, geometry, threshold_px)
+    return ValidityRegion(
+        polygon_px=polygon,
+        hull_px=hull,
+        threshold_px=float(threshold_px),
+        std_limit_px=float(std_limit),
+        image_fraction=polygon_area(polygon) / float(w * h),
+        hull_fraction=polygon_area(hull) / float(w * h),
+        ground_polygon_enu_m=footprint,
+        ground_polygon_wgs84=wgs84,
+        visible_ground_fraction=stats["frac"],
+        roi_fraction=roi_fraction,
+        inside_px_rms=stats["in_px_rms"],
+        inside_px_max=stats["in_px_max"],
+        inside_cm_rms=stats["in_cm_rms"],
+        inside_cm_max=stats["in_cm_max"],
+        outside_px_max=stats["out_px_max"],
+        outside_cm_max=stats["out_cm_max"],
+        chosen_model=result.model.name,
+        richer_model=None if richer is None else richer.model.name,
+        geometry=geometry,
+        warnings=tuple(warnings),
+        richer=richer,
+        richer_covariance=richer_cov,
+    )
+
+
+def _fill(polygon: np.ndarray, n: int) -> np.ndarray:
+    """About ``n`` pixels on a regular grid inside a polygon (K, 2), plus its vertices."""
+    lo, hi = polygon.min(0), polygon.max(0)
+    k = max(int(np.sqrt(n)), 2)
+    U, V = np.meshgrid(np.linspace(lo[0], hi[0], k), np.linspace(lo[1], hi[1], k))
+    grid = np.c_[U.ravel(), V.ravel()]
+    return np.r_[grid[points_in_polygon(grid, polygon)], polygon]
+
+
+def _roi_fraction(camera: Camera, roi: np.ndarray, polygon_px: np.ndarray, ground_z: float) -> float | None:
+    """Share of the ROI's visible ground (a polygon (R, 2|3) on z = ground_z) inside the region."""
+    poly = roi[:, :2]
+    lo, hi = poly.min(0), poly.max(0)
+    step = max(float(np.max(hi - lo)) / 150.0, 0.05)
+    E, N = np.meshgrid(np.arange(lo[0], hi[0] + step, step), np.arange(lo[1], hi[1] + step, step))
+    pts = np.c_[E.ravel(), N.ravel()]
+    pts = pts[points_in_polygon(pts, poly)]
+    if not len(pts):
+        return None
+    P = np.c_[pts, np.full(len(pts), ground_z)]
+    seen, uv = seen_on_ground(camera, P, ground_z)
+    if not seen.any():
+        return None
+    return float(points_in_polygon(uv[seen], polygon_px).mean())
+
+
+def _warnings(stats: dict, roi_fraction: float | None, geometry: GeometryDiagnosis, threshold: float) -> list[str]:
+    out: list[str] = []
+    frac = stats["frac"]
+    lo, hi = VISIBLE_GROUND_M
+    if frac is not None and frac < 0.995:
+        reach = stats["out_px_max"]
+        cm = stats["out_cm_max"]
+        how_bad = (
+            f"outside it the predicted error reaches {_px(reach)}" + (f" ({_cm(cm)} on the ground)" if cm is not None and np.isfinite(cm) else "")
+            if reach is not None else "outside it the error is not predicted"
+        )
+        out.append(
+            f"the region of validity (model extrapolation under {threshold:.1f} px) covers {frac:.0%} of the visible ground "
+            f"{lo:g}-{hi:g} m; {how_bad}: fly the whole view (plan --strategy image) or use the camera only inside "
+            "validity_polygon_px"
+        )
+    if roi_fraction is not None and roi_fraction < 0.995:
+        out.append(
+            f"the region of validity covers {roi_fraction:.0%} of the plan's ROI: fly points over the rest of it "
+            "(plan --strategy image)"
+        )
+    if geometry.message is not None:
+        out.append(geometry.message)
+    return out
+
+
+def _px(v: float) -> str:
+    return "beyond 1000 px" if not np.isfinite(v) or v > 1000 else f"{v:.0f} px" if v >= 10 else f"{v:.1f} px"
+
+
+def _cm(v: float) -> str:
+    return "over 10 m" if not np.isfinite(v) or v > 1000 else f"{v:.0f} cm"
