@@ -58,11 +58,29 @@ def main(argv: list[str] | None = None) -> int:
     except DronecalError as exc:
         print(f"dronecal-field {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except (OSError, UnicodeDecodeError, MemoryError) as exc:
+        # The environment, not the program: a path, a permission, a disk, a file that is not text.
+        print(f"dronecal-field {args.command}: error: {environment_message(exc)}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"dronecal-field {args.command}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:
         return 0
+
+
+def environment_message(exc: BaseException) -> str:
+    """One line naming the file and the fix for an error of the machine rather than of the program."""
+    if isinstance(exc, UnicodeDecodeError):
+        return f"a file is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}): give the text file the option asks for"
+    if isinstance(exc, MemoryError):
+        return "out of memory: the input is too large for this machine; give fewer points or frames"
+    assert isinstance(exc, OSError)
+    what = exc.strerror or type(exc).__name__
+    if exc.filename is not None:
+        target = f"{exc.filename}" + (f" -> {exc.filename2}" if exc.filename2 else "")
+        return f"{target}: {what}: check the path exists, is the kind expected (file or folder) and is writable/readable by you"
+    return f"{what}: check the paths, the network address and the free disk space"
 
 
 if __name__ == "__main__":

@@ -107,3 +107,21 @@ def test_coplanarity_check_memory_is_linear_in_points() -> None:
     grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
     assert 150_000 < n_off < 200_000
     assert grown_mb < 500
+
+
+@pytest.mark.parametrize("case", ["non_utf8_points", "plot_into_missing_folder", "points_is_a_folder"])
+def test_environment_errors_are_one_line(table1_files, case):
+    cam, pts = table1_files / "camera.yaml", table1_files / "points.csv"
+    extra: list[str] = []
+    if case == "non_utf8_points":
+        pts = table1_files / "latin1.csv"
+        pts.write_bytes(b"x,y,z\n\xe9,1,2\n")
+    elif case == "plot_into_missing_folder":
+        extra = ["--trials", "20", "--plot-convergence", str(table1_files / "missing" / "fig.png")]
+    else:
+        pts = table1_files
+    r = run_cli("uncertainty", "--camera", str(cam), "--points", str(pts), *extra)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("dronecal-field uncertainty: error:")
