@@ -5,6 +5,13 @@ The item sequence copies the real, accepted SITL mission
 
     [home]  NAV_TAKEOFF  DO_CHANGE_SPEED  DO_SET_ROI(camera)  NAV_WAYPOINT x N  (NAV_WAYPOINT above take-off, NAV_LAND) | RTL
 
+Fly-through legs: a point the route passes (hold 0) is a NAV_WAYPOINT with
+param 1 = 0; ArduCopter then flies through it into the next waypoint without
+stopping (param 2, the acceptance radius, is not stored by Copter: WPNAV_RADIUS
+applies). Where the route's leg speed changes, a DO_CHANGE_SPEED follows the
+NAV_WAYPOINT the new speed leads to (DO items run when the NAV item before
+them starts).
+
 ArduPilot rules kept: home is slot 0 of the uploaded mission (the ``.plan``
 keeps it in ``plannedHomePosition``, QGC inserts it on upload); holds are whole
 seconds (NAV_WAYPOINT param 1 is an integer in ArduCopter); no commanded
@@ -109,7 +116,7 @@ def build_mission(
     R_enu_from_site : (3, 3) site -> ENU rotation
     origin : ENU origin (the pole's foot)
     camera_height_m : camera centre above the pole's foot (the ROI), m
-    speed_m_s : DO_CHANGE_SPEED ground speed
+    speed_m_s : DO_CHANGE_SPEED ground speed (when the route carries no per-leg speeds)
     alt_frame : 'relative' (to home, frame 3) or 'amsl' (frame 0; needs ``geoid_separation_m``)
     yaw_mode : 'roi' (one DO_SET_ROI at the camera) or 'condition-yaw' (CONDITION_YAW after each waypoint)
     geoid_separation_m : N (h = AMSL + N); None if unknown
@@ -136,7 +143,9 @@ def build_mission(
     takeoff_top = route.takeoff_site + np.array([0.0, 0.0, route.takeoff_alt_m])
     t_geo = enu_to_geodetic(to_enu(takeoff_top), origin)[0]
     items.append(MissionItem(MAV_CMD_NAV_TAKEOFF, frame, x=float(home_geo[0]), y=float(home_geo[1]), z=float(alt_of(t_geo[2])), label="takeoff"))
-    items.append(MissionItem(MAV_CMD_DO_CHANGE_SPEED, MAV_FRAME_MISSION, param1=1.0, param2=float(speed_m_s), param3=-1.0, label="speed"))
+    speeds = None if route.speed_m_s is None else [round(float(v), 3) for v in route.speed_m_s]
+    current_speed = float(speed_m_s) if not speeds else speeds[0]
+    items.append(MissionItem(MAV_CMD_DO_CHANGE_SPEED, MAV_FRAME_MISSION, param1=1.0, param2=current_speed, param3=-1.0, label="speed"))
     if yaw_mode == "roi":
         items.append(MissionItem(MAV_CMD_DO_SET_ROI, frame, param1=MAV_ROI_LOCATION, x=float(cam_geo[0]), y=float(cam_geo[1]), z=float(alt_of(cam_geo[2])), label="roi"))
     enu = to_enu(route.points)
@@ -152,6 +161,10 @@ def build_mission(
         if yaw_mode == "condition-yaw" and kind == "grid":
             # runs while this waypoint is the active one: turn (shortest way) to face the camera
             items.append(MissionItem(MAV_CMD_CONDITION_YAW, MAV_FRAME_MISSION, param1=round(float(yaw[k]), 2), param2=0.0, param3=0.0, param4=0.0, label="yaw", grid_index=gi))
+        if speeds and speeds[k] != current_speed:
+            # a DO item after NAV_WAYPOINT k runs when the vehicle sets off towards k: it sets the speed of the leg into k
+            current_speed = speeds[k]
+            items.append(MissionItem(MAV_CMD_DO_CHANGE_SPEED, MAV_FRAME_MISSION, param1=1.0, param2=current_speed, param3=-1.0, label="speed", grid_index=gi))
     if route.end == "land":
         items.append(MissionItem(MAV_CMD_NAV_LAND, frame, x=float(home_geo[0]), y=float(home_geo[1]), z=0.0, label="land"))
     else:

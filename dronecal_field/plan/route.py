@@ -22,7 +22,7 @@ simulated vehicle (``sim.vehicle_flight.Leg``) flies the same profiles.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -398,3 +398,157 @@ def plan_route(
         speed_m_s=speeds,
         through=through,
     )
+
+
+def through_speed_m_s(
+    focal_px: float,
+    min_depth_m: float,
+    fps: float,
+    exposure_s: float,
+    gnss_hz: float,
+    blur_px: float = 1.0,
+    max_speed_m_s: float = 3.0,
+    max_fix_spacing_m: float = 0.3,
+    marker_size_m: float = 0.3,
+) -> float:
+    """The constant speed (m/s) of fly-through legs: the smallest of four limits.
+
+    - Motion blur: a marker at depth ``min_depth_m`` moving across the view at
+      v smears ``v * exposure_s * focal_px / min_depth_m`` pixels in one
+      exposure; kept under ``blur_px``. E.g. f 900 px, 5 m, 1/250 s:
+      1 px at 1.39 m/s; f 2600 px, 5 m, 1/500 s: 0.96 m/s.
+    - GNSS: a fix at least every ``max_fix_spacing_m`` along the leg, so the
+      track between fixes stays short enough to interpolate: 10 Hz x 0.3 m =
+      3 m/s, 5 Hz = 1.5 m/s.
+    - Frames: the marker moves at most one marker width (``marker_size_m``)
+      per frame, so consecutive detections overlap (25 fps x 0.3 m = 7.5 m/s).
+    - ``max_speed_m_s``: what a calibration flight near a pole should fly at most.
+
+    Parameters
+    ----------
+    focal_px : focal length, px
+    min_depth_m : depth of the nearest sample along the camera axis, m
+    fps : camera frame rate, 1/s
+    exposure_s : exposure time (a guess: 1/250 s in daylight), s
+    gnss_hz : rate of new GNSS fixes, 1/s
+    blur_px : largest motion blur, px
+    max_speed_m_s : upper bound, m/s
+    max_fix_spacing_m : largest distance between two fixes along a leg, m
+    marker_size_m : marker side, m
+    """
+    values = dict(focal_px=focal_px, min_depth_m=min_depth_m, fps=fps, exposure_s=exposure_s, gnss_hz=gnss_hz,
+                  blur_px=blur_px, max_speed_m_s=max_speed_m_s, max_fix_spacing_m=max_fix_spacing_m, marker_size_m=marker_size_m)
+    bad = [k for k, v in values.items() if not (math.isfinite(v) and v > 0)]
+    if bad:
+        raise PlanError(f"through_speed_m_s needs positive values; {', '.join(f'{k}={values[k]!r}' for k in bad)}: give the camera's focal, frame rate, exposure and the GNSS rate")
+    blur = blur_px * min_depth_m / (exposure_s * focal_px)
+    fixes = max_fix_spacing_m * gnss_hz
+    frames = marker_size_m * fps
+    return float(min(blur, fixes, frames, max_speed_m_s))
+
+
+def leg_units(hold_s: np.ndarray) -> list[tuple[int, int]]:
+    """Consecutive index ranges [start, stop) that a flight may not cut: a run of hold-0 points and the hold that ends it.
+
+    ``hold_s`` (N,) in flight order; a unit ends after every point with a hold
+    (> 0 after rounding to whole seconds) and after the last point.
+    """
+    h = np.round(np.asarray(hold_s, float))
+    units = []
+    start = 0
+    for i in range(len(h)):
+        if h[i] > 0 or i == len(h) - 1:
+            units.append((start, i + 1))
+            start = i + 1
+    return units
+
+
+def split_into_flights(
+    vehicle: np.ndarray,
+    markers: np.ndarray,
+    hold_s: np.ndarray,
+    limits: Limits,
+    flight: FlightModel,
+    endurance_s: float,
+    reserve: float = 0.25,
+    takeoff_site: np.ndarray | None = None,
+    end: str = "land",
+    ordered: bool = True,
+    leg_speed_m_s: float | None = None,
+) -> list[Route]:
+    """Cut the points into consecutive flights that each fit one battery.
+
+    Every flight takes off from and lands at the same take-off point and lasts
+    at most ``(1 - reserve) * endurance_s`` (take-off, transit, holds and
+    landing included, as ``plan_route`` times them). Cuts fall only after a
+    point with a hold (``leg_units``): a leg of pass-through points is never
+    cut. When the unit after a cut starts with pass-through points, the next
+    flight first returns to the hold point that ended the previous flight, so
+    the leg again starts from rest there (that point, and its ``grid_index``,
+    appears in both flights). Flights are filled greedily in order.
+
+    Parameters
+    ----------
+    vehicle, markers : (N, 3) drone positions and marker centres, site frame, m
+    hold_s : (N,) holds, s (0 = fly through)
+    limits, flight : as for ``plan_route``
+    endurance_s : battery endurance, s
+    reserve : fraction of the endurance kept in reserve
+    takeoff_site : (3,) take-off point; default beside the whole set of points
+    end : 'land' | 'rtl'
+    ordered : True keeps the given order; False orders all points first (``order_points``)
+    leg_speed_m_s : speed on the legs (``plan_route``)
+
+    Raises
+    ------
+    PlanError
+        When one leg alone (with take-off and landing) does not fit the budget.
+    """
+    vehicle = np.asarray(vehicle, float)
+    markers = np.asarray(markers, float)
+    hold = np.asarray(hold_s, float).reshape(-1)
+    if len(hold) != len(vehicle):
+        raise PlanError(f"hold_s has {len(hold)} values for {len(vehicle)} points: give one hold (s) per point")
+    if not (endurance_s > 0 and 0.0 <= reserve < 1.0):
+        raise PlanError(f"endurance {endurance_s!r} s with reserve {reserve!r}: give a positive --endurance and a reserve in [0, 1)")
+    order = np.arange(len(vehicle)) if ordered else order_points(markers)
+    if takeoff_site is None:
+        takeoff_site = default_takeoff(vehicle, order, limits)
+    budget_s = (1.0 - reserve) * float(endurance_s)
+    units = leg_units(hold[order])
+
+    def route_of(idx: list[int]) -> Route:
+        sel = order[np.asarray(idx, int)]
+        return plan_route(vehicle[sel], markers[sel], limits, flight, takeoff_site=takeoff_site, end=end,
+                          hold_s=hold[sel], ordered=True, leg_speed_m_s=leg_speed_m_s)
+
+    def remap(route: Route, idx: list[int]) -> Route:
+        sel = order[np.asarray(idx, int)]
+        g = np.where(route.grid_index >= 0, sel[np.maximum(route.grid_index, 0)], -1)
+        return replace(route, grid_index=g)
+
+    flights: list[Route] = []
+    current: list[int] = []
+    current_route: Route | None = None
+    for u, (a, b) in enumerate(units):
+        unit = list(range(a, b))
+        trial = current + unit
+        r = route_of(trial)
+        if r.flight_time_s <= budget_s:
+            current, current_route = trial, r
+            continue
+        if current_route is not None:
+            flights.append(remap(current_route, current))
+        # re-enter a leg at the hold that ended the previous flight
+        lead = [a - 1] if (a > 0 and np.round(hold[order[a]]) <= 0 and b - a > 1) else []
+        current = lead + unit
+        r = route_of(current)
+        if r.flight_time_s > budget_s:
+            raise PlanError(
+                f"points {a}-{b - 1} (one leg) need {r.flight_time_s / 60:.1f} min with take-off and landing, more than "
+                f"{budget_s / 60:.1f} min ({100 * (1 - reserve):.0f} % of the endurance): shorten that leg, lower its holds or give a longer --endurance"
+            )
+        current_route = r
+    if current_route is not None:
+        flights.append(remap(current_route, current))
+    return flights
