@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from dronecal_field.core.camera import Camera
 from dronecal_field.plan.route import FlightModel, plan_route
@@ -189,3 +191,145 @@ def _finite(v: object) -> float | None:
     except (TypeError, ValueError):
         return None
     return f if math.isfinite(f) else None
+
+
+# --------------------------------------------------------------------------
+# The image-space design (``--strategy image``): candidates scored by the predicted ROI error
+
+DEFAULT_LATTICES: tuple[tuple[int, int], ...] = ((5, 4), (6, 4), (7, 5), (8, 5), (9, 6))
+DEFAULT_DEPTHS: tuple[tuple[int, float | None], ...] = ((2, None), (2, 2.0), (3, None))
+
+
+@dataclass(frozen=True, eq=False)
+class ImageCandidate:
+    """One image-space layout on one camera: its design, predicted ROI error and flight time."""
+
+    design: Any  # sampling.design.Design
+    prediction: Any  # sampling.predict.RoiPrediction | None
+    flight_time_s: float | None
+    problem: str | None = None
+
+    @property
+    def name(self) -> str:
+        return self.design.params.name
+
+    @property
+    def usable(self) -> bool:
+        return self.problem is None and self.prediction is not None
+
+    @property
+    def objective(self) -> float:
+        """Lower is better: combined (noise + extrapolation) projection RMS over the ROI, px."""
+        return self.prediction.combined_rms_px if self.usable else math.inf
+
+    def row(self) -> dict:
+        """JSON-ready table row."""
+        p = self.design.params
+        s = self.prediction.summary() if self.prediction is not None else None
+        return {
+            "candidate": self.name, "strategy": p.describe(), "lattice": [p.n_u, p.n_v], "depths": p.n_depths,
+            "depth_ratio": p.depth_ratio, "marker_size_m": p.marker_size_m, "sampling": p.sampling,
+            "holds": self.design.n_points, "leg_samples": self.design.n_leg_samples,
+            "leg_speed_m_s": round(self.design.speed_m_s, 3) if p.sampling != "hover" else None,
+            "coverage_pct": round(100.0 * self.design.coverage, 1),
+            "flight_time_s": None if self.flight_time_s is None else round(self.flight_time_s, 1),
+            "roi_lin_rms_px": None if s is None else s["linearised_px"]["rms"],
+            "roi_extrap_rms_px": None if s is None else s["extrapolation_px"]["rms"],
+            "roi_combined_rms_px": None if s is None else s["combined_px"]["rms"],
+            "roi_combined_max_px": None if s is None else s["combined_px"]["max"],
+            "ground_combined_rms_cm": None if s is None else s["ground_combined_cm"]["rms"],
+            "model": None if s is None else s["model"],
+            "problem": self.problem,
+        }
+
+
+def image_candidate_params(marker_sizes: Sequence[float], samplings: Sequence[str],
+                           lattices: Sequence[tuple[int, int]] = DEFAULT_LATTICES,
+                           depths: Sequence[tuple[int, float | None]] = DEFAULT_DEPTHS) -> list:
+    """Every layout to score: lattice x depths x marker size x sampling (``sampling.design.DesignParams``)."""
+    from dronecal_field.sampling.design import DesignParams
+
+    return [DesignParams(n_u=nu, n_v=nv, n_depths=nd, depth_ratio=ratio, marker_size_m=float(m), sampling=smp)
+            for m in marker_sizes for (nu, nv) in lattices for (nd, ratio) in depths for smp in samplings]
+
+
+def design_problem(points: np.ndarray) -> str | None:
+    """Why a designed point set cannot give a non-coplanar calibration, or None."""
+    if len(points) < MIN_POINTS:
+        return f"{len(points)} points (need {MIN_POINTS})"
+    centred = points - points.mean(axis=0)
+    thickness = float(np.linalg.svd(centred, compute_uv=False)[-1] / math.sqrt(len(points)))
+    if thickness < 0.05:
+        return f"the points lie within {thickness * 100:.0f} mm of one plane (need depth spread for a non-coplanar calibration)"
+    return None
+
+
+def score_image_candidates(
+    camera: Camera,
+    roi: Any,
+    params: Sequence[Any],
+    limits: Limits,
+    flight: FlightModel,
+    timing: Any,
+    noise: Any,
+    draws: np.ndarray,
+    takeoff_site: np.ndarray | None = None,
+    end: str = "land",
+) -> tuple[ImageCandidate, ...]:
+    """Design, time and predict every layout of ``params`` (see ``sampling.design`` and ``sampling.predict``).
+
+    Parameters
+    ----------
+    camera : the guessed camera, site frame
+    roi : ``sampling.roi.Roi`` of that camera
+    params : the layouts (``sampling.design.DesignParams``)
+    limits : where the drone may go; the marker size comes from each layout
+    flight : timing model (hover, speed) of ``plan.route``
+    timing : ``sampling.design.LegTiming`` (frame rate, exposure, GNSS rate)
+    noise : ``sampling.predict.NoiseModel``
+    draws : (D, 6) lens draws for the extrapolation term (``sampling.predict.lens_draws``)
+    takeoff_site : (3,) site frame, or None for beside the points
+    end : 'land' or 'rtl'
+
+    Returns
+    -------
+    tuple of ImageCandidate in the order of ``params``; ``problem`` says why one cannot be flown.
+    Lattices are screened once per (lattice, marker size) and shared.
+    """
+    from dronecal_field.errors import PlanError
+    from dronecal_field.sampling.design import design_sampling, screen_targets
+    from dronecal_field.sampling.predict import predict_roi
+    from dronecal_field.sampling.roi import evaluation_points
+
+    roi_pts, roi_ground = evaluation_points(roi)
+    cache: dict[tuple[int, int, float], Any] = {}
+    out = []
+    for p in params:
+        key = (p.n_u, p.n_v, p.marker_size_m)
+        lim = replace(limits, marker_size_m=p.marker_size_m)
+        if key not in cache:
+            cache[key] = screen_targets(camera, roi, p.n_u, p.n_v, lim)
+        d = design_sampling(camera, roi, p, lim, timing, hover_s=flight.hover_s, screened=cache[key])
+        problem = design_problem(d.marker_site) if d.n_points else "no target pixel has an allowed point along its ray"
+        ft = None
+        if d.n_points:
+            try:
+                route = plan_route(d.vehicle_site, d.marker_site, lim, flight, takeoff_site=takeoff_site, end=end, hold_s=d.hold_s,
+                                   ordered=True, leg_speed_m_s=None if p.sampling == "hover" else d.speed_m_s)
+                ft = route.flight_time_s
+            except PlanError as exc:
+                problem = problem or str(exc)
+        pred = None
+        if problem is None:
+            pred = predict_roi(camera, d.samples_site, d.samples_sigma_h_m, roi_pts, roi_ground, noise, draws)
+        out.append(ImageCandidate(design=d, prediction=pred, flight_time_s=ft, problem=problem))
+    return tuple(out)
+
+
+def predict_points_on_roi(camera: Camera, points: np.ndarray, roi: Any, noise: Any, draws: np.ndarray) -> Any:
+    """The ROI prediction of a fixed set of hover points (N, 3) (the paper's grid, scored the same way)."""
+    from dronecal_field.sampling.predict import predict_roi
+    from dronecal_field.sampling.roi import evaluation_points
+
+    roi_pts, roi_ground = evaluation_points(roi)
+    return predict_roi(camera, points, np.zeros(len(points)), roi_pts, roi_ground, noise, draws)

@@ -255,8 +255,31 @@ def _inset_targets(camera: Camera, targets: np.ndarray, limits: Limits, tries: i
     return targets, rays, pts, s
 
 
+@dataclass(frozen=True, eq=False)
+class TargetScreen:
+    """The target pixels of one lattice and every screened distance along their rays (shared by candidates).
+
+    ``targets`` (T, 2) px, ``points`` (T, D, 3) site metres along the rays at
+    :data:`DEPTH_GRID_M`, ``screen`` the arrays of ``lattice.screen_points``
+    reshaped (T, D).
+    """
+
+    n_u: int
+    n_v: int
+    marker_size_m: float
+    targets: np.ndarray
+    points: np.ndarray
+    screen: dict
+
+
+def screen_targets(camera: Camera, roi: Roi, n_u: int, n_v: int, limits: Limits) -> TargetScreen:
+    """Target lattice over the ROI, pulled in from the image edge, with its rays screened (``limits.marker_size_m``)."""
+    targets, _, pts, s = _inset_targets(camera, target_lattice(roi, n_u, n_v), limits)
+    return TargetScreen(n_u=n_u, n_v=n_v, marker_size_m=limits.marker_size_m, targets=targets, points=pts, screen=s)
+
+
 def design_sampling(camera: Camera, roi: Roi, params: DesignParams, limits: Limits, timing: LegTiming = LegTiming(),
-                    hover_s: float = 3.0) -> Design:
+                    hover_s: float = 3.0, screened: TargetScreen | None = None) -> Design:
     """The holds, legs and prediction samples of ``params`` for ``camera`` over ``roi``.
 
     Parameters
@@ -267,13 +290,18 @@ def design_sampling(camera: Camera, roi: Roi, params: DesignParams, limits: Limi
     limits : the plan's limits; ``marker_size_m`` is replaced by ``params.marker_size_m``
     timing : frame rate, exposure and GNSS rate, for the leg speed and the timing noise
     hover_s : hold at a hold point, s
+    screened : the lattice's rays already screened (``screen_targets`` with the same
+        ``n_u``, ``n_v`` and marker size), so candidates differing only in depths or
+        sampling share the work
 
     Returns
     -------
     Design (points in flight order, see :class:`Design`).
     """
     lim = replace(limits, marker_size_m=params.marker_size_m)
-    targets, rays, pts, s = _inset_targets(camera, target_lattice(roi, params.n_u, params.n_v), lim)
+    if screened is None:
+        screened = screen_targets(camera, roi, params.n_u, params.n_v, lim)
+    targets, pts, s = screened.targets, screened.points, screened.screen
     ok = s["in_view"] & s["reachable"] & s["big_enough"]
     T = len(targets)
     picks: list[list[int]] = []
