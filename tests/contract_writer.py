@@ -86,6 +86,7 @@ class Flight:
     holds: list[tuple[int, int, int]]  # (start_ns, end_ns, mission seq)
     waypoints_enu: np.ndarray  # (M, 3)
     offset_frd_m: np.ndarray  # (3,)
+    legs: list[tuple[int, int, int, int]] = field(default_factory=list)  # (start_ns, end_ns, seq_from, seq_to)
 
     def at(self, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Antenna ENU (N, 3) and roll/pitch/yaw (N, 3) interpolated at ``t_ns`` (N,)."""
@@ -181,6 +182,151 @@ def make_flight(
         waypoints_enu=np.asarray(waypoints_enu, float),
         offset_frd_m=np.array(offset_frd_m, float),
     )
+
+
+def make_leg_flight(
+    camera: Camera,
+    waypoints_enu: np.ndarray,
+    hold_s: np.ndarray | float,
+    speed_mps: float = 2.0,
+    accel_mps2: float = 2.0,
+    drift_m: float = 0.02,
+    offset_frd_m: tuple[float, float, float] = (0.25, 0.0, 0.10),
+    tilt_rad: float = 0.02,
+    first_seq: int = 4,
+    seed: int = 0,
+    rate_hz: float = 50.0,
+) -> Flight:
+    """A drone that flies straight legs at constant ``speed_mps`` through waypoints with hold 0 and holds at the others.
+
+    Between two holds the path is the polyline through the fly-through
+    waypoints between them, flown at ``speed_mps`` with ramps of
+    ``accel_mps2`` out of and into the holds (corners are taken at speed). A
+    hold wanders like :func:`make_flight`'s. ``Flight.legs`` gets one
+    (start_ns, end_ns, seq_from, seq_to) per waypoint-to-waypoint segment.
+    """
+    rng = np.random.default_rng(seed)
+    wps = np.asarray(waypoints_enu, float)
+    holds_s = np.broadcast_to(np.asarray(hold_s, float), (len(wps),)).copy()
+    holds_s[-1] = max(holds_s[-1], 0.0)
+    dt = 1.0 / rate_hz
+    start = np.array([0.0, 2.0, 0.0])
+    seg_t: list[np.ndarray] = []
+    seg_p: list[np.ndarray] = []
+    holds, legs = [], []
+    t = 0.0
+    n = int(round(2.0 / dt))
+    seg_t.append(t + dt * np.arange(n))
+    seg_p.append(np.repeat(start[None], n, 0))
+    t += n * dt
+    # Climb to the first waypoint (cosine profile), as make_flight.
+    n = int(round(4.0 / dt))
+    s = 0.5 - 0.5 * np.cos(np.pi * np.arange(n) / n)
+    seg_t.append(t + dt * np.arange(n))
+    seg_p.append(start + s[:, None] * (wps[0] - start))
+    t += n * dt
+    prev_end = wps[0]
+
+    def hold(k: int, at: np.ndarray) -> np.ndarray:
+        m = int(round(holds_s[k] / dt))
+        walk = np.cumsum(rng.normal(size=(m, 3)), 0)
+        walk = cv2.GaussianBlur(walk, (1, 0), sigmaX=0, sigmaY=rate_hz * 0.3)
+        walk -= walk.mean(0)
+        walk *= drift_m / max(walk.std(), 1e-9)
+        walk[:, 2] *= 0.5
+        walk *= np.clip(np.arange(m) / (0.3 * rate_hz), 0, 1)[:, None]
+        return at + walk
+
+    k = 0
+    while k < len(wps):
+        if holds_s[k] > 0:
+            p = hold(k, prev_end)
+            seg_t.append(t + dt * np.arange(len(p)))
+            seg_p.append(p)
+            holds.append((T0_NS + int(round(t * 1e9)), T0_NS + int(round((t + len(p) * dt) * 1e9)), first_seq + k))
+            t += len(p) * dt
+            prev_end = p[-1]
+        if k == len(wps) - 1:
+            break
+        # The stretch to the next hold (or the last waypoint): a polyline flown at speed.
+        j = k + 1
+        while j < len(wps) - 1 and holds_s[j] <= 0:
+            j += 1
+        poly = np.vstack([prev_end[None], wps[k + 1 : j + 1]])
+        seg_len = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+        cum = np.r_[0.0, np.cumsum(seg_len)]
+        total = float(cum[-1])
+        ss = np.linspace(0.0, total, max(2, int(total / 0.002)))
+        v = np.minimum(speed_mps, np.sqrt(2 * accel_mps2 * np.minimum(ss, total - ss) + 0.05**2))
+        tt = np.r_[0.0, np.cumsum(np.diff(ss) / (0.5 * (v[1:] + v[:-1])))]
+        m = int(np.floor(tt[-1] / dt))
+        s_at = np.interp(dt * np.arange(1, m + 1), tt, ss)
+        pts = np.stack([np.interp(s_at, cum, poly[:, i]) for i in range(3)], -1)
+        t_corner = np.interp(cum, ss, tt)
+        for q in range(len(poly) - 1):
+            legs.append((
+                T0_NS + int(round((t + t_corner[q]) * 1e9)), T0_NS + int(round((t + t_corner[q + 1]) * 1e9)),
+                first_seq + k + q, first_seq + k + q + 1,
+            ))
+        seg_t.append(t + dt * np.arange(1, m + 1))
+        seg_p.append(pts)
+        t += m * dt
+        prev_end = pts[-1] if m else prev_end
+        k = j
+    n = int(round(4.0 / dt))
+    seg_t.append(t + dt * np.arange(1, n + 1))
+    seg_p.append(prev_end + (0.5 - 0.5 * np.cos(np.pi * np.arange(1, n + 1) / n))[:, None] * (start - prev_end))
+    tt = np.concatenate(seg_t)
+    pos = np.concatenate(seg_p)
+    keep = np.r_[True, np.diff(tt) > 1e-9]
+    tt, pos = tt[keep], pos[keep]
+    cam = camera.pose.position_world
+    yaw = np.arctan2(cam[0] - pos[:, 0], cam[1] - pos[:, 1])
+    yaw = cv2.GaussianBlur(np.unwrap(yaw)[:, None], (1, 0), sigmaX=0, sigmaY=rate_hz * 0.2).ravel()
+    roll = cv2.GaussianBlur(rng.normal(0, 1, (len(tt), 1)), (1, 0), sigmaX=0, sigmaY=rate_hz * 0.5).ravel()
+    pitch = cv2.GaussianBlur(rng.normal(0, 1, (len(tt), 1)), (1, 0), sigmaX=0, sigmaY=rate_hz * 0.5).ravel()
+    roll *= tilt_rad / max(roll.std(), 1e-12)
+    pitch *= tilt_rad / max(pitch.std(), 1e-12)
+    rpy = np.stack([roll, pitch, (yaw + np.pi) % (2 * np.pi) - np.pi], -1)
+    return Flight(
+        t_ns=T0_NS + np.round(tt * 1e9).astype(np.int64),
+        antenna_enu=pos,
+        rpy_rad=rpy,
+        holds=holds,
+        waypoints_enu=wps,
+        offset_frd_m=np.array(offset_frd_m, float),
+        legs=legs,
+    )
+
+
+def leg_waypoints(
+    camera: Camera,
+    depths_m: tuple[float, ...] = (5.0, 8.0, 12.0),
+    heights_m: tuple[float, ...] = (1.5, 3.5, 5.5),
+    half_width_frac: float = 0.9,
+) -> np.ndarray:
+    """(M, 3) ENU waypoints of legs across the camera's view: for each depth and height, one
+    waypoint at each side of the image (``half_width_frac`` of the horizontal field of view at
+    that depth), alternating direction, so the marker crosses the image left-right and
+    right-left at several rows.
+    """
+    R = camera.pose.R_cam_from_world
+    c = camera.pose.position_world
+    fwd = R[2] * np.array([1.0, 1.0, 0.0])
+    fwd /= np.linalg.norm(fwd)
+    right = np.array([fwd[1], -fwd[0], 0.0])
+    i = camera.intrinsics
+    half = half_width_frac * (i.width / 2) / i.fx
+    points = []
+    k = 0
+    for h in heights_m:
+        for d in depths_m:
+            ends = [-1.0, 1.0] if k % 2 == 0 else [1.0, -1.0]
+            for e in ends:
+                base = c * np.array([1.0, 1.0, 0.0]) + d * fwd + e * half * d * right
+                points.append((base[0], base[1], h))
+            k += 1
+    return np.array(points, float)
 
 
 # --------------------------------------------------------------------------
@@ -351,6 +497,10 @@ class RunSpec:
     fix_type: str = "rtk_fixed"
     repeat_fixes: int = 1  # each fix sent this many times, evenly between fixes (a stream faster than the receiver)
     gnss_noise_tau_s: float = 0.0  # RTK noise correlation time (first-order Gauss-Markov); 0: white
+    readout_s: float = 0.0  # rolling shutter: row v captured at the frame's time + v / height * readout_s
+    exposure_s: float = 0.0  # motion blur: the frame averages the marker over this long
+    with_leg_events: bool = True  # a "leg" event per waypoint-to-waypoint segment of Flight.legs
+    gnss_latency_s: float = 0.0  # fixes stamped this late (arrival); declared as gnss.latency_s when > 0
 
 
 def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook, spec: RunSpec) -> dict:
@@ -402,6 +552,7 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
         idx = np.repeat(np.arange(len(fix_t)), spec.repeat_fixes)
         fix_t = fix_t[idx] + np.tile(np.arange(spec.repeat_fixes) * period, len(geo))
         geo, sigma, fix_type = geo[idx], sigma[idx], fix_type[idx]
+    fix_t = fix_t + int(round(spec.gnss_latency_s * 1e9))
     for k, t in enumerate(fix_t):
         msg = LocationFix()
         _stamp(msg.timestamp, int(t))
@@ -418,9 +569,22 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
     capture = t_start + np.round(np.arange(n_frames) / spec.fps * 1e9).astype(np.int64)
     stamp = capture + int(round(spec.latency_s * 1e9))
     n_corrupt = 0
+    marker_row_t = np.zeros(n_frames, np.int64)  # when the marker's row was captured
     for k in range(n_frames):
         visible = not any(a <= capture[k] < b for a, b in spec.hidden)
-        data = encode_jpeg(render(int(capture[k]), visible=visible), spec.jpeg_quality)
+        t_row = int(capture[k])
+        if spec.readout_s > 0:
+            # The marker spans few rows: render it as it was when its centre row was read out.
+            for _ in range(2):
+                v = float(renderer.true_centre_px(np.array([t_row]))[0, 1])
+                t_row = int(capture[k]) + int(round(np.clip(v, 0, camera.height - 1) / camera.height * spec.readout_s * 1e9))
+        marker_row_t[k] = t_row
+        if spec.exposure_s > 0 and visible:
+            subs = [render(t_row + int(round(f * spec.exposure_s * 1e9)), visible=True).astype(np.float32) for f in (-0.5, -1 / 6, 1 / 6, 0.5)]
+            image = np.clip(np.mean(subs, axis=0) + 0.5, 0, 255).astype(np.uint8)
+        else:
+            image = render(t_row, visible=visible)
+        data = encode_jpeg(image, spec.jpeg_quality)
         if spec.corrupt_every and k % spec.corrupt_every == spec.corrupt_every - 1:
             data = data[: len(data) // 2]
             n_corrupt += 1
@@ -438,6 +602,15 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
             _stamp(msg.start_time, a)
             _stamp(msg.end_time, b)
             for key, value in (("type", "hover"), ("seq", str(seq)), ("hold_s", f"{(b - a) * 1e-9:.3f}")):
+                kv = msg.metadata.add()
+                kv.key, kv.value = key, value
+            records.append((b, "/events", msg.SerializeToString()))
+    if spec.with_events and spec.with_leg_events:
+        for a, b, seq_from, seq_to in flight.legs:
+            msg = Event()
+            _stamp(msg.start_time, a)
+            _stamp(msg.end_time, b)
+            for key, value in (("type", "leg"), ("seq_from", str(seq_from)), ("seq_to", str(seq_to))):
                 kv = msg.metadata.add()
                 kv.key, kv.value = key, value
             records.append((b, "/events", msg.SerializeToString()))
@@ -470,6 +643,8 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
         metadata["camera.latency_s"] = spec.declared_latency
     if spec.altitude_datum is not None:
         metadata["gnss.altitude_datum"] = spec.altitude_datum
+    if spec.gnss_latency_s > 0:
+        metadata["gnss.latency_s"] = repr(float(spec.gnss_latency_s))
     for key in spec.omit_metadata_keys:
         metadata.pop(key, None)
 
@@ -507,6 +682,7 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
     return {
         "frame_capture_ns": capture,
         "frame_stamp_ns": stamp,
+        "marker_row_capture_ns": marker_row_t,
         "marker_centre_enu": centres,
         "n_frames": n_frames,
         "n_fixes": len(fix_t),

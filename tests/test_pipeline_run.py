@@ -245,8 +245,10 @@ def test_led_run_calibrates(tmp_path):
 
 
 def test_repeated_fixes_are_left_out_with_a_warning(tmp_path):
-    # 5 Hz fixes sent twice each (ArduPilot streaming GPS_RAW_INT at 10 Hz with GPS_RATE_MS = 200):
-    # the stale repeats are left out, so the points are those of the plain 5 Hz run.
+    # 5 Hz fixes sent twice each under arrival stamps (ArduPilot streaming GPS_RAW_INT at 10 Hz with
+    # GPS_RATE_MS = 200, a writer that breaks the one-message-per-fix rule): repeats while the drone
+    # moves give the writer away, the fallback rule "position" leaves the stale repeats out, so the
+    # points are those of the plain 5 Hz run.
     camera = pole_camera()
     flight = make_flight(camera, grid_waypoints(**WIDE_GRID), seed=16)
     reports = []
@@ -258,9 +260,11 @@ def test_repeated_fixes_are_left_out_with_a_warning(tmp_path):
     assert [p.n_fixes for p in repeated.points] == [p.n_fixes for p in plain.points]
     np.testing.assert_allclose([p.marker_enu_m for p in repeated.used_points], [p.marker_enu_m for p in plain.used_points], atol=1e-9)
     assert repeated.fixes_repeated == repeated.track.t_ns.size == plain.track.t_ns.size
-    warning = [w for w in repeated.warnings if "repeat the previous one" in w]
-    assert warning and "GPS_RATE_MS" in warning[0]
-    assert not [w for w in plain.warnings if "repeat the previous one" in w]
+    warning = [w for w in repeated.warnings if "repeat the fix before" in w]
+    assert warning and "GPS_RATE_MS" in warning[0] and "rule: position" in warning[0]
+    assert not [w for w in plain.warnings if "repeat the fix before" in w]
+    assert (plain.fix_identity.rule, repeated.fix_identity.rule) == ("fix time", "position")
+    assert plain.offset.to_dict()["gnss_fix_times"]["rule"] == "fix time"
 
 
 # --------------------------------------------------------------------------

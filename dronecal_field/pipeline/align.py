@@ -38,6 +38,8 @@ class TimeOffset:
     n_groups: int = 0
     cost_min_px: float | None = None
     cost_zero_px: float | None = None
+    rolling_shutter: dict | None = None  # Timing.to_dict() when legs refined the timing
+    gnss_times: dict | None = None  # how the fixes were timed and told apart (run.py)
 
     @property
     def offset_ns(self) -> int:
@@ -53,6 +55,8 @@ class TimeOffset:
             "n_groups": self.n_groups,
             "rms_at_offset_px": self.cost_min_px,
             "rms_at_zero_px": self.cost_zero_px,
+            "rolling_shutter": self.rolling_shutter,
+            "gnss_fix_times": self.gnss_times,
         }
 
 
@@ -317,3 +321,150 @@ def _curvature_std(offsets: np.ndarray, costs: np.ndarray, best: float, cost_min
         return None
     sigma2 = n * cost_min**2 / max(n - 12, 1)
     return float(np.sqrt(2 * sigma2 / curvature))
+
+
+@dataclass(frozen=True)
+class Timing:
+    """The camera's timing against the GNSS clock, refined through a calibrated camera.
+
+    A detection stamped ``t`` at image row ``v`` shows the marker where it was
+    at ``t - offset_s + v * line_time_s`` (GNSS clock).
+
+    Attributes
+    ----------
+    offset_s, offset_std_s : the first row's offset and its std, seconds.
+    line_time_s : rolling-shutter time per row, seconds (0 for a global shutter or when not estimated).
+    line_time_std_s : its std, None when the data do not observe it.
+    readout_s : line_time_s times the image height (the frame's readout).
+    rolling_shutter : "estimated", "not observable (bounded)" or "not estimated".
+    bound_m : when not estimated, how far the marker can move during a readout of
+        ``max_readout_s`` at the fastest pairing speed (the effect left unmodelled), metres.
+    n_points : detections the refinement used.
+    """
+
+    offset_s: float
+    offset_std_s: float | None
+    line_time_s: float
+    line_time_std_s: float | None
+    readout_s: float
+    rolling_shutter: str
+    bound_m: float | None = None
+    n_points: int = 0
+
+    @property
+    def offset_ns(self) -> int:
+        return int(round(self.offset_s * 1e9))
+
+    def to_dict(self) -> dict:
+        return {
+            "offset_s": self.offset_s,
+            "offset_std_s": self.offset_std_s,
+            "line_time_s": self.line_time_s,
+            "line_time_std_s": self.line_time_std_s,
+            "readout_s": self.readout_s,
+            "rolling_shutter": self.rolling_shutter,
+            "unmodelled_motion_bound_m": self.bound_m,
+            "n_points": self.n_points,
+        }
+
+
+def _timing_cost(
+    project, det_t_ns: np.ndarray, det_uv: np.ndarray, fix_t_ns: np.ndarray, fix_xyz: np.ndarray,
+    offset_s: float, line_time_s: float, scale_px: float,
+) -> tuple[float, int]:
+    t = det_t_ns - int(round(offset_s * 1e9)) + np.round(det_uv[:, 1] * line_time_s * 1e9).astype(np.int64)
+    X, valid = interpolate_track(t, fix_t_ns, fix_xyz)
+    if valid.sum() < 8:
+        return np.nan, 0
+    r = np.linalg.norm(project(X[valid]) - det_uv[valid], axis=1)
+    return float(scale_px * np.sqrt(np.mean(np.log1p((r / scale_px) ** 2)))), int(valid.sum())
+
+
+def refine_timing(
+    project,
+    det_t_ns: np.ndarray,
+    det_uv: np.ndarray,
+    fix_t_ns: np.ndarray,
+    fix_xyz: np.ndarray,
+    offset_s: float,
+    height_px: int,
+    max_readout_s: float = 0.06,
+    span_s: float = 0.06,
+    step_s: float = 0.004,
+    scale_px: float = 2.0,
+    min_moving_px: float = 1.0,
+    speed_mps: float | None = None,
+) -> Timing:
+    """The offset and the rolling-shutter line time that make a calibrated camera reproject the moving marker best.
+
+    A scan over offsets within ``span_s`` of ``offset_s`` and readouts
+    0..``max_readout_s``, each cost a robust RMS reprojection error of the
+    GNSS track (interpolated at the detections' corrected instants) through
+    ``project``; the minimum is refined by parabolas. The line time is
+    observable when the moving marker is seen at different rows: a readout
+    shift that a single offset cannot absorb. When its minimum is on the edge
+    or its curvature cannot bound it, ``rolling_shutter`` says "not observable
+    (bounded)" and ``bound_m`` is the motion during ``max_readout_s``.
+
+    Parameters
+    ----------
+    project : callable (K, 3) ENU metres -> (K, 2) pixels (the calibrated camera)
+    det_t_ns : (M,) int64, det_uv : (M, 2) px
+        Detections (camera clock).
+    fix_t_ns : (N,) int64, fix_xyz : (N, 3) m
+        The marker's GNSS track.
+    offset_s : the first estimate (:func:`estimate_time_offset`).
+    height_px : image rows (the readout is the line time times this).
+    speed_mps : the fastest pairing speed, for the bound.
+    """
+    det_t_ns = np.asarray(det_t_ns, np.int64)
+    det_uv = np.asarray(det_uv, float)
+    order = np.argsort(det_t_ns, kind="stable")
+    det_t_ns, det_uv = det_t_ns[order], det_uv[order]
+    moving = _moving_mask(det_t_ns, det_uv, min_moving_px)
+    keep = _subsample(moving, max_moving=1500, max_still=300)
+    det_t_ns, det_uv, moving = det_t_ns[keep], det_uv[keep], moving[keep]
+    bound = None if speed_mps is None else float(speed_mps * max_readout_s)
+    if moving.sum() < 8:
+        return Timing(offset_s, None, 0.0, None, 0.0, "not estimated", bound, int(len(det_t_ns)))
+    offsets = offset_s + np.arange(-span_s, span_s + step_s / 2, step_s)
+    readouts = np.linspace(0.0, max_readout_s, 13) if max_readout_s > 0 else np.array([0.0])
+    best_off = np.full(len(readouts), np.nan)
+    best_cost = np.full(len(readouts), np.nan)
+    n_used = 0
+    for i, ro in enumerate(readouts):
+        lt = ro / height_px
+        costs = np.array([_timing_cost(project, det_t_ns, det_uv, fix_t_ns, fix_xyz, o, lt, scale_px)[0] for o in offsets])
+        if not np.any(np.isfinite(costs)):
+            continue
+        best_off[i], best_cost[i] = _minimum(offsets, costs)
+    if not np.any(np.isfinite(best_cost)):
+        return Timing(offset_s, None, 0.0, None, 0.0, "not estimated", bound, 0)
+    k = int(np.nanargmin(best_cost))
+    readout, cost_min = (_minimum(readouts, best_cost) if len(readouts) > 1 else (0.0, best_cost[0]))
+    readout = float(np.clip(readout, 0.0, max_readout_s))
+    off = float(np.interp(readout, readouts, np.nan_to_num(best_off, nan=offset_s))) if len(readouts) > 1 else float(best_off[0])
+    lt = readout / height_px
+    # Stds from the cost's curvature (Gauss-Newton), one dimension at a time.
+    n_used = _timing_cost(project, det_t_ns, det_uv, fix_t_ns, fix_xyz, off, lt, scale_px)[1]
+    fine = off + np.array([-1.0, 0.0, 1.0]) * step_s
+    c_off = np.array([_timing_cost(project, det_t_ns, det_uv, fix_t_ns, fix_xyz, o, lt, scale_px)[0] for o in fine])
+    off_std = _curvature_std(fine, c_off, off, float(np.nanmin(c_off)), max(n_used, 13))
+    if max_readout_s <= 0 or len(readouts) < 3:
+        return Timing(off, off_std, 0.0, None, 0.0, "not estimated", bound, n_used)
+    ro_std = _curvature_std(readouts, best_cost, readout, float(cost_min), max(n_used, 13))
+    if k == 0 and np.all(np.isfinite(best_cost[:2])):
+        # A minimum at zero (a global shutter): the curvature of a parabola with its vertex there.
+        n = max(n_used, 13)
+        S0, S1 = n * best_cost[0] ** 2, n * best_cost[1] ** 2
+        curvature = 2 * (S1 - S0) / readouts[1] ** 2
+        sigma2 = n * best_cost[0] ** 2 / max(n - 12, 1)
+        ro_std = float(np.sqrt(2 * sigma2 / curvature)) if curvature > 0 else None
+        readout, off = 0.0, float(best_off[0])
+        lt = 0.0
+    on_edge = k == len(readouts) - 1
+    observable = ro_std is not None and not on_edge and ro_std < 0.5 * max_readout_s
+    if not observable:
+        # Keep the first row's offset at the best global-shutter fit.
+        return Timing(float(best_off[0]) if np.isfinite(best_off[0]) else off, off_std, 0.0, None, 0.0, "not observable (bounded)", bound, n_used)
+    return Timing(off, off_std, lt, ro_std / height_px, readout, "estimated", None, n_used)

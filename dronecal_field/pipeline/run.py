@@ -1,13 +1,16 @@
 """The offline stage: ``calibrate_run(path, options) -> CalibrationReport``.
 
-Ties the steps together (hover windows -> detections -> time alignment ->
-per-waypoint points -> calibration -> uncertainty -> outputs) and returns
-everything it measured. No printing: the command prints a summary; every
-number lands in report.json.
+The pipeline, one named stage each (see :func:`_calibrate_run`)::
+
+    read track -> hover windows + legs -> detections -> time alignment
+      -> points -> solve (-> timing refined through the camera -> points -> solve)
+      -> uncertainty -> report
+
+No printing: the command prints a summary; every number lands in report.json.
 
 Memory is bounded: fixes and attitude (a few floats per sample) are held in
-arrays, frames are streamed once through the hover windows and only the
-detections are kept.
+arrays, frames are streamed once through the hover windows and the legs and
+only the detections are kept.
 """
 
 from __future__ import annotations
@@ -15,15 +18,16 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from dronecal_field.errors import ContractError, DegenerateGeometryError, DronecalError, InputError
 from dronecal_field.geodesy import EnuOrigin, geodetic_to_enu
-from dronecal_field.pipeline.align import TimeOffset, estimate_time_offset
+from dronecal_field.pipeline.align import TimeOffset, Timing, estimate_time_offset, refine_timing
 from dronecal_field.pipeline.detect import Detection, centres_under_distortion
+from dronecal_field.pipeline.fixes import DistinctFixes, distinct_fixes
 from dronecal_field.pipeline.hover import (
     HoverWindow,
     TrackThresholds,
@@ -31,6 +35,7 @@ from dronecal_field.pipeline.hover import (
     windows_from_reached,
     windows_from_track,
 )
+from dronecal_field.pipeline.legs import Leg, LegOptions, leg_points, legs_from_intervals, legs_from_track, track_velocity
 from dronecal_field.pipeline.points import (
     FIX_TYPES,
     PointOptions,
@@ -44,6 +49,7 @@ from dronecal_field.pipeline.points import (
 from dronecal_field.pipeline.sampling import SamplingOptions
 
 HOVER_SOURCES = ("auto", "events", "reached", "track")
+LEG_SOURCES = ("auto", "events", "track", "none")
 MIN_POINTS = 6
 
 
@@ -60,9 +66,12 @@ class CalibrateOptions:
     seed: int = 0
     annotate: bool = False
     hover_source: str = "auto"
+    leg_source: str = "auto"  # fly-through legs: "leg" events, else the GNSS track; "none": holds only
     max_offset_s: float = 1.0
+    max_readout_s: float = 0.06  # rolling-shutter readouts searched (0: assume a global shutter)
     recentre: bool = True  # marker centres again under the first calibration's distortion
     points: PointOptions = field(default_factory=PointOptions)
+    legs: LegOptions = field(default_factory=LegOptions)
     sampling: SamplingOptions = field(default_factory=SamplingOptions)
     track: TrackThresholds = field(default_factory=TrackThresholds)
 
@@ -71,10 +80,10 @@ class CalibrateOptions:
             raise InputError(f"--min-fix {self.min_fix!r} is not a fix type: use one of {', '.join(FIX_TYPES)}")
         if self.hover_source not in HOVER_SOURCES:
             raise InputError(f"--hover-source {self.hover_source!r}: use one of {', '.join(HOVER_SOURCES)}")
+        if self.leg_source not in LEG_SOURCES:
+            raise InputError(f"--leg-source {self.leg_source!r}: use one of {', '.join(LEG_SOURCES)}")
         if self.trials < 0 or self.trials == 1:
             raise InputError(f"--trials {self.trials}: use 0 to skip the Monte-Carlo, or at least 2 (the paper uses 500)")
-
-
 @dataclass(frozen=True, eq=False)
 class FrameStats:
     """What the detection pass saw."""
@@ -108,6 +117,7 @@ class Track:
     marker_enu_m: np.ndarray  # (N, 3)
     sigma_enu_m: np.ndarray  # (N, 3) receiver-reported std
     fix_types: list[str | None]
+    velocity_enu_mps: np.ndarray | None = None  # (N, 3) the marker's velocity at each fix
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,8 +152,22 @@ class CalibrationReport:
     options: CalibrateOptions
     background: np.ndarray | None = field(default=None, repr=False)  # (H, W) a frame with the marker
     outputs: dict[str, str] = field(default_factory=dict)
-    fixes_repeated: int = 0  # fixes left out as bit-for-bit repeats of the previous one
+    fixes_repeated: int = 0  # messages left out as repeats of the fix before (see ``fix_identity``)
     centres: str = "diagonals' crossing"  # how marker centres were taken (report.json "points")
+    legs: list[Leg] = field(default_factory=list)
+    leg_source: str = "none"
+    timing: Timing | None = None  # offset and rolling shutter refined through the calibrated camera
+    fix_identity: DistinctFixes | None = None  # how fixes were told apart (rule, counts)
+    gnss_latency_s: float | None = None  # subtracted from arrival-stamped fixes (metadata gnss.latency_s)
+    validity: object | None = None  # the region of validity (filled by the uncertainty stage when available)
+
+    @property
+    def hover_points(self) -> list[WaypointPoint]:
+        return [p for p in self.points if p.window.source != "leg"]
+
+    @property
+    def leg_points(self) -> list[WaypointPoint]:
+        return [p for p in self.points if p.window.source == "leg"]
 
     @property
     def camera(self):
@@ -158,8 +182,66 @@ class CalibrationReport:
 # Reading the run
 
 
-def _read_track(run) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, np.ndarray, int]:
-    """(t_ns, lat/lon/alt (N, 3), sigma_enu (N, 3), fix types, all-usable mask, repeated fixes) of every fix."""
+
+
+@dataclass(frozen=True, eq=False)
+class TrackRead:
+    """What the read-track stage returns: the usable fixes, the ENU frame, the marker's track."""
+
+    track: Track
+    identity: DistinctFixes
+    gnss_latency_s: float | None
+    origin: EnuOrigin
+    origin_source: str
+    attitude: tuple  # (att_t_ns (K,), att_rpy_rad (K, 3)) or (None, None)
+    attitude_source: str
+    offset_frd_m: np.ndarray  # (3,)
+    holds: dict[int, float] | None
+    warnings: list[str]
+
+
+@dataclass(frozen=True, eq=False)
+class Detections:
+    """What the detection stage returns (arrays over the M detections, camera clock)."""
+
+    items: list[Detection]
+    groups: list[int]
+    t_ns: np.ndarray  # (M,) int64
+    uv_px: np.ndarray  # (M, 2)
+    size_px: np.ndarray  # (M,)
+    stats: FrameStats
+    size_mismatch: bool
+    background: np.ndarray | None
+
+
+@dataclass(frozen=True, eq=False)
+class Solved:
+    """What the points-and-solve stage returns."""
+
+    points: list[WaypointPoint]
+    result: object  # core.calibrate.CalibrationResult
+    model_reason: str
+    track: Track  # with the marker track finally used (lever arm)
+    attitude_source: str
+    centres: str
+    timing: Timing
+    warnings: list[str]
+
+
+@dataclass(frozen=True, eq=False)
+class Uncertainty:
+    """What the uncertainty stage returns."""
+
+    monte_carlo: object | None
+    linearised: object | None
+    covariance: np.ndarray
+    maps: object
+    homography: np.ndarray
+    validity: object | None = None
+
+
+def _read_fixes(run) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, DistinctFixes, float | None]:
+    """(t_ns (N,), lat/lon/alt (N, 3), sigma_enu (N, 3), fix types, DistinctFixes, latency applied) of every message of /gnss/fix, time-sorted."""
     t, lla, sig, types = [], [], [], []
     for fix in run.iter_fixes():
         if not (np.isfinite(fix.lat_deg) and np.isfinite(fix.lon_deg) and np.isfinite(fix.alt_m)):
@@ -175,16 +257,79 @@ def _read_track(run) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, np.ndarr
     sig_a = np.asarray(sig, float).reshape(-1, 3)[order]
     types = [types[i] for i in order]
     t_ns = t_ns[order]
-    # Duplicated stamps would break interpolation. A fix repeated bit for bit
-    # under a later stamp comes from a logger or stream faster than the
-    # receiver (new fixes come at ArduPilot's GPS_RATE_MS): the repeat is
-    # stale, so the first one is kept.
-    keep = np.r_[True, np.diff(t_ns) > 0] if len(t_ns) else np.zeros(0, bool)
-    repeated = np.r_[False, np.all(np.diff(lla_a, axis=0) == 0.0, axis=1)] if len(t_ns) else np.zeros(0, bool)
-    usable = np.array([ty != "no_fix" for ty in types], bool) & keep & ~repeated
-    return t_ns, lla_a, sig_a, types, usable, int(repeated.sum())
+    stamping, latency = run.gnss_stamping
+    identity = distinct_fixes(t_ns, lla_a, _raw_fix_times(run, t_ns), arrival_stamped=stamping == "arrival")
+    if stamping == "arrival" and latency is not None:
+        t_ns = t_ns - int(round(latency * 1e9))  # the fix is older than its arrival
+    return t_ns, lla_a, sig_a, types, identity, (latency if stamping == "arrival" else None)
 
 
+def _raw_fix_times(run, t_ns: np.ndarray) -> np.ndarray | None:
+    """(N,) GPS_RAW_INT.time_usec of the raw message each fix was stamped with, when the fixes carry
+    those messages' arrival stamps (an arrival-stamping writer); None otherwise."""
+    if "/mavlink/GPS_RAW_INT" not in run.topics or len(t_ns) == 0:
+        return None
+    raw: dict[int, int] = {}
+    for _, t, fields in run.iter_mavlink({"GPS_RAW_INT"}):
+        try:
+            raw[int(t)] = int(fields.get("time_usec", 0))
+        except (TypeError, ValueError):
+            continue
+    matched = np.array([raw.get(int(t), -1) for t in t_ns], np.int64)
+    if np.mean(matched >= 0) < 0.9:
+        return None  # fixes stamped at their own time (the contract): time tells them apart
+    return np.where(matched >= 0, matched, 0)
+
+
+def _read_track(run, path: Path, options: CalibrateOptions) -> TrackRead:
+    """Stage 1: the usable fixes (one per fix time), the ENU frame, the marker's track and attitude."""
+    md = run.metadata
+    warnings: list[str] = []
+    holds, roi = _plan_info(run)
+    fix_t, lla, fix_sigma, fix_types, identity, latency = _read_fixes(run)
+    usable = np.array([ty != "no_fix" for ty in fix_types], bool) & identity.keep
+    if not usable.any():
+        seen = sorted({str(t) for t in fix_types}) if fix_types else []
+        raise InputError(
+            f"{path.name}: no usable GNSS fix ({len(fix_types)} fixes"
+            + (f", types {', '.join(seen)}" if seen else "")
+            + "): fly with a working GNSS receiver and record /gnss/fix"
+        )
+    if identity.rule != "fix time" and identity.n_repeats > 0.1 * len(lla):
+        warnings.append(
+            f"{identity.n_repeats} of {len(lla)} GNSS messages repeat the fix before (left out, rule: {identity.rule}): the "
+            "receiver is slower than the telemetry stream; set ArduPilot's GPS_RATE_MS to 100 for 10 Hz fixes if the receiver supports it"
+        )
+    fix_t, lla, fix_sigma = fix_t[usable], lla[usable], fix_sigma[usable]
+    fix_types = [t for t, u in zip(fix_types, usable) if u]
+    if md.site_origin is not None:
+        origin, origin_source = md.site_origin, "dronecal.site metadata"
+    elif roi is not None:
+        origin, origin_source = EnuOrigin(lat_deg=roi[0], lon_deg=roi[1], h_m=float(lla[0, 2])), "camera (ROI) in mission.plan, height of the first fix"
+    else:
+        origin, origin_source = EnuOrigin(lat_deg=float(lla[0, 0]), lon_deg=float(lla[0, 1]), h_m=float(lla[0, 2])), "first GNSS fix"
+    antenna = geodetic_to_enu(lla[:, 0], lla[:, 1], lla[:, 2], origin)
+    att = [(a.timestamp_ns, a.roll_rad, a.pitch_rad, a.yaw_rad) for a in run.iter_attitude()]
+    offset_frd = np.asarray(md.marker.offset_frd_m, float)
+    if att:
+        arr = np.asarray(att, float)
+        att_t = arr[:, 0].astype(np.int64)
+        order = np.argsort(att_t, kind="stable")
+        attitude = (att_t[order], arr[order, 1:])
+        marker = antenna + lever_arm_enu(offset_frd, attitude_at(fix_t, *attitude))
+        attitude_source = f"vehicle attitude ({len(att)} samples)"
+    else:
+        attitude = (None, None)
+        marker = antenna.copy()
+        attitude_source = "none in the run"
+    track = Track(
+        t_ns=fix_t, antenna_enu_m=antenna, marker_enu_m=marker, sigma_enu_m=fix_sigma, fix_types=fix_types,
+        velocity_enu_mps=track_velocity(fix_t, marker),
+    )
+    return TrackRead(
+        track=track, identity=identity, gnss_latency_s=latency, origin=origin, origin_source=origin_source,
+        attitude=attitude, attitude_source=attitude_source, offset_frd_m=offset_frd, holds=holds, warnings=warnings,
+    )
 def _plan_info(run) -> tuple[dict[int, float] | None, tuple[float, float] | None]:
     """Hold seconds by mission seq and the camera (ROI) lat/lon from an attached QGC plan, if any."""
     data = run.attachment("mission.plan")
@@ -245,12 +390,32 @@ def _hover_windows(run, fix_t, antenna, options: CalibrateOptions, holds) -> tup
     return windows_from_track(fix_t, antenna, options.track), "gnss_track", notes
 
 
-def _detect_frames(run, windows: list[HoverWindow], marker, width: int, height: int, sampling: SamplingOptions):
-    """One pass over the frames in the windows: (detections, groups, FrameStats)."""
+
+def _find_legs(run, track: Track, windows: list[HoverWindow], options: CalibrateOptions) -> tuple[list[Leg], str]:
+    """Stage 2b: the fly-through legs, from ``leg`` events, else from the GNSS track (outside the hover windows)."""
+    want = options.leg_source
+    if want == "none":
+        return [], "none"
+    if want in ("auto", "events"):
+        events = [(e.timestamp_ns, e.end_ns) for e in run.iter_events() if e.type == "leg" and e.duration_ns > 0]
+        if events:
+            return legs_from_intervals(events, "event"), "event"
+        if want == "events":
+            raise InputError("--leg-source events: the run has no leg events on /events; use --leg-source auto")
+    legs = legs_from_track(track.t_ns, track.antenna_enu_m, options.legs)
+    # A stretch overlapping a hold is the hold's drift or its approach, not a leg.
+    legs = [g for g in legs if not any(w.start_ns < g.end_ns and g.start_ns < w.end_ns for w in windows)]
+    legs = [replace(g, index=k) for k, g in enumerate(legs)]
+    return legs, ("gnss_track" if legs else "none")
+
+
+def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, sampling: SamplingOptions) -> Detections:
+    """Stage 3: one pass over the frames of the windows and the legs: the marker's detections."""
     from dronecal_field.pipeline.detect import decode_gray, detect_aruco, detect_led, make_aruco_detector, roi_around
     from dronecal_field.pipeline.sampling import FrameSelector
 
-    selector = FrameSelector(windows, sampling)
+    marker = md.marker
+    selector = FrameSelector(windows, sampling, legs=[(g.start_ns, g.end_ns) for g in legs])
     detector = None
     if marker.kind == "aruco":
         try:
@@ -278,7 +443,7 @@ def _detect_frames(run, windows: list[HoverWindow], marker, width: int, height: 
         if image is None:
             corrupt += 1
             continue
-        if image.shape[:2] != (height, width) and not size_warned:
+        if image.shape[:2] != (md.height, md.width) and not size_warned:
             size_warned = True
         roi = None
         if last is not None and abs(frame.timestamp_ns - last.timestamp_ns) < 500_000_000:
@@ -308,7 +473,167 @@ def _detect_frames(run, windows: list[HoverWindow], marker, width: int, height: 
         transitions_dense=len(selector.transitions_taken),
         formats=tuple(sorted(formats)),
     )
-    return detections, groups, stats, size_warned, background
+    return Detections(
+        items=detections,
+        groups=groups,
+        t_ns=np.array([d.timestamp_ns for d in detections], np.int64),
+        uv_px=np.array([[d.u_px, d.v_px] for d in detections], float).reshape(-1, 2),
+        size_px=np.array([d.size_px for d in detections], float),
+        stats=stats,
+        size_mismatch=size_warned,
+        background=background,
+    )
+
+
+def _align(dets: Detections, track: Track, md, options: CalibrateOptions) -> tuple[TimeOffset, list[str]]:
+    """Stage 4: the camera-GNSS offset from the marker's motion (legs and transitions)."""
+    warnings: list[str] = []
+    offset = estimate_time_offset(
+        dets.t_ns, dets.uv_px, track.t_ns, track.marker_enu_m, groups=np.asarray(dets.groups), max_offset_s=options.max_offset_s
+    )
+    if offset.method == "none":
+        if md.camera_latency_s is not None:
+            offset = TimeOffset(offset_s=float(md.camera_latency_s), std_s=None, method="declared", n_points=offset.n_points, n_moving=offset.n_moving)
+            warnings.append("the time offset is not observable from the data (no marker motion seen): using camera.latency_s")
+        else:
+            warnings.append("the time offset is not observable from the data (no marker motion seen) and camera.latency_s is unknown: assuming 0")
+    elif offset.std_s is None:
+        warnings.append(f"the time offset {offset.offset_s:+.3f} s is at the edge of the search range or unbounded: check camera.latency_s")
+    return offset, warnings
+
+
+def _points(
+    track: Track,
+    attitude: tuple,
+    offset_frd: np.ndarray,
+    windows: list[HoverWindow],
+    legs: list[Leg],
+    dets: Detections,
+    centres_px: np.ndarray,
+    timing: Timing,
+    marker_size_m: float | None,
+    options: CalibrateOptions,
+) -> list[WaypointPoint]:
+    """Stage 5: one 3D-2D point per hover window (averaged over its settled part) and one per fix on the legs."""
+    po = replace(options.points, min_fix=options.min_fix)
+    # Each detection at the instant its marker row was read out.
+    det_t = dets.t_ns + np.round(centres_px[:, 1] * timing.line_time_s * 1e9).astype(np.int64) if len(dets.t_ns) else dets.t_ns
+    det_marker = None  # pairing at the fixes interpolates the image track instead
+    if po.paired and po.pair_at == "detections":
+        det_marker, bracketed = marker_track_at(
+            det_t - timing.offset_ns, track.t_ns, track.antenna_enu_m, offset_frd, *attitude, max_gap_s=po.pair_max_gap_s
+        )
+        det_marker[~bracketed] = np.nan
+    hover = [
+        window_point(
+            w, w.stable(po.settle_s, po.tail_s), track.t_ns, track.marker_enu_m, track.sigma_enu_m, track.fix_types,
+            det_t, centres_px, timing.offset_ns, po, dets.size_px, marker_size_m, det_marker,
+        )
+        for w in windows
+    ]
+    hover = drop_outlying_scatter(hover, po)
+    if not legs:
+        return hover
+    readout_std = (timing.line_time_std_s or 0.0) * 0.5 * float(np.ptp(centres_px[:, 1])) if len(centres_px) else 0.0
+    time_std = float(np.hypot(timing.offset_std_s if timing.offset_std_s is not None else 0.02, readout_std))
+    moving = leg_points(
+        legs, track.t_ns, track.marker_enu_m, track.velocity_enu_mps, track.sigma_enu_m, track.fix_types,
+        dets.t_ns, centres_px, timing.offset_ns, timing.line_time_s, time_std, options.min_fix,
+        first_index=len(windows), options=options.legs,
+    )
+    return hover + moving
+
+
+def _solve(points: list[WaypointPoint], md, options: CalibrateOptions):
+    """Stage 6: the camera from the used points: (CalibrationResult, why this model)."""
+    from dronecal_field.core.calibrate import calibrate
+    from dronecal_field.pipeline import maps
+
+    used = [p for p in points if p.used]
+    if len(used) < MIN_POINTS:
+        raise DegenerateGeometryError(_too_few_message(points, len(used)))
+    X = np.array([p.marker_enu_m for p in used])
+    uv = np.array([p.uv_px for p in used])
+    if options.model == "auto":
+        return maps.select_model(X, uv, md.width, md.height, options.loss, options.loss_scale_px)
+    result = calibrate(X, uv, md.width, md.height, model=options.model, loss=options.loss, loss_scale_px=options.loss_scale_px)
+    return result, "--model given"
+
+
+def _points_and_solve(read: TrackRead, windows, legs, dets: Detections, offset: TimeOffset, md, options: CalibrateOptions) -> Solved:
+    """Stages 5-6 with their refinements: points -> solve; without attitude the lever arm facing the
+    camera; centres again under the distortion; on legs the offset and rolling shutter refined
+    through the camera; points -> solve again."""
+    warnings: list[str] = []
+    track, attitude, attitude_source = read.track, read.attitude, read.attitude_source
+    marker_size_m = md.marker.size_m if md.marker.kind == "aruco" else None
+    timing = Timing(offset.offset_s, offset.std_s, 0.0, None, 0.0, "not estimated", n_points=offset.n_points)
+    centres = dets.uv_px
+
+    def run(tr: Track, tm: Timing, c: np.ndarray):
+        pts = _points(tr, attitude, read.offset_frd_m, windows, legs, dets, c, tm, marker_size_m, options)
+        return (pts, *_solve(pts, md, options))
+
+    points, result, reason = run(track, timing, centres)
+    if attitude[0] is None and np.linalg.norm(read.offset_frd_m) > 0:
+        # No attitude: assume level flight with the nose at the camera (the
+        # mission's DO_SET_ROI), which the first calibration has located.
+        centre = result.camera.pose.position_world
+        ant = track.antenna_enu_m
+        yaw = np.arctan2(centre[0] - ant[:, 0], centre[1] - ant[:, 1])
+        rpy = np.c_[np.zeros(len(yaw)), np.zeros(len(yaw)), yaw]
+        marker = ant + lever_arm_enu(read.offset_frd_m, rpy)
+        track = replace(track, marker_enu_m=marker, velocity_enu_mps=track_velocity(track.t_ns, marker))
+        attitude = (track.t_ns, rpy)
+        points, result, reason = run(track, timing, centres)
+        attitude_source = "none in the run: assumed level with the nose towards the calibrated camera"
+        warnings.append("no attitude in the run: the marker lever arm assumes level flight facing the camera")
+    method = "diagonals' crossing" if md.marker.kind == "aruco" else "blob centroid"
+    corners = [d.corners_px for d in dets.items]
+    if options.recentre and np.any(result.camera.distortion.as_array() != 0.0) and all(c is not None for c in corners):
+        # Distortion bends the marker's diagonals: take the centres again under the calibrated distortion.
+        i = result.camera.intrinsics
+        centres = centres_under_distortion(np.array(corners), np.array([i.fx, i.fy, i.cx, i.cy]), result.camera.distortion.as_array())
+        method = "diagonals' crossing under the first calibration's distortion"
+        if not legs:
+            points, result, reason = run(track, timing, centres)
+    if legs:
+        speed = max((float(np.nanmax(np.linalg.norm(track.velocity_enu_mps, axis=1))) if len(track.t_ns) else 0.0), 0.0)
+        timing = refine_timing(
+            result.camera.project, dets.t_ns, centres, track.t_ns, track.marker_enu_m, offset.offset_s, md.height,
+            max_readout_s=options.max_readout_s, speed_mps=speed,
+        )
+        if timing.offset_std_s is None:
+            timing = replace(timing, offset_std_s=offset.std_s)
+        points, result, reason = run(track, timing, centres)
+        if timing.rolling_shutter != "estimated" and timing.bound_m is not None and options.max_readout_s > 0:
+            warnings.append(
+                f"rolling shutter not observable from these legs: a readout up to {options.max_readout_s * 1000:.0f} ms would move "
+                f"the marker by up to {100 * timing.bound_m:.1f} cm between the top and bottom rows; fly legs at several image rows "
+                "in both directions to estimate it"
+            )
+    return Solved(
+        points=points, result=result, model_reason=reason, track=track, attitude_source=attitude_source,
+        centres=method, timing=timing, warnings=warnings,
+    )
+
+
+def _uncertainty(camera, points: list[WaypointPoint], result, options: CalibrateOptions) -> Uncertainty:
+    """Stage 7: Monte-Carlo and linearised uncertainty, the maps and the ground homography."""
+    from dronecal_field.core.uncertainty import linearised, monte_carlo, parameter_covariance
+    from dronecal_field.pipeline import maps
+
+    used = [p for p in points if p.used]
+    X = np.array([p.marker_enu_m for p in used])
+    s3 = np.array([p.sigma_enu_m for p in used])
+    s2 = np.array([p.sigma_px for p in used])
+    mc = monte_carlo(camera, X, trials=options.trials, sigma_3d=s3, sigma_2d=s2, seed=options.seed, model=result.model) if options.trials >= 2 else None
+    lin = linearised(camera, X, sigma_3d=s3, sigma_2d=s2, model=result.model)
+    cov = parameter_covariance(camera, X, s3, s2, result.model)
+    return Uncertainty(
+        monte_carlo=mc, linearised=lin, covariance=cov,
+        maps=maps.uncertainty_maps(camera, cov, seed=options.seed), homography=maps.ground_homography(camera),
+    )
 
 
 # --------------------------------------------------------------------------
@@ -333,7 +658,7 @@ def calibrate_run(path: str | os.PathLike, options: CalibrateOptions = Calibrate
     Raises
     ------
     ContractError : the file breaks the contract (names what is missing)
-    InputError : no usable fix, no hover window, no marker found
+    InputError : no usable fix, no hover window or leg, no marker found
     DegenerateGeometryError : too few good waypoints, coplanar points
     CalibrationError : the solver found no trustworthy camera
     """
@@ -360,210 +685,78 @@ def _cut_off_at(path: Path) -> int | None:
 
 
 def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
-    from dataclasses import replace
-
-    from dronecal_field.core.calibrate import calibrate
-    from dronecal_field.pipeline import maps
+    """The pipeline: each stage a function of the ones before."""
     from dronecal_field.runfile.reader import open_run
 
-    point_options = replace(options.points, min_fix=options.min_fix)
-    timings: dict[str, float] = {}
-    warnings: list[str] = []
-    tick = time.perf_counter()
+    clock = _Clock()
     with open_run(path) as run:
-        md = run.metadata
-        run_warnings = list(run.warnings)
-        if run.truncated:
-            warnings.append(f"the run is cut off at byte {run.truncated_at}: using the complete part")
-        holds, roi = _plan_info(run)
-        fix_t, lla, fix_sigma, fix_types, usable, n_repeated = _read_track(run)
-        if not usable.any():
-            seen = sorted({str(t) for t in fix_types}) if fix_types else []
+        md, run_warnings = run.metadata, list(run.warnings)
+        warnings = [f"the run is cut off at byte {run.truncated_at}: using the complete part"] if run.truncated else []
+        read = clock("read_track_s", _read_track, run, path, options)
+        windows, window_source, notes = clock("hover_windows_s", _hover_windows, run, read.track.t_ns, read.track.antenna_enu_m, options, read.holds)
+        legs, leg_source = clock("legs_s", _find_legs, run, read.track, windows, options)
+        if not windows and not legs:
             raise InputError(
-                f"{path.name}: no usable GNSS fix ({len(fix_types)} fixes"
-                + (f", types {', '.join(seen)}" if seen else "")
-                + "): fly with a working GNSS receiver and record /gnss/fix"
+                f"{path.name}: no hover window and no leg found (no hover or leg events, no MISSION_ITEM_REACHED, and the GNSS "
+                f"track never stays within {options.track.max_spread_m * 100:.0f} cm for {options.track.min_duration_s:g} s "
+                "nor flies straight for long): fly holds of a few seconds at each waypoint, or legs at constant speed"
             )
-        if n_repeated > 0.1 * len(lla):
-            warnings.append(
-                f"{n_repeated} of {len(lla)} GNSS fixes repeat the previous one exactly (left out): the receiver is slower than "
-                "the telemetry stream; set ArduPilot's GPS_RATE_MS to 100 for 10 Hz fixes if the receiver supports it"
-            )
-        fix_t, lla, fix_sigma = fix_t[usable], lla[usable], fix_sigma[usable]
-        fix_types = [t for t, u in zip(fix_types, usable) if u]
-        if md.site_origin is not None:
-            origin, origin_source = md.site_origin, "dronecal.site metadata"
-        elif roi is not None:
-            origin, origin_source = EnuOrigin(lat_deg=roi[0], lon_deg=roi[1], h_m=float(lla[0, 2])), "camera (ROI) in mission.plan, height of the first fix"
-        else:
-            origin, origin_source = EnuOrigin(lat_deg=float(lla[0, 0]), lon_deg=float(lla[0, 1]), h_m=float(lla[0, 2])), "first GNSS fix"
-        antenna = geodetic_to_enu(lla[:, 0], lla[:, 1], lla[:, 2], origin)
-        att = [(a.timestamp_ns, a.roll_rad, a.pitch_rad, a.yaw_rad) for a in run.iter_attitude()]
-        offset_frd = np.asarray(md.marker.offset_frd_m, float)
-        if att:
-            arr = np.asarray(att, float)
-            att_t = arr[:, 0].astype(np.int64)
-            order = np.argsort(att_t, kind="stable")
-            att_track = (att_t[order], arr[order, 1:])
-            rpy = attitude_at(fix_t, *att_track)
-            marker = antenna + lever_arm_enu(offset_frd, rpy)
-            attitude_source = f"vehicle attitude ({len(att)} samples)"
-        else:
-            att_track = (None, None)
-            marker = antenna.copy()
-            attitude_source = "none in the run"
-        timings["read_track_s"] = time.perf_counter() - tick
-
-        tick = time.perf_counter()
-        windows, window_source, notes = _hover_windows(run, fix_t, antenna, options, holds)
-        warnings += notes
-        if not windows:
-            raise InputError(
-                f"{path.name}: no hover window found (no hover events, no MISSION_ITEM_REACHED, and the GNSS track "
-                f"never stays within {options.track.max_spread_m * 100:.0f} cm for {options.track.min_duration_s:g} s): "
-                "fly holds of a few seconds at each waypoint"
-            )
-        timings["hover_windows_s"] = time.perf_counter() - tick
-
-        tick = time.perf_counter()
-        detections, groups, frame_stats, size_mismatch, background = _detect_frames(run, windows, md.marker, md.width, md.height, options.sampling)
-        timings["detection_s"] = time.perf_counter() - tick
-    if size_mismatch:
+        dets = clock("detection_s", _detect_frames, run, windows, legs, md, options.sampling)
+        truncated = bool(run.truncated)
+    warnings += read.warnings + notes
+    if dets.size_mismatch:
         warnings.append(f"frames are not {md.width}x{md.height} as camera.width/height say")
-    if frame_stats.frames_corrupt:
-        warnings.append(f"{frame_stats.frames_corrupt} corrupt frames skipped")
-    if not detections:
-        raise InputError(_no_marker_message(path, md.marker, windows, frame_stats))
-
-    det_t = np.array([d.timestamp_ns for d in detections], np.int64)
-    det_uv = np.array([[d.u_px, d.v_px] for d in detections], float)
-    det_size = np.array([d.size_px for d in detections], float)
-    marker_size_m = md.marker.size_m if md.marker.kind == "aruco" else None
-    tick = time.perf_counter()
-    offset = estimate_time_offset(det_t, det_uv, fix_t, marker, groups=np.asarray(groups), max_offset_s=options.max_offset_s)
-    if offset.method == "none":
-        if md.camera_latency_s is not None:
-            offset = TimeOffset(offset_s=float(md.camera_latency_s), std_s=None, method="declared", n_points=offset.n_points, n_moving=offset.n_moving)
-            warnings.append("the time offset is not observable from the data (no marker motion seen): using camera.latency_s")
-        else:
-            warnings.append("the time offset is not observable from the data (no marker motion seen) and camera.latency_s is unknown: assuming 0")
-    elif offset.std_s is None:
-        warnings.append(f"the time offset {offset.offset_s:+.3f} s is at the edge of the search range or unbounded: check camera.latency_s")
-    timings["time_alignment_s"] = time.perf_counter() - tick
-
-    tick = time.perf_counter()
-
-    def build_points(marker_enu: np.ndarray, attitude: tuple, centres_px: np.ndarray) -> list[WaypointPoint]:
-        det_marker = None  # pairing at the fixes interpolates the image track instead
-        if point_options.paired and point_options.pair_at == "detections":
-            # The marker at each detection's capture time, to pair 3D with 2D through the hover drift.
-            det_marker, bracketed = marker_track_at(
-                det_t - offset.offset_ns, fix_t, antenna, offset_frd, *attitude, max_gap_s=point_options.pair_max_gap_s
-            )
-            det_marker[~bracketed] = np.nan
-        pts = [
-            window_point(
-                w, w.stable(point_options.settle_s, point_options.tail_s), fix_t, marker_enu, fix_sigma, fix_types,
-                det_t, centres_px, offset.offset_ns, point_options, det_size, marker_size_m, det_marker,
-            )
-            for w in windows
-        ]
-        return drop_outlying_scatter(pts, point_options)
-
-    def solve(pts: list[WaypointPoint]):
-        used = [p for p in pts if p.used]
-        if len(used) < MIN_POINTS:
-            raise DegenerateGeometryError(_too_few_message(pts, len(used)))
-        X = np.array([p.marker_enu_m for p in used])
-        uv = np.array([p.uv_px for p in used])
-        if options.model == "auto":
-            result, reason = maps.select_model(X, uv, md.width, md.height, options.loss, options.loss_scale_px)
-        else:
-            reason = "--model given"
-            result = calibrate(X, uv, md.width, md.height, model=options.model, loss=options.loss, loss_scale_px=options.loss_scale_px)
-        return result, reason
-
-    attitude_used = att_track
-    points = build_points(marker, attitude_used, det_uv)
-    result, model_reason = solve(points)
-    if not att and np.linalg.norm(offset_frd) > 0:
-        # No attitude: assume level flight with the nose at the camera (the
-        # mission's DO_SET_ROI), which the first calibration has located.
-        centre = result.camera.pose.position_world
-        yaw = np.arctan2(centre[0] - antenna[:, 0], centre[1] - antenna[:, 1])
-        rpy = np.c_[np.zeros(len(yaw)), np.zeros(len(yaw)), yaw]
-        marker = antenna + lever_arm_enu(offset_frd, rpy)
-        attitude_used = (fix_t, rpy)
-        points = build_points(marker, attitude_used, det_uv)
-        result, model_reason = solve(points)
-        attitude_source = "none in the run: assumed level with the nose towards the calibrated camera"
-        warnings.append("no attitude in the run: the marker lever arm assumes level flight facing the camera")
-    centres_method = "diagonals' crossing" if md.marker.kind == "aruco" else "blob centroid"
-    corners = [d.corners_px for d in detections]
-    if options.recentre and np.any(result.camera.distortion.as_array() != 0.0) and all(c is not None for c in corners):
-        # Distortion bends the marker's diagonals: take the centres again under the calibrated distortion.
-        i = result.camera.intrinsics
-        centres = centres_under_distortion(np.array(corners), np.array([i.fx, i.fy, i.cx, i.cy]), result.camera.distortion.as_array())
-        points = build_points(marker, attitude_used, centres)
-        result, model_reason = solve(points)
-        centres_method = "diagonals' crossing under the first calibration's distortion"
-    camera = result.camera.with_(enu_origin=tuple(origin.as_list()))
-    result = _with_camera(result, camera)
-    timings["calibration_s"] = time.perf_counter() - tick
-
-    used = [p for p in points if p.used]
-    X = np.array([p.marker_enu_m for p in used])
-    s3 = np.array([p.sigma_enu_m for p in used])
-    s2 = np.array([p.sigma_px for p in used])
-    tick = time.perf_counter()
-    from dronecal_field.core.uncertainty import linearised, monte_carlo, parameter_covariance
-
-    mc = monte_carlo(camera, X, trials=options.trials, sigma_3d=s3, sigma_2d=s2, seed=options.seed, model=result.model) if options.trials >= 2 else None
-    lin = linearised(camera, X, sigma_3d=s3, sigma_2d=s2, model=result.model)
-    cov = parameter_covariance(camera, X, s3, s2, result.model)
-    umaps = maps.uncertainty_maps(camera, cov, seed=options.seed)
-    H = maps.ground_homography(camera)
-    timings["uncertainty_s"] = time.perf_counter() - tick
-
+    if dets.stats.frames_corrupt:
+        warnings.append(f"{dets.stats.frames_corrupt} corrupt frames skipped")
+    if not dets.items:
+        raise InputError(_no_marker_message(path, md.marker, windows, dets.stats))
+    offset, notes = clock("time_alignment_s", _align, dets, read.track, md, options)
+    warnings += notes
+    solved = clock("calibration_s", _points_and_solve, read, windows, legs, dets, offset, md, options)
+    warnings += solved.warnings
+    camera = solved.result.camera.with_(enu_origin=tuple(read.origin.as_list()))
+    result = _with_camera(solved.result, camera)
+    unc = clock("uncertainty_s", _uncertainty, camera, solved.points, result, options)
     report = CalibrationReport(
-        run_path=path,
-        truncated=bool(run.truncated),
-        run_warnings=run_warnings,
-        metadata=md,
-        origin=origin,
-        origin_source=origin_source,
-        altitude_datum=md.altitude_datum,
-        windows=windows,
-        window_source=window_source,
-        frames=frame_stats,
-        detections=detections,
-        detection_groups=groups,
-        offset=offset,
-        points=points,
-        attitude_source=attitude_source,
-        model_reason=model_reason,
-        result=result,
-        monte_carlo=mc,
-        linearised=lin,
-        covariance_measured=cov,
-        maps=umaps,
-        homography=H,
-        track=Track(t_ns=fix_t, antenna_enu_m=antenna, marker_enu_m=marker, sigma_enu_m=fix_sigma, fix_types=fix_types),
-        timings_s=timings,
-        warnings=warnings,
-        options=options,
-        background=background,
-        fixes_repeated=n_repeated,
-        centres=centres_method,
+        run_path=path, truncated=truncated, run_warnings=run_warnings, metadata=md,
+        origin=read.origin, origin_source=read.origin_source, altitude_datum=md.altitude_datum,
+        windows=windows, window_source=window_source, frames=dets.stats, detections=dets.items, detection_groups=dets.groups,
+        offset=_offset_with_timing(offset, solved.timing, read), points=solved.points, attitude_source=solved.attitude_source,
+        model_reason=solved.model_reason, result=result, monte_carlo=unc.monte_carlo, linearised=unc.linearised,
+        covariance_measured=unc.covariance, maps=unc.maps, homography=unc.homography, track=solved.track,
+        timings_s=clock.timings, warnings=warnings, options=options, background=dets.background,
+        fixes_repeated=read.identity.n_repeats, centres=solved.centres, legs=legs, leg_source=leg_source,
+        timing=solved.timing, fix_identity=read.identity, gnss_latency_s=read.gnss_latency_s, validity=unc.validity,
     )
     if options.out_dir is not None:
         from dronecal_field.pipeline.report import write_outputs
 
-        tick = time.perf_counter()
-        outputs = write_outputs(report, Path(options.out_dir))
-        report.outputs.update(outputs)
-        timings["outputs_s"] = time.perf_counter() - tick
+        report.outputs.update(clock("outputs_s", write_outputs, report, Path(options.out_dir)))
     return report
+
+
+class _Clock:
+    """Runs a stage and keeps its wall time under a name (report.json ``timings_s``)."""
+
+    def __init__(self) -> None:
+        self.timings: dict[str, float] = {}
+
+    def __call__(self, name: str, stage, *args):
+        tick = time.perf_counter()
+        try:
+            return stage(*args)
+        finally:
+            self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - tick
+
+
+def _offset_with_timing(offset: TimeOffset, timing: Timing, read: TrackRead) -> TimeOffset:
+    """The offset as report.json's ``time_offset`` shows it: the refined first-row offset when legs
+    refined it, with the rolling shutter and how GNSS fixes were timed and told apart."""
+    out = offset
+    if timing.rolling_shutter != "not estimated" or timing.offset_s != offset.offset_s:
+        out = replace(offset, offset_s=timing.offset_s, std_s=timing.offset_std_s if timing.offset_std_s is not None else offset.std_s)
+    gnss = read.identity.to_dict() | {"latency_s_subtracted": read.gnss_latency_s}
+    return replace(out, rolling_shutter=timing.to_dict(), gnss_times=gnss)
 
 
 def _with_camera(result, camera):

@@ -14,6 +14,10 @@ decodes:
   taken only once the window before it has shown the marker, so the frames
   spent there are not wasted on a hold the camera cannot see.
 
+- every frame along each fly-through leg (widened by the same margin), up
+  to ``leg_period_s`` apart: each fix on a leg is paired with the image track
+  around it, so the track must be dense there.
+
 Decisions use only what was already seen, so the pass stays single and the
 memory bounded. Times are frame stamps (camera clock), ns.
 """
@@ -35,6 +39,7 @@ class SamplingOptions:
     dense_s: float = 2.0  # decode every frame this long into each transition
     dense_period_s: float = 1.0 / 15.0  # but no faster than this (15 Hz resolves a 1 s offset to ms)
     max_transitions: int = 10
+    leg_period_s: float = 1.0 / 15.0  # frames on a leg at most this often (every frame of a 10 fps camera)
 
 
 @dataclass
@@ -54,15 +59,26 @@ class FrameSelector:
     :meth:`wants`; after detecting, call :meth:`record` with the outcome.
     """
 
-    def __init__(self, windows: list[HoverWindow], options: SamplingOptions = SamplingOptions()) -> None:
+    def __init__(
+        self,
+        windows: list[HoverWindow],
+        options: SamplingOptions = SamplingOptions(),
+        legs: list[tuple[int, int]] | None = None,
+    ) -> None:
+        """``legs``: (start_ns, end_ns) of fly-through legs (GNSS clock); their groups follow the windows'."""
         self.options = options
         self.windows = sorted(windows, key=lambda w: w.start_ns)
+        self.legs = sorted((int(a), int(b)) for a, b in (legs or []))
         m = int(options.margin_s * 1e9)
         self._zones: list[_Zone] = []
         for k, w in enumerate(self.windows):
             a, b = w.start_ns - m, w.end_ns + m
             period = min(max(1, (b - a) // max(1, options.max_frames_per_window)), int(options.max_period_s * 1e9))
             self._zones.append(_Zone(a, b, int(period), group=k, dense=False))
+        leg_period = max(1, int(options.leg_period_s * 1e9))
+        for k, (a, b) in enumerate(self.legs):
+            self._zones.append(_Zone(a - m, b + m, leg_period, group=len(self.windows) + k, dense=True))
+        self._zones.sort(key=lambda z: z.start_ns)
         self._detected = [0] * len(self.windows)
         n_trans = max(0, len(self.windows) - 1)
         self._stride = max(1, -(-n_trans // max(1, options.max_transitions)))  # ceil
@@ -78,6 +94,8 @@ class FrameSelector:
         out = []
         for k, w in enumerate(self.windows):
             out.append((w.start_ns - m - d, w.end_ns + m + d))
+        for a, b in self.legs:
+            out.append((a - m, b + m))
         return out
 
     def _transition_zones(self, k: int) -> list[_Zone]:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import heapq
 import io
 import json
+import math
 import os
 import struct
 from dataclasses import dataclass
@@ -178,6 +179,21 @@ class Run:
         """Any MCAP metadata record by name (the last one when repeated), or None."""
         record = self._metadata.get(name)
         return dict(record) if record is not None else None
+
+    @property
+    def gnss_stamping(self) -> tuple[str, float | None]:
+        """How ``/gnss/fix`` is stamped: ``("fix_time", None)`` as the contract says, or
+        ``("arrival", latency_s)`` when the writer declared metadata ``gnss.latency_s``
+        (its latency estimate in seconds, None when ``unknown``).
+        """
+        text = self.metadata.extra.get("gnss.latency_s")
+        if text is None:
+            return "fix_time", None
+        try:
+            value = float(text)
+        except ValueError:
+            return "arrival", None
+        return "arrival", (value if math.isfinite(value) else None)
 
     def iter_fixes(self) -> Iterator[GnssFix]:
         """GNSS fixes of ``/gnss/fix`` in log-time order."""
