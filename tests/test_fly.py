@@ -44,6 +44,7 @@ def _fly_args(sim_url, plan, camera, out, *extra) -> list[str]:
 def test_fly_start_flies_and_records_a_whole_mission(tmp_path, camera, capsys):
     sim = start_sim(speedup=20.0, boot_s=2.0)
     plan = write_plan(tmp_path / "mission.plan", SMALL, hold_s=1.0)
+    _write_marker(tmp_path)  # the flags below win over its marker; the file itself travels with the run
     out = tmp_path / "run.mcap"
     try:
         rc = main(_fly_args(sim.addresses()[0], plan, camera, out, "--start"))
@@ -65,6 +66,7 @@ def test_fly_start_flies_and_records_a_whole_mission(tmp_path, camera, capsys):
         fixes = list(run.iter_fixes())
         frames = list(run.iter_frames())
         assert run.attachment("mission.plan") == plan.read_bytes()
+        assert run.attachment("plan.json") == (tmp_path / "plan.json").read_bytes()
     assert [int(e.metadata["seq"]) for e in hovers] == [4, 5, 6, 7]
     # the hover windows are on the host clock: hold_s of vehicle time / the vehicle's speed-up
     (t0, a0), (t1, a1) = attitude[0], attitude[-1]

@@ -299,6 +299,9 @@ def _start_recorder(args, link, source, first, mission, mission_path, marker, pl
     writer = RunWriter(out, metadata)
     data = mission_path.read_bytes() if mission.source_format == "plan" else to_qgc_plan(mission).encode("utf-8")
     writer.attach("mission.plan", data, "application/json")
+    if plan_json is not None:
+        # The plan's region of interest and predictions travel with the run, for calibrate's validity check.
+        writer.attach("plan.json", (mission_path.parent / "plan.json").read_bytes(), "application/json")
     return Recorder(
         link,
         source,
