@@ -102,7 +102,7 @@ def path_time_s(path: np.ndarray, stop: np.ndarray, speeds_m_s: np.ndarray, flig
     peak = np.minimum(cruise, np.sqrt(a * lengths))
     ramp = peak / a
     with np.errstate(divide="ignore", invalid="ignore"):
-        ends = np.where(peak > 1e-9, 2.0 * ramp + (lengths - peak * peak / a) / np.maximum(peak, 1e-12), 0.0)
+        ends = np.where(lengths > 1e-6, 2.0 * ramp + (lengths - peak * peak / a) / np.maximum(peak, 1e-12), 0.0)
     total = float(ends.sum())
     stops = np.asarray(stop, bool).copy()
     stops[-1] = True
