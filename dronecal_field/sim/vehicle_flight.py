@@ -694,7 +694,9 @@ class CopterModel:
             elif not done and leg.t_s >= leg.decel_start_s - 1e-9 and leg.remaining_s <= nxt.ramp_s + 1e-9:
                 corner = p.corner_accel_mps2 if p.corner_accel_mps2 is not None else 2.0 * p.wp_accel_mps2
                 if corner_ok(leg, nxt, p.wp_radius_m, corner, p.wp_accel_mps2):
-                    nxt.t_s = dt
+                    # start it when the condition first held inside this step (ArduCopter checks at 400 Hz, we step at 20 Hz)
+                    first_s = max(leg.decel_start_s, leg.end_s - nxt.ramp_s)
+                    nxt.t_s = max(1e-9, min(dt, leg.t_s - first_s))
             if nxt.t_s > 0.0 and nxt.t_s >= leg.remaining_s:
                 done = True  # ArduCopter: a fast waypoint is reached half way through the turn (SCurve)
         s1, v1, _ = leg.state_at(leg.t_s)

@@ -1,0 +1,213 @@
+"""Fly-through legs on the simulated vehicle, over real UDP sockets.
+
+A mission planned by ``plan_route`` / ``build_mission`` with pass-through
+points (NAV_WAYPOINT hold 0) is written as a .plan, read back, uploaded to
+``sim vehicle`` and flown in AUTO at 20x. ArduCopter (SCurve, Copter 4.1+)
+flies through such a point without stopping, rounding a corner within
+WPNAV_RADIUS at cruise x cos(turn / 2), and reports MISSION_ITEM_REACHED half
+way through the turn; the vehicle must do the same, and the plan's flight-time
+model must predict the flight.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dronecal_field.geodesy import EnuOrigin, geodetic_to_enu
+from dronecal_field.mavlink import ardupilot as ap
+from dronecal_field.mavlink import missionfile as mf
+from dronecal_field.mavlink.link import open_link
+from dronecal_field.mavlink.mission import download_mission, upload_and_verify
+from dronecal_field.plan import mission as msn
+from dronecal_field.plan.route import FlightModel, plan_route
+from dronecal_field.plan.site import CameraSite
+from dronecal_field.sampling.lattice import Limits
+from dronecal_field.sim.vehicle_flight import CopterParams
+from test_mavlink_support import FAST_PARAMS, HOME, MessageLog, start_sim, wait_ready, wait_until
+
+SITE = CameraSite(lat_deg=HOME[0], lon_deg=HOME[1], ground_h_m=HOME[2], mount_height_m=3.0, azimuth_deg=0.0, tilt_deg=20.0)
+# site frame (X along the camera azimuth = north, Y left = west), metres
+POINTS = np.array([
+    [4.0, -6.0, 2.0],   # 0 hold: the leg starts here
+    [4.0, 0.0, 2.0],    # 1 through, straight on
+    [4.0, 6.0, 2.0],    # 2 through, 90 degree corner
+    [10.0, 6.0, 2.0],   # 3 through, 90 degree corner
+    [10.0, -4.0, 2.0],  # 4 hold: the leg ends here (10 m straight leg before it)
+])
+HOLDS = np.array([2.0, 0.0, 0.0, 0.0, 2.0])
+TURN_DEG = {1: 0.0, 2: 90.0, 3: 90.0}
+LEG_SPEED = 1.5
+TRANSIT_SPEED = 2.0
+PARAMS = FAST_PARAMS
+# the plan's timing model with the simulated vehicle's parameters
+SIM_FLIGHT = FlightModel(speed_m_s=TRANSIT_SPEED, accel_m_s2=PARAMS.wp_accel_mps2, leg_overhead_s=0.0, hover_s=2.0,
+                         spool_up_s=PARAMS.spool_up_s, takeoff_climb_m_s=PARAMS.takeoff_climb_mps, land_speed_m_s=PARAMS.land_speed_mps,
+                         land_high_speed_m_s=PARAMS.land_speed_high_mps, land_detect_s=PARAMS.landed_disarm_s,
+                         wp_radius_m=PARAMS.wp_radius_m, climb_m_s=PARAMS.climb_mps, descent_m_s=PARAMS.descent_mps)
+
+
+def _route():
+    return plan_route(POINTS, POINTS, Limits(keep_out_m=0.0), SIM_FLIGHT, takeoff_site=np.zeros(3), hold_s=HOLDS, ordered=True,
+                      leg_speed_m_s=LEG_SPEED)
+
+
+@pytest.fixture(scope="module")
+def flown(tmp_path_factory):
+    """The legs mission: .plan written and read back, uploaded, flown to disarm."""
+    route = _route()
+    mission = msn.build_mission(route, SITE.R_enu_from_site, SITE.origin, SITE.mount_height_m, TRANSIT_SPEED)
+    path = tmp_path_factory.mktemp("legs") / "mission.plan"
+    path.write_text(msn.dumps(msn.qgc_plan(mission, None, None, TRANSIT_SPEED)))
+    items = mf.read_mission(path).items
+    sim = start_sim(speedup=20.0, boot_s=0.5, params=PARAMS)
+    link = open_link(sim.addresses()[0])
+    rec = MessageLog(link)
+    try:
+        link.wait_heartbeat(5)
+        wait_ready(link)
+        report = upload_and_verify(link, items, timeout_s=0.5)
+        back = download_mission(link, timeout_s=0.5)
+        assert link.set_mode("GUIDED") == ap.MAV_RESULT_ACCEPTED
+        assert link.command_long(ap.CMD_COMPONENT_ARM_DISARM, (1,)) == ap.MAV_RESULT_ACCEPTED
+        start_s = rec.vehicle_s
+        assert link.command_long(ap.CMD_MISSION_START) == ap.MAV_RESULT_ACCEPTED
+        last = items[-1].seq
+
+        def landed():
+            hb = link.vehicle_heartbeat
+            reached = rec.of("MISSION_ITEM_REACHED")
+            return reached and reached[-1][1].seq == last and hb is not None and not hb.base_mode & ap.MAV_MODE_FLAG_SAFETY_ARMED
+
+        assert wait_until(landed, 30)
+    finally:
+        link.close()
+        sim.stop()
+    yield {"route": route, "mission": mission, "items": items, "rec": rec, "start_s": start_s, "report": report, "back": back}
+
+
+def _track(rec):
+    """(t (N,), site positions (N, 3), horizontal speed (N,)) from GLOBAL_POSITION_INT."""
+    gpi = [(t, m) for t, m in rec.of("GLOBAL_POSITION_INT") if m.lat != 0]
+    t = np.array([x[0] for x in gpi])
+    enu = geodetic_to_enu(np.array([m.lat for _, m in gpi]) * 1e-7, np.array([m.lon for _, m in gpi]) * 1e-7, HOME[2], EnuOrigin(*HOME))
+    enu[:, 2] = np.array([m.relative_alt for _, m in gpi]) * 1e-3
+    speed = np.hypot([m.vx for _, m in gpi], [m.vy for _, m in gpi]) * 0.01
+    return t, enu @ SITE.R_enu_from_site, speed
+
+
+def _wp_seqs(items):
+    """Seq of the NAV_WAYPOINT of each planned point, in order."""
+    return [it.seq for it in items if it.command == mf.CMD_NAV_WAYPOINT and it.seq > 0][: len(POINTS)]
+
+
+def test_readback_keeps_hold_0_as_arducopter_stores_it(flown):
+    items, back = flown["items"], flown["back"]
+    assert mf.compare_readback(items, back) == []
+    holds_back = [back[s].p1 for s in _wp_seqs(items)]
+    assert holds_back == HOLDS.tolist()
+    assert len(flown["report"].readback) == len(items)
+
+
+def test_reached_for_every_item_in_order(flown):
+    items = flown["items"]
+    reached = [m.seq for _, m in flown["rec"].of("MISSION_ITEM_REACHED")]
+    # the takeoff is not reported (its DO items are), every other item once
+    assert sorted(reached) == list(range(2, items[-1].seq + 1))
+    nav = [s for s in reached if items[s].is_nav]
+    assert nav == sorted(nav)
+    # a DO item is reported when it runs: as the NAV item before it starts, so before that NAV item is reached
+    for s in reached:
+        if not items[s].is_nav and items[s - 1].is_nav and s > 3:
+            assert reached.index(s) < reached.index(s - 1)
+
+
+def test_pass_through_points_keep_speed_and_are_passed_within_the_wp_radius(flown):
+    rec, items = flown["rec"], flown["items"]
+    t, pos, speed = _track(rec)
+    reached = {m.seq: tt for tt, m in rec.of("MISSION_ITEM_REACHED")}
+    seqs = _wp_seqs(items)
+    for k, turn in TURN_DEG.items():
+        d = np.linalg.norm(pos[:, :2] - POINTS[k, :2], axis=1)
+        near = int(np.argmin(d))
+        assert d[near] < PARAMS.wp_radius_m
+        expected = LEG_SPEED * math.cos(math.radians(turn) / 2.0)  # the S-curve blend's apex speed
+        assert speed[near] == pytest.approx(expected, rel=0.08)
+        assert speed[near] > 0.5 * LEG_SPEED
+        # MISSION_ITEM_REACHED half way through the turn, i.e. where the path passes closest
+        assert abs(reached[seqs[k]] - t[near]) <= 0.25
+        if turn == 0.0:
+            assert d[near] < 0.1
+        else:
+            # apex offset of the blend: accel * tau^2 / 8 * |u_out - u_in| with tau = speed / accel
+            tau = LEG_SPEED / PARAMS.wp_accel_mps2
+            assert d[near] == pytest.approx(PARAMS.wp_accel_mps2 * tau**2 / 8 * 2 * math.sin(math.radians(turn) / 2), abs=0.08)
+    # between leaving the first hold and braking for the last, it never stops
+    t0 = reached[seqs[0]] + LEG_SPEED / PARAMS.wp_accel_mps2 + 0.2
+    arrive = t[np.argmax((np.linalg.norm(pos[:, :2] - POINTS[4, :2], axis=1) < 0.02) & (t > t0))]
+    t1 = arrive - LEG_SPEED / PARAMS.wp_accel_mps2 - 0.2
+    inside = (t > t0) & (t < t1)
+    assert inside.sum() > 100
+    assert speed[inside].min() > 0.65 * LEG_SPEED
+
+
+def test_straight_leg_flies_at_the_leg_speed(flown):
+    t, pos, speed = _track(flown["rec"])
+    # the middle of the 10 m leg from point 3 to point 4
+    middle = (np.abs(pos[:, 0] - 10.0) < 0.05) & (np.abs(pos[:, 1] - 1.0) < 2.0)
+    assert middle.sum() >= 8
+    assert np.abs(speed[middle] / LEG_SPEED - 1.0).max() < 0.05
+
+
+def test_holds_stop_and_last_their_time(flown):
+    rec, items = flown["rec"], flown["items"]
+    t, pos, speed = _track(rec)
+    reached = {m.seq: tt for tt, m in rec.of("MISSION_ITEM_REACHED")}
+    for k in (0, 4):
+        at = (np.linalg.norm(pos - POINTS[k], axis=1) < 0.1) & (speed == 0.0) & (t <= reached[_wp_seqs(items)[k]])
+        assert reached[_wp_seqs(items)[k]] - t[np.argmax(at)] == pytest.approx(HOLDS[k], abs=0.15)
+
+
+def test_flight_time_model_predicts_the_simulated_flight(flown):
+    rec = flown["rec"]
+    start = next(t for t, m in rec.of("STATUSTEXT") if m.text == "Mission: 1 Takeoff" and t >= flown["start_s"])
+    end = [t for t, m in rec.of("STATUSTEXT") if m.text == "Disarming motors"][-1]
+    flown_s = end - start
+    predicted = flown["route"].flight_time_s
+    assert abs(predicted - flown_s) / flown_s < 0.10
+    # and the legs save time: the same points all held stop at each one
+    hover = plan_route(POINTS, POINTS, Limits(keep_out_m=0.0), SIM_FLIGHT, takeoff_site=np.zeros(3), hold_s=np.full(5, 2.0), ordered=True)
+    assert hover.flight_time_s > predicted + 3 * 2.0
+
+
+def test_a_long_straight_run_of_pass_through_points_flies_at_constant_speed():
+    """Ten pass-through points 5 m apart on a line: one acceleration, cruise, one braking (pure model, no sockets)."""
+    from dronecal_field.sim.vehicle_flight import CopterModel
+
+    params = CopterParams(wp_speed_mps=LEG_SPEED)
+
+    def to_enu(item):
+        return np.array([item.x * 1e-3, item.y * 1e-3, item.z])
+
+    items = [mf.MissionItem(0, 0, mf.CMD_NAV_WAYPOINT), mf.MissionItem(1, 3, mf.CMD_NAV_TAKEOFF, z=2.0)]
+    for k in range(11):
+        items.append(mf.MissionItem(2 + k, 3, mf.CMD_NAV_WAYPOINT, p1=2.0 if k in (0, 10) else 0.0, x=5000, y=5000 * (k + 1), z=2.0))
+    m = CopterModel(to_enu, params, np.random.default_rng(0))
+    m.ready = True
+    m.set_mission(items)
+    m.set_mode(ap.MODE_GUIDED)
+    assert m.arm() == ap.MAV_RESULT_ACCEPTED and m.mission_start() == ap.MAV_RESULT_ACCEPTED
+    speeds, reached = [], {}
+    for _ in range(2000):
+        m.step(0.05)
+        for s in m.reached:
+            reached[s] = m.time_s
+        m.reached.clear()
+        if 2 in reached and 12 not in reached and 10.0 < m.pos[1] < 50.0:
+            speeds.append(float(np.linalg.norm(m.vel)))
+    assert sorted(reached) == list(range(1, 13))  # no DO item after the takeoff: it is reported itself
+    assert len(speeds) > 500 and np.allclose(speeds, LEG_SPEED, rtol=1e-6)
+    gaps = np.diff([reached[s] for s in range(3, 12)])
+    assert np.allclose(gaps, 5.0 / LEG_SPEED, atol=0.051)
