@@ -1,13 +1,15 @@
 """What a calibration means over the image and on the ground.
 
-- ``choose_model``: the distortion model the points can support, from their
-  number (the engine's rule) and their spread over the image (distortion
-  grows with the radius; points near the centre cannot pin k2 or p1, p2).
+- ``choose_model`` / ``select_model``: the camera model the points can
+  support, from their number (the engine's rule), their spread over the
+  image (distortion grows with the radius; points near the centre cannot pin
+  k2 or p1, p2) and F-tests; square pixels unless the data demand otherwise.
 - (the parameter covariance under the measured per-point sigmas comes from
   ``core.uncertainty.parameter_covariance``, the linearised twin of the Monte-Carlo.)
-- ``uncertainty_maps``: cameras drawn from that covariance, giving the
-  projection uncertainty (px) of the ground point seen at each pixel and the
-  ground-position uncertainty (cm) of each pixel's ray on the plane z = 0.
+- ``uncertainty_maps``: that covariance propagated to every pixel of a
+  regular grid (plus the model-extrapolation term of ``validity``): the
+  projection error (px) of the ground point seen at each pixel and the
+  ground-position error (cm) of each pixel's ray on the plane z = 0.
 - ``ground_homography``: image <-> ground plane z = 0 (ENU), for speed
   measurement, on undistorted pixels.
 
@@ -23,19 +25,27 @@ import numpy as np
 from dronecal_field.core.calibrate import BatchState, CalibrationModel, resolve_model
 from dronecal_field.core.camera import (
     Camera,
+    Distortion,
     intersect_plane_z,
+    pixel_rays_batch,
     project_batch,
 )
+from dronecal_field.errors import CalibrationError, DronecalError
+from dronecal_field.pipeline.validity import pixel_errors
 
 MAX_GROUND_RANGE_M = 200.0
 
 
+FULL_MODEL_REACH = 0.6  # k3 (r^6) needs points well out (a 4K camera with k3 -0.02 reaching 72 %: k1k2 left 90 px RMS)
+
+
 def choose_model(uv_px: np.ndarray, width: int, height: int) -> tuple[CalibrationModel, str]:
-    """(model, reason) for points observed at pixels (N, 2).
+    """(model, reason) for points observed at pixels (N, 2): the richest model ``auto`` may try.
 
     The engine's ``auto`` rule bounds the model by the point count; the
     radius the points reach bounds the distortion further, because a
-    distortion term is only determined where it is large.
+    distortion term is only determined where it is large (k3 only when the
+    points reach 60 % of the half-diagonal).
     """
     from dataclasses import replace
 
@@ -46,17 +56,21 @@ def choose_model(uv_px: np.ndarray, width: int, height: int) -> tuple[Calibratio
     half_diag = 0.5 * np.hypot(width, height)
     r = np.linalg.norm(uv - centre, axis=1) / half_diag
     r_max = float(np.percentile(r, 90)) if n else 0.0
-    order = ("none", "k1", "k1k2", "k1k2p1p2")
+    order = ("none", "k1", "k1k2", "k1k2p1p2", "full")
     if r_max < 0.3:
         cap, why = "none", f"points reach only {r_max:.0%} of the half-diagonal: no distortion term is observable"
     elif r_max < 0.55:
         cap, why = "k1", f"points reach {r_max:.0%} of the half-diagonal: only k1 is observable"
+    elif r_max < FULL_MODEL_REACH:
+        cap, why = "k1k2p1p2", f"points reach {r_max:.0%} of the half-diagonal: k3 is not observable"
     else:
-        cap, why = "k1k2p1p2", f"points reach {r_max:.0%} of the half-diagonal"
+        cap, why = "full", f"points reach {r_max:.0%} of the half-diagonal"
     allowed = by_count.distortion if by_count.distortion in order else "k1k2p1p2"
+    if allowed == "k1k2p1p2" and n >= CalibrationModel(distortion="full").n_free:
+        allowed = "full"
     name = order[min(order.index(allowed), order.index(cap))]
     model = replace(by_count, distortion=name)
-    return model, f"{n} points allow {by_count.name}; {why}"
+    return model, f"{n} points allow {replace(by_count, distortion=allowed).name}; {why}"
 
 
 def select_model(
@@ -68,14 +82,16 @@ def select_model(
     loss_scale_px: float = 2.0,
     significance: float = 0.01,
     max_pp_inflation: float = 1.5,
+    max_focal_inflation: float = 1.5,
 ):
-    """Calibrate with the richest distortion model the data support: (CalibrationResult, reason).
+    """Calibrate with the richest model the data support: (CalibrationResult, reason).
 
-    Climbs none -> k1 -> k1k2 -> k1k2p1p2 up to the cap of :func:`choose_model`
-    and keeps a richer model only when it lowers the residual sum of squares
-    significantly (an F-test at ``significance``). With few points a rich
-    model fits the noise: it halves the RMS while moving the principal point
-    by pixels, which the F-test refuses.
+    Square pixels (fx = fy) first, as for nearly every modern sensor. Climbs
+    none -> k1 -> k1k2 -> k1k2p1p2 -> full up to the cap of
+    :func:`choose_model` and keeps a richer model only when it lowers the
+    residual sum of squares significantly (an F-test at ``significance``).
+    With few points a rich model fits the noise: it halves the RMS while
+    moving the principal point by pixels, which the F-test refuses.
 
     Tangential terms (p1, p2) face a second test: they trade off almost
     exactly against the principal point, so a fit that takes them also
@@ -83,6 +99,11 @@ def select_model(
     deviation grows by at most ``max_pp_inflation`` (measured: on a pinhole
     camera with 2 cm hover drift, p1 and p2 passed the F-test, inflated the
     principal point's std ~3x and moved it by 20 px).
+
+    Last, the aspect ratio is freed only when the data demand it: the same
+    F-test for the one extra parameter, and the focal length's std may grow
+    by at most ``max_focal_inflation``, so a free fy never absorbs a thin
+    band of points that cannot separate focal length from distance.
 
     Parameters
     ----------
@@ -92,39 +113,52 @@ def select_model(
     max_pp_inflation : float
         Largest accepted ratio of the principal point's std (the norm of
         std cx, std cy) with the tangential terms to without.
+    max_focal_inflation : float
+        Largest accepted ratio of fx's std with a free aspect ratio to without.
     """
     from dataclasses import replace
-
-    from scipy import stats
 
     from dronecal_field.core.calibrate import calibrate
 
     cap, why = choose_model(pixels, width, height)
-    ladder = ("none", "k1", "k1k2", "k1k2p1p2")
+    ladder = ("none", "k1", "k1k2", "k1k2p1p2", "full")
     ladder = ladder[: ladder.index(cap.distortion) + 1]
-    n_obs = 2 * len(points_world)
+    square = replace(cap, fix_aspect_ratio=True)
 
-    def fit(distortion: str):
-        return calibrate(points_world, pixels, width, height, model=replace(cap, distortion=distortion), loss=loss, loss_scale_px=loss_scale_px)
+    def fit(model: CalibrationModel, *starts):
+        """The lowest-RMS fit of ``model`` from the DLT and from each start camera (terms it does not free zeroed)."""
+        fits = []
+        for start in (None, *starts):
+            if start is not None:
+                keep = np.isin(("k1", "k2", "p1", "p2", "k3"), model.free_names())
+                start = start.with_(distortion=Distortion.from_array(np.where(keep, start.distortion.as_array(), 0.0)))
+            try:
+                fits.append(calibrate(points_world, pixels, width, height, model=model, loss=loss, loss_scale_px=loss_scale_px, initial=start))
+            except DronecalError:
+                if start is None and not starts:
+                    raise
+        if not fits:
+            raise CalibrationError(f"no {model.name} fit converged")
+        return min(fits, key=lambda r: r.rms_px)
 
-    best = fit(ladder[0])
+    # Strong distortion far out can trap the lean models' fits from the DLT
+    # (a 4K camera with k1 -0.32 k2 0.12 k3 -0.02: k1 and k1k2 stopped at
+    # 88-90 px RMS); the richest model finds the pose, and every model also
+    # starts from it.
+    try:
+        top = fit(replace(square, distortion=ladder[-1]))
+    except DronecalError:
+        top = None
+    tops = () if top is None else (top.camera,)
+    best = fit(replace(square, distortion=ladder[0]), *tops)
     rejected = []
     for name in ladder[1:]:
         try:
-            candidate = fit(name)
-        except Exception:  # noqa: BLE001 - a richer model that does not converge is simply not chosen
+            candidate = fit(replace(square, distortion=name), best.camera, *tops)
+        except DronecalError:  # a richer model that does not converge is simply not chosen
             rejected.append(f"{name} (no fit)")
             continue
-        dp = candidate.model.n_free - best.model.n_free
-        dof = n_obs - candidate.model.n_free
-        rss_b = float(np.sum(best.residuals_px**2))
-        rss_c = float(np.sum(candidate.residuals_px**2))
-        if dof <= 0 or rss_c <= 0:
-            if rss_c < rss_b:
-                best = candidate
-            continue
-        F = ((rss_b - rss_c) / dp) / (rss_c / dof)
-        p = float(stats.f.sf(F, dp, dof)) if F > 0 else 1.0
+        p = _f_test(best, candidate, len(points_world))
         if p >= significance:
             rejected.append(f"{name} (p={p:.2g})")
             continue
@@ -134,8 +168,42 @@ def select_model(
                 rejected.append(f"{name} (p={p:.2g} but the principal point's std grows {inflation:.1f}x)")
                 continue
         best = candidate
-    reason = why + (f"; not significant: {', '.join(rejected)}" if rejected else "")
+    aspect = "square pixels"
+    if not cap.fix_aspect_ratio:
+        try:
+            free = fit(replace(best.model, fix_aspect_ratio=False), best.camera)
+        except DronecalError:
+            free = None
+        if free is not None:
+            p = _f_test(best, free, len(points_world))
+            inflation = _focal_std(free) / max(_focal_std(best), 1e-12)
+            if p < significance and inflation <= max_focal_inflation:
+                best, aspect = free, f"aspect ratio freed (p={p:.2g})"
+            elif p < significance:
+                aspect = f"square pixels (a free aspect ratio is significant, p={p:.2g}, but grows the focal length's std {inflation:.1f}x)"
+            else:
+                aspect = f"square pixels (a free aspect ratio is not significant, p={p:.2g})"
+    reason = why + f"; {aspect}" + (f"; not significant: {', '.join(rejected)}" if rejected else "")
     return best, reason
+
+
+def _f_test(simpler, richer, n_points: int) -> float:
+    """p-value of the F-test that ``richer`` (a CalibrationResult) fits better than ``simpler`` only by chance."""
+    from scipy import stats
+
+    dp = richer.model.n_free - simpler.model.n_free
+    dof = 2 * n_points - richer.model.n_free
+    rss_b = float(np.sum(simpler.residuals_px**2))
+    rss_c = float(np.sum(richer.residuals_px**2))
+    if dof <= 0 or rss_c <= 0 or dp <= 0:
+        return 0.0 if rss_c < rss_b else 1.0
+    F = ((rss_b - rss_c) / dp) / (rss_c / dof)
+    return float(stats.f.sf(F, dp, dof)) if F > 0 else 1.0
+
+
+def _focal_std(result) -> float:
+    """Standard deviation of fx of a CalibrationResult, px."""
+    return float(np.sqrt(max(result.camera.covariance[0, 0], 0.0)))
 
 
 def _pp_std(result) -> float:
@@ -146,13 +214,17 @@ def _pp_std(result) -> float:
 
 @dataclass(frozen=True, eq=False)
 class UncertaintyMaps:
-    """Per-pixel uncertainty over a grid of the image.
+    """Predicted errors over a regular grid of the image.
 
     ``u_px`` (nu,), ``v_px`` (nv,) grid coordinates; ``projection_px``
-    (nv, nu) RMS pixel error of the ground point each grid pixel sees (the
-    ray's point 15 m out where it misses the ground); ``ground_cm`` (nv, nu)
-    RMS horizontal position error of that ground point, cm (NaN where the ray
-    misses the ground in front of the camera or lands beyond 200 m).
+    (nv, nu) predicted pixel error of the ground point each grid pixel sees
+    (the ray's point 15 m out where it misses the ground): the linearised
+    std ``std_px`` and, when a richer model was given, the
+    model-extrapolation term ``extrapolation_px``, root-sum-square;
+    ``ground_cm`` (nv, nu) the same for the horizontal position of that
+    ground point, cm, NaN where the ray misses the ground in front of the
+    camera or lands beyond 200 m (``sky``, (nv, nu) bool). ``samples`` is
+    0 for the linearised maps, else the number of sampled cameras.
     """
 
     u_px: np.ndarray
@@ -160,12 +232,21 @@ class UncertaintyMaps:
     projection_px: np.ndarray
     ground_cm: np.ndarray
     samples: int
+    std_px: np.ndarray | None = None
+    extrapolation_px: np.ndarray | None = None
+    extrapolation_cm: np.ndarray | None = None
+
+    @property
+    def sky(self) -> np.ndarray:
+        return ~np.isfinite(self.ground_cm)
 
     def summary(self) -> dict:
         g = self.ground_cm[np.isfinite(self.ground_cm)]
         p = self.projection_px[np.isfinite(self.projection_px)]
         return {
             "grid": [int(len(self.u_px)), int(len(self.v_px))],
+            "method": "linearised" if self.samples == 0 else f"{self.samples} sampled cameras",
+            "with_model_extrapolation": self.extrapolation_px is not None,
             "samples": self.samples,
             "projection_px_median": float(np.median(p)) if p.size else None,
             "projection_px_max": float(np.max(p)) if p.size else None,
@@ -188,26 +269,54 @@ def sample_cameras(camera: Camera, covariance: np.ndarray, samples: int, seed: i
 def uncertainty_maps(
     camera: Camera,
     covariance: np.ndarray,
-    nu: int = 32,
-    nv: int = 24,
-    samples: int = 400,
+    nu: int = 64,
+    nv: int | None = None,
+    samples: int = 0,
     seed: int = 0,
     ground_z: float = 0.0,
+    richer: Camera | None = None,
+    richer_covariance: np.ndarray | None = None,
 ) -> UncertaintyMaps:
-    """Projection and ground uncertainty over a (nv, nu) grid of the image; see UncertaintyMaps."""
+    """Predicted projection and ground errors over a (nv, nu) grid of the image; see UncertaintyMaps.
+
+    Parameters
+    ----------
+    camera : the calibrated camera (world = ENU)
+    covariance : (15, 15) parameter covariance with the measured sigmas
+    nu, nv : grid size (nv default: nu scaled by the image's aspect)
+    samples : 0 (default) propagates the covariance to first order, smooth
+        everywhere; > 0 draws that many cameras instead (seeded by ``seed``),
+        a cross-check of the linearisation
+    richer, richer_covariance : the next richer model fitted to the same
+        points and its covariance (``validity.fit_richer``), adding the
+        model-extrapolation term so the maps grow where the data stop
+    """
+    if nv is None:
+        nv = max(int(round(nu * camera.height / camera.width)), 2)
     u = np.linspace(0.0, camera.width - 1.0, nu)
     v = np.linspace(0.0, camera.height - 1.0, nv)
     uv = np.stack(np.meshgrid(u, v), -1).reshape(-1, 2)
-    arrays = camera.batch_arrays()
-    ground = intersect_plane_z(*arrays, uv[None], ground_z)[0]  # (M, 3)
-    centre = camera.pose.position_world
-    reach = np.linalg.norm(ground[:, :2] - centre[:2], axis=1)
-    on_ground = np.all(np.isfinite(ground), axis=1) & (reach < MAX_GROUND_RANGE_M)
-    # Where the ray misses the ground, probe the point 15 m along it instead.
-    from dronecal_field.core.camera import pixel_rays_batch
+    e = pixel_errors(camera, covariance, uv, richer, richer_covariance, ground_z)
+    std_px, std_cm = e.std_px, e.std_cm
+    if samples > 0:
+        std_px, std_cm = _sampled_std(camera, covariance, uv, e.ground_enu_m, samples, seed, ground_z)
+    proj = np.hypot(std_px, e.extrapolation_px)
+    ground_cm = np.hypot(std_cm, e.extrapolation_cm)
+    shape = (nv, nu)
+    return UncertaintyMaps(
+        u_px=u, v_px=v, projection_px=proj.reshape(shape), ground_cm=ground_cm.reshape(shape), samples=int(samples),
+        std_px=std_px.reshape(shape),
+        extrapolation_px=None if richer is None else e.extrapolation_px.reshape(shape),
+        extrapolation_cm=None if richer is None else e.extrapolation_cm.reshape(shape),
+    )
 
+
+def _sampled_std(camera: Camera, covariance: np.ndarray, uv: np.ndarray, ground: np.ndarray, samples: int, seed: int, ground_z: float):
+    """RMS projection (px) and ground (cm) errors over cameras drawn from the covariance, at pixels (M, 2)."""
+    arrays = camera.batch_arrays()
+    on_ground = np.all(np.isfinite(ground), axis=1)
     rays = pixel_rays_batch(arrays[0], arrays[1], arrays[2], uv[None])[0]
-    probe = np.where(on_ground[:, None], ground, centre + 15.0 * rays)
+    probe = np.where(on_ground[:, None], ground, camera.pose.position_world + 15.0 * rays)
     state = sample_cameras(camera, covariance, samples, seed)
     args = (state.intrinsics, state.distortion, state.R, state.t)
     uv_k = project_batch(*args, probe[None])  # (K, M, 2)
@@ -221,9 +330,7 @@ def uncertainty_maps(
     mean_sq = np.where(n_hit > 0, np.where(hit, err**2, 0.0).sum(0) / np.maximum(n_hit, 1), np.nan)
     ground_cm = 100.0 * np.sqrt(mean_sq)
     ground_cm[~on_ground | (n_hit < samples // 2)] = np.nan
-    return UncertaintyMaps(
-        u_px=u, v_px=v, projection_px=proj.reshape(nv, nu), ground_cm=ground_cm.reshape(nv, nu), samples=samples
-    )
+    return proj, ground_cm
 
 
 def ground_homography(camera: Camera, ground_z: float = 0.0) -> np.ndarray:
