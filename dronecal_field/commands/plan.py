@@ -2,9 +2,13 @@
 
 Give the camera as flags or as a TOML site file with the same keys
 (``--site missions/security-4k.toml``; flags override the file). The plan
-samples the paper's grid where the camera sees the marker, compares the
-paper's alternatives with the engine's Monte-Carlo, orders the points for the
-shortest flight, and writes mission.plan (QGroundControl), mission.waypoints
+designs the sampling in the image (--strategy image, the default): target
+pixels spread over the region of interest (--roi, --roi-range), two or more
+depths along each pixel's ray, flown as holds or fly-through legs
+(--sampling), ranked by the predicted projection error over the ROI (noise
+and model extrapolation). The paper's metric grids stay available
+(--strategy paper-far|paper-near|paper-full, --optimize). A plan longer than
+75 % of --endurance is split into flights (mission-1.plan, ...). It writes mission.plan (QGroundControl), mission.waypoints
 (Mission Planner), mission.geojson, preview.png, plan.json and
 camera_guess.yaml into --out. See docs/plan.md for the field procedure.
 
@@ -66,38 +70,92 @@ def run(args: argparse.Namespace) -> int:
 
 
 def format_report(result, out: str) -> str:
-    """The candidate table and the chosen plan, as printed by the command."""
+    """The chosen plan, its predicted ROI error against paper-far, and the candidate table, as printed."""
     s = result.summary
     lens = result.request.lens
-    lines = [
-        f"camera guess: {lens.width}x{lens.height}, f = {lens.focal_px:.0f} px ({lens.focal_source}), "
-        f"HFOV {lens.hfov_deg:.1f} deg, distortion {lens.distortion_level}",
-        f"prediction: {s['uncertainty']['trials']} Monte-Carlo trials per candidate, "
-        f"noise {s['uncertainty']['sigma_px']:g} px / {s['uncertainty']['sigma_3d_m'][0] * 100:g} cm (h) / {s['uncertainty']['sigma_3d_m'][2] * 100:g} cm (v)",
-        "",
-        f"{'candidate':<15} {'points':>6} {'flight':>8} {'RMS mean':>9} {'RMS p95':>8} {'ground@15m':>11} {'p95':>7}",
-        f"{'':<15} {'':>6} {'min':>8} {'px':>9} {'px':>8} {'cm':>11} {'cm':>7}",
-    ]
 
     def num(v, f):
         return "-" if v is None else format(v, f)
 
-    chosen = result.chosen.strategy.name
-    for row in s["candidates"]:
-        mark = " <" if row["candidate"] == chosen else ""
-        ft = None if row["flight_time_s"] is None else row["flight_time_s"] / 60.0
-        lines.append(
-            f"{row['candidate']:<15} {row['points']:>6} {num(ft, '8.1f')} {num(row['rms_mean_px'], '9.2f')} {num(row['rms_p95_px'], '8.2f')} "
-            f"{num(row['ground_error_15m_cm'], '11.1f')} {num(row['ground_error_15m_cm_p95'], '7.1f')}{mark}"
-            + (f"  ({row['problem']})" if row["problem"] else "")
-        )
+    lines = [
+        f"camera guess: {lens.width}x{lens.height}, f = {lens.focal_px:.0f} px ({lens.focal_source}), "
+        f"HFOV {lens.hfov_deg:.1f} deg, distortion {lens.distortion_level}",
+    ]
+    if s.get("roi"):
+        lines.append(f"region of interest: {s['roi']['text']} ({s['roi']['image_area_pct']:.0f} % of the image)")
+    lines.append("")
+    chosen = s["strategy"]["name"]
+    if s["strategy"]["kind"] == "image":
+        lines += [
+            f"{'candidate':<34} {'holds':>5} {'legpts':>6} {'cover':>6} {'flight':>7} {'lin':>6} {'extrap':>7} {'ROI px':>7} {'ground':>7}",
+            f"{'':<34} {'':>5} {'':>6} {'%':>6} {'min':>7} {'px':>6} {'px':>7} {'RMS':>7} {'cm':>7}",
+        ]
+        rows = sorted(s["candidates"], key=lambda r: (r["problem"] is not None, r["roi_combined_rms_px"] if r["roi_combined_rms_px"] is not None else 1e9))
+        shown = rows[:12] + [r for r in rows[12:] if r["candidate"] == chosen]
+        for row in shown:
+            mark = " <" if row["candidate"] == chosen else ""
+            ft = None if row["flight_time_s"] is None else row["flight_time_s"] / 60.0
+            lines.append(
+                f"{row['candidate']:<34} {row['holds']:>5} {row['leg_samples']:>6} {num(row['coverage_pct'], '6.0f')} {num(ft, '7.1f')} "
+                f"{num(row['roi_lin_rms_px'], '6.2f')} {num(row['roi_extrap_rms_px'], '7.2f')} {num(row['roi_combined_rms_px'], '7.2f')} "
+                f"{num(row['ground_combined_rms_cm'], '7.1f')}{mark}" + (f"  ({row['problem']})" if row["problem"] else "")
+            )
+        if len(rows) > len(shown):
+            lines.append(f"... {len(rows) - len(shown)} more candidates in plan.json")
+    else:
+        lines += [
+            f"prediction: {s['uncertainty']['trials']} Monte-Carlo trials per candidate, "
+            f"noise {s['uncertainty']['sigma_px']:g} px / {s['uncertainty']['sigma_3d_m'][0] * 100:g} cm (h) / {s['uncertainty']['sigma_3d_m'][2] * 100:g} cm (v)",
+            f"{'candidate':<15} {'points':>6} {'flight':>8} {'RMS mean':>9} {'RMS p95':>8} {'ground@15m':>11} {'p95':>7}",
+            f"{'':<15} {'':>6} {'min':>8} {'px':>9} {'px':>8} {'cm':>11} {'cm':>7}",
+        ]
+        for row in s["candidates"]:
+            mark = " <" if row["candidate"] == chosen else ""
+            ft = None if row["flight_time_s"] is None else row["flight_time_s"] / 60.0
+            lines.append(
+                f"{row['candidate']:<15} {row['points']:>6} {num(ft, '8.1f')} {num(row['rms_mean_px'], '9.2f')} {num(row['rms_p95_px'], '8.2f')} "
+                f"{num(row['ground_error_15m_cm'], '11.1f')} {num(row['ground_error_15m_cm_p95'], '7.1f')}{mark}"
+                + (f"  ({row['problem']})" if row["problem"] else "")
+            )
     f = s["flight"]
+    smp = s["samples"]
+    lines += ["", f"chosen: {chosen} ({s['strategy']['text']})"]
+    if s["strategy"].get("heights_m"):
+        lines.append(f"heights {', '.join(f'{h:g}' for h in s['strategy']['heights_m'])} m (marker)")
+    lines.append(
+        f"points: {smp['holds']} holds, {smp['pass_through_points']} fly-through points, {smp['leg_samples']} fixes along legs"
+        + (f" at {smp['leg_speed_m_s']:.2f} m/s" if smp["leg_speed_m_s"] else "")
+    )
+    per = ", ".join(f"{x['file']} {x['flight_time_s'] / 60:.1f} min" for x in f["flights"])
+    lines.append(f"flight: {f['flight_time_s'] / 60:.1f} min in {f['n_flights']} flight(s) ({per}); longest {f['battery_pct']:.0f} % of {f['endurance_min']:g} min "
+                 f"(at most {100 - f['reserve_pct']} %)")
+    if s.get("coverage") and s["coverage"]["pct"] is not None:
+        lines.append(f"ROI coverage: {s['coverage']['pct']:.0f} % of the ROI's image area within one cell of a sample")
+        for part in s["coverage"]["unreachable"][:6]:
+            lines.append(f"  not reached: {part['text']}")
+    p = s.get("prediction")
+    if p:
+        lines.append(
+            f"predicted ROI error (model {p['model']}): linearised {p['linearised_px']['rms']:.2f} px RMS (p95 {p['linearised_px']['p95']:.2f}, max {p['linearised_px']['max']:.2f}), "
+            f"extrapolation {p['extrapolation_px']['rms']:.2f} px RMS, combined {p['combined_px']['rms']:.2f} px RMS (max {p['combined_px']['max']:.1f}); "
+            f"ground {p['ground_combined_cm']['rms']:.1f} cm RMS (max {p['ground_combined_cm']['max']:.0f})"
+        )
+    mc = s["uncertainty"].get("monte_carlo") or {}
+    if mc.get("rms_mean") is not None:
+        lines.append(f"Monte-Carlo of the chosen ({mc.get('trials')} trials, {mc.get('points_used')} points): RMS reprojection {mc['rms_mean']:.2f} px, "
+                     f"projection over the samples {mc.get('projection_error_px', float('nan')):.2f} px, ground at 15 m {mc.get('ground_error_15m_cm', float('nan')):.1f} cm")
+    c = s.get("comparison") or {}
+    if c.get("prediction"):
+        cp = c["prediction"]
+        lines.append(f"paper-far ({c['strategy']}, {c['points']} holds, {num(None if c.get('flight_time_s') is None else c['flight_time_s'] / 60, '.1f')} min, "
+                     f"coverage {c.get('coverage_pct', 0):.0f} %) on the same ROI: linearised {cp['linearised_px']['rms']:.2f}, extrapolation "
+                     f"{cp['extrapolation_px']['rms']:.2f}, combined {cp['combined_px']['rms']:.2f} px RMS; ground {cp['ground_combined_cm']['rms']:.1f} cm")
+    elif c:
+        lines.append(f"paper-far on the same ROI: {c.get('problem')}")
     lines += [
-        "",
-        f"chosen: {chosen} ({result.chosen.strategy.describe()}), heights {', '.join(f'{h:g}' for h in result.chosen.screen.heights_m)} m (marker), "
-        f"{s['points']} points, {f['flight_time_s'] / 60:.1f} min, battery {f['battery_pct']:.0f} % of {f['endurance_min']:g} min",
         f"take-off/landing (home): {f['takeoff']['lat_deg']:.7f}, {f['takeoff']['lon_deg']:.7f}; {s['altitude_frame_text']}",
-        f"marker {s['marker']['size_m']:g} m: {s['marker']['px_min']:.0f}-{s['marker']['px_max']:.0f} px in the image; "
+        f"marker {s['marker']['size_m']:g} m (offered {', '.join(f'{m:g}' for m in s['marker']['sizes_offered_m'])}): "
+        f"{s['marker']['px_min']:.0f}-{s['marker']['px_max']:.0f} px in the image; "
         f"ArduPilot: RTL_ALT {s['ardupilot_advice']['RTL_ALT_cm']} cm, FENCE_ALT_MAX {s['ardupilot_advice']['FENCE_ALT_MAX_m']} m",
     ]
     return "\n".join(lines)

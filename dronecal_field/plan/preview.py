@@ -1,7 +1,16 @@
-"""preview.png: the top view over the camera's footprint, and the predicted image.
+"""preview.png: the top view, the predicted image with the ROI, and the predicted error over the ROI.
 
 Drawn with matplotlib's object API on an Agg canvas (no pyplot global state,
-no display needed).
+no display needed). Three panels:
+
+- top view (north up): footprint, ROI ground points coloured by the
+  predicted error, keep-out, fence, the flights' paths, holds and pass-through
+  points, take-off;
+- predicted image: the ROI outline (image cells), the markers at the holds
+  (true size), the pass-through points and the legs between them;
+- predicted error over the ROI in the image: combined (noise +
+  extrapolation) projection error per ROI point, on a colour scale clipped
+  at its 95th percentile so a few extreme corners do not wash out the rest.
 """
 
 from __future__ import annotations
@@ -12,14 +21,17 @@ import numpy as np
 
 
 def render_preview(result, path: str | os.PathLike) -> None:
-    """Write the two-panel preview of a ``plan.stage.PlanResult`` to ``path`` (PNG)."""
+    """Write the preview of a ``plan.stage.PlanResult`` to ``path`` (PNG, 1800 x 640 px)."""
+    import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.colors import Normalize
     from matplotlib.figure import Figure
     from matplotlib.patches import Circle, Polygon
 
     from dronecal_field.sampling.lattice import marker_corners
+    from dronecal_field.sampling.roi import evaluation_points
 
-    req, route, chosen = result.request, result.route, result.chosen
+    req, chosen = result.request, result.chosen
     R = req.site.R_enu_from_site  # plot the top view in ENU: east right, north up, like a map
 
     def en(p: np.ndarray) -> np.ndarray:
@@ -28,74 +40,121 @@ def render_preview(result, path: str | os.PathLike) -> None:
             p = np.column_stack([p, np.zeros(len(p))])
         return (p @ R.T)[:, :2]
 
-    fig = Figure(figsize=(14, 6.4), dpi=100)
+    fig = Figure(figsize=(18, 6.4), dpi=100)
     FigureCanvasAgg(fig)
-    ax, ai = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
-    pts = chosen.screen.points
-    veh = chosen.screen.vehicle_points
-    z = pts[:, 2]
-    cmap = "viridis"
+    ax, ai, ae = fig.add_subplot(1, 3, 1), fig.add_subplot(1, 3, 2), fig.add_subplot(1, 3, 3)
+    pts, veh = chosen.marker_site, chosen.vehicle_site
+    hold = chosen.hold_s > 0
+    pred = result.roi_prediction
+    roi = result.roi
+    err = None
+    if pred is not None and roi is not None:
+        roi_pts, _ = evaluation_points(roi)
+        err = pred.px_combined
+        vmax = float(np.nanpercentile(err, 95)) if np.isfinite(err).any() else 1.0
+        norm = Normalize(vmin=0.0, vmax=max(vmax, 1e-3))
+    cmap = matplotlib.colormaps["magma_r"]
 
-    ax.add_patch(Polygon(en(result.footprint_site), closed=True, facecolor="#cfe3ff", edgecolor="#6c9bd2", alpha=0.6, label="camera footprint (ground)"))
+    # --- top view
+    ax.add_patch(Polygon(en(result.footprint_site), closed=True, facecolor="#e3eefc", edgecolor="#6c9bd2", alpha=0.6, label="camera footprint (ground, 40 m)"))
+    if err is not None:
+        g = roi_pts[:, 2] == 0.0
+        ax.scatter(*en(roi_pts[g]).T, c=err[g], cmap=cmap, norm=norm, s=6, marker="s", alpha=0.7, zorder=2, label="ROI ground (predicted error)")
+    if req.roi.kind == "polygon" and req.roi.polygon_site:
+        ax.add_patch(Polygon(en(np.asarray(req.roi.polygon_site)), closed=True, fill=False, edgecolor="purple", lw=1.5, label="ROI polygon"))
     ax.add_patch(Polygon(en(result.fence_site), closed=True, fill=False, edgecolor="orange", lw=1.5, ls="--", label="geofence"))
     if req.limits.keep_out_m > 0:
         ax.add_patch(Circle((0, 0), req.limits.keep_out_m, fill=True, facecolor="#ffd6d6", edgecolor="red", ls=":", label="keep-out"))
-    track = np.vstack([route.takeoff_site[None], route.points] + ([route.takeoff_site[None]] if route.end == "land" else []))
-    pe = en(track)
-    ax.plot(pe[:, 0], pe[:, 1], "-", color="0.45", lw=0.8, label="path")
-    sc = ax.scatter(*en(veh).T, c=z, cmap=cmap, s=22, zorder=3, label="grid (drone)")
+    colours = ["0.35", "tab:blue", "tab:green", "tab:purple", "tab:brown"]
+    for k, route in enumerate(result.routes):
+        track = np.vstack([route.takeoff_site[None], route.points] + ([route.takeoff_site[None]] if route.end == "land" else []))
+        pe = en(track)
+        label = "path" if len(result.routes) == 1 else f"flight {k + 1}"
+        ax.plot(pe[:, 0], pe[:, 1], "-", color=colours[k % len(colours)], lw=0.8, label=label, zorder=3)
     ve = en(veh)
-    ax.annotate("first", ve[route.grid_order[0]], textcoords="offset points", xytext=(4, 4), fontsize=8)
-    ax.annotate("last", ve[route.grid_order[-1]], textcoords="offset points", xytext=(4, -10), fontsize=8)
-    te = en(route.takeoff_site)[0]
-    ax.plot(*te, marker="*", color="green", ms=14, ls="none", label="take-off / land (home)")
-    ax.plot(0, 0, marker="^", color="black", ms=10, ls="none", label="camera pole")
+    ax.scatter(*ve[hold].T, s=18, c="tab:cyan", edgecolors="black", linewidths=0.4, zorder=4, label="hold (drone)")
+    if (~hold).any():
+        ax.scatter(*ve[~hold].T, s=8, c="white", edgecolors="black", linewidths=0.4, zorder=4, label="fly-through point")
+    te = en(result.route.takeoff_site)[0]
+    ax.plot(*te, marker="*", color="green", ms=14, ls="none", label="take-off / land (home)", zorder=5)
+    ax.plot(0, 0, marker="^", color="black", ms=10, ls="none", label="camera pole", zorder=5)
     axis = R @ np.array([3.0, 0.0, 0.0])
     ax.annotate("", xy=(axis[0], axis[1]), xytext=(0, 0), arrowprops={"arrowstyle": "->", "color": "black"})
-    span = np.vstack([pe, en(result.fence_site), [[0, 0]]])
-    lo, hi = span.min(axis=0) - 3, span.max(axis=0) + 3
+    span = np.vstack([ve, en(result.fence_site), [[0, 0]], te[None]])
+    lo, hi = span.min(axis=0) - 4, span.max(axis=0) + 4
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
     ax.grid(alpha=0.3)
     ax.set_xlabel("east of the pole (m)")
     ax.set_ylabel("north of the pole (m)")
-    ax.set_title(f"top view (north up); heights {', '.join(f'{h:g}' for h in chosen.screen.heights_m)} m marker")
+    ax.set_title("top view (north up), zoomed on the flight")
     ax.legend(loc="best", fontsize=7)
-    fig.colorbar(sc, ax=ax, label="marker height above the pole's foot (m)", shrink=0.8)
 
+    # --- predicted image: ROI outline, markers, legs
     cam = result.camera_site
     w, h = cam.width, cam.height
-    ai.add_patch(Polygon([[0, 0], [w, 0], [w, h], [0, h]], closed=True, fill=False, edgecolor="black"))
-    d = -veh[:, :2]  # the nose, and the marker, face the pole
-    n = np.linalg.norm(d, axis=1, keepdims=True)
-    fwd = d / np.maximum(n, 1e-9)
-    corners = marker_corners(pts, fwd, req.marker.size_m)
-    cuv = cam.project(corners.reshape(-1, 3)).reshape(-1, 4, 2)
-    norm = (z - z.min()) / max(float(np.ptp(z)), 1e-9)
-    import matplotlib
-
-    colours = matplotlib.colormaps[cmap](norm)
-    for q, c in zip(cuv, colours):
-        ai.add_patch(Polygon(q, closed=True, facecolor=c, edgecolor="black", lw=0.4))
+    for a in (ai, ae):
+        a.add_patch(Polygon([[0, 0], [w, 0], [w, h], [0, h]], closed=True, fill=False, edgecolor="black"))
+        if roi is not None:
+            for k, loop in enumerate(roi.outline_uv()):
+                a.plot(loop[:, 0], loop[:, 1], "-", color="purple", lw=1.2, label="ROI" if k == 0 else None)
+        a.set_xlim(-0.03 * w, 1.03 * w)
+        a.set_ylim(1.03 * h, -0.03 * h)
+        a.set_aspect("equal")
+        a.set_xlabel("u (px)")
+        a.set_ylabel("v (px)")
     uv = cam.project(pts)
+    if chosen.leg_speed_m_s is not None:
+        for leg in np.unique(chosen.leg):
+            sel = chosen.leg == leg
+            if sel.sum() > 1:
+                # the straight leg in space, sampled, so its image follows the lens
+                a3, b3 = pts[sel][:-1], pts[sel][1:]
+                f = np.linspace(0, 1, 8)[None, :, None]
+                line = (a3[:, None] + f * (b3 - a3)[:, None]).reshape(-1, 3)
+                luv = cam.project(line)
+                ai.plot(luv[:, 0], luv[:, 1], "-", color="tab:blue", lw=0.8, alpha=0.8)
+    d = -veh[:, :2]  # the nose, and the marker, face the pole
+    fwd = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+    corners = marker_corners(pts, fwd, chosen.marker_size_m)
+    cuv = cam.project(corners.reshape(-1, 3)).reshape(-1, 4, 2)
+    depth = cam.depth(pts)
+    dnorm = Normalize(vmin=float(depth.min()), vmax=float(max(depth.max(), depth.min() + 1e-6)))
+    dcol = matplotlib.colormaps["viridis"](dnorm(depth))
+    for q, c, hd in zip(cuv, dcol, hold):
+        ai.add_patch(Polygon(q, closed=True, facecolor=c if hd else "none", edgecolor="black" if hd else c, lw=0.4 if hd else 1.0))
     ai.scatter(uv[:, 0], uv[:, 1], s=3, c="black", zorder=3)
-    ai.set_xlim(-0.03 * w, 1.03 * w)
-    ai.set_ylim(1.03 * h, -0.03 * h)
-    ai.set_aspect("equal")
-    mp = chosen.screen.marker_px[chosen.screen.keep]
-    ai.set_title(f"predicted image {w}x{h}: {len(pts)} markers of {req.marker.size_m:g} m, {mp.min():.0f}-{mp.max():.0f} px")
-    ai.set_xlabel("u (px)")
-    ai.set_ylabel("v (px)")
+    sm = matplotlib.cm.ScalarMappable(norm=dnorm, cmap="viridis")
+    fig.colorbar(sm, ax=ai, label="marker distance from the camera (m)", shrink=0.7)
+    n_hold, n_pass = int(hold.sum()), int((~hold).sum())
+    title = f"predicted image {w}x{h}: {n_hold} holds" + (f", {n_pass} fly-through points (open)" if n_pass else "")
+    ai.set_title(title + f"\n{chosen.marker_size_m:g} m marker, {chosen.marker_px.min():.0f}-{chosen.marker_px.max():.0f} px; ROI outlined", fontsize=9)
+    ai.legend(loc="lower right", fontsize=7)
+
+    # --- predicted error over the ROI
+    if err is not None:
+        ruv = cam.project(roi_pts)
+        order = np.argsort(err)
+        sc = ae.scatter(ruv[order, 0], ruv[order, 1], c=err[order], cmap=cmap, norm=norm, s=10, marker="s")
+        fig.colorbar(sc, ax=ae, label=f"predicted error, px (colour clipped at p95 {norm.vmax:.2f})", shrink=0.7, extend="max")
+        ae.scatter(uv[:, 0], uv[:, 1], s=4, c="tab:cyan", edgecolors="none", zorder=3, label="samples (holds)")
+        s = result.summary.get("prediction") or {}
+        comb = s.get("combined_px", {})
+        ae.set_title(f"predicted error over the ROI: {comb.get('rms', float('nan')):.2f} px RMS, max {comb.get('max', float('nan')):.1f} px\n"
+                     f"(noise {s.get('linearised_px', {}).get('rms', float('nan')):.2f} + extrapolation {s.get('extrapolation_px', {}).get('rms', float('nan')):.2f} px RMS, root-sum-square)", fontsize=9)
+        ae.legend(loc="lower right", fontsize=7)
 
     s = result.summary
-    u = s["uncertainty"]
-    fmt = lambda v, f: "n/a" if v is None else format(v, f)  # noqa: E731
+    f = s["flight"]
+    cov = (s.get("coverage") or {}).get("pct")
+    cmp_ = (s.get("comparison") or {}).get("prediction")
     fig.suptitle(
-        f"{req.name or 'dronecal-field plan'}: {chosen.strategy.name} ({chosen.strategy.describe()}), "
-        f"{s['flight']['flight_time_s'] / 60:.1f} min, battery {s['flight']['battery_pct']:.0f} %\n"
-        f"predicted RMS reprojection {fmt(u['rms_mean_px'], '.2f')} px (p95 {fmt(u['rms_p95_px'], '.2f')}), "
-        f"ground error at 15 m {fmt(u['ground_error_15m_cm'], '.1f')} cm; {result.mission.alt_frame_text}",
+        f"{req.name or 'dronecal-field plan'}: {chosen.name} ({chosen.text})\n"
+        f"{f['n_flights']} flight(s), {f['flight_time_s'] / 60:.1f} min in all, longest {f['battery_pct']:.0f} % of the battery; "
+        f"ROI coverage {cov if cov is not None else float('nan'):.0f} %"
+        + (f"; paper-far on the same ROI: {cmp_['combined_px']['rms']:.2f} px RMS" if cmp_ else "")
+        + f"; {result.mission.alt_frame_text}",
         fontsize=10,
     )
     fig.tight_layout()

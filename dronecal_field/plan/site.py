@@ -170,8 +170,10 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("hfov", _F("hfov"), None, "horizontal field of view, deg (pinhole equivalent)", "DEG", "intrinsics"),
     OptionSpec("distortion", _choice(tuple(DISTORTION_LEVELS)), "medium", "lens distortion guess: none | medium (paper Table 1) | strong", "LEVEL", "intrinsics"),
     OptionSpec("fps", _F("fps"), 25.0, "camera frame rate, frames/s (sets the default hover)", "HZ", "intrinsics"),
+    OptionSpec("exposure_s", _F("exposure_s"), 0.004, "exposure (shutter) time, s; with the focal length it caps the leg speed (motion blur under 1 px)", "S", "intrinsics"),
     # marker
-    OptionSpec("marker_size", _F("marker_size"), 0.30, "printed ArUco marker side (black border to black border), m", "M", "marker"),
+    OptionSpec("marker_size", _F("marker_size"), None, "printed ArUco marker side (black border to black border), m: plan with this marker only (default: the smallest of --marker-sizes that covers the ROI)", "M", "marker"),
+    OptionSpec("marker_sizes", lambda v: parse_floats(v, tuple(range(1, 9)), "marker sizes"), (0.3, 0.6), "marker sides you can print and carry, m; the plan picks the smallest that covers the ROI", "M,M", "marker"),
     OptionSpec("aruco_dict", _choice(ARUCO_DICTIONARIES), "DICT_4X4_50", "ArUco dictionary", "NAME", "marker"),
     OptionSpec("marker_id", _int("marker_id"), 0, "ArUco marker id", "ID", "marker"),
     OptionSpec("marker_offset", lambda v: parse_floats(v, 3, "marker offset"), (0.0, 0.0, 0.0), "marker centre from the GNSS antenna in the body frame: forward, right, down, m", "F,R,D", "marker"),
@@ -188,7 +190,13 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("alt_frame", _choice(("relative", "amsl")), "relative", "mission altitudes: relative to home (the take-off point's ground) or amsl", "FRAME", "limits"),
     OptionSpec("end", _choice(("land", "rtl")), "land", "mission end: land (NAV_LAND at the take-off point) or rtl (climbs to RTL_ALT first)", "HOW", "limits"),
     OptionSpec("yaw_mode", _choice(("roi", "condition-yaw")), "roi", "how the nose (and marker) faces the camera: one DO_SET_ROI, or a CONDITION_YAW per point", "MODE", "limits"),
-    OptionSpec("endurance", _F("endurance"), 20.0, "usable battery endurance in hover, min (battery estimate)", "MIN", "limits"),
+    OptionSpec("endurance", _F("endurance"), 20.0, "usable battery endurance in hover, min; a flight uses at most 75 % of it, longer plans are split into flights", "MIN", "limits"),
+    OptionSpec("gnss_hz", _F("gnss_hz"), 10.0, "GNSS fix rate of the drone's receiver, Hz (fixes along the fly-through legs)", "HZ", "limits"),
+    # sampling design
+    OptionSpec("strategy", _choice(("image", "paper-far", "paper-near", "paper-full")), "image", "image: targets spread over the ROI in the image, two depths per ray; paper-far/near/full: the paper's metric grid (X 4-8 / 0-4 / 0-8 m)", "NAME", "sampling"),
+    OptionSpec("sampling", _choice(("auto", "hover", "through", "mixed")), "auto", "hover at every point, fly through legs (holds at leg ends), or mixed (holds plus the fixes between them); auto: the lower predicted ROI error within the battery", "HOW", "sampling"),
+    OptionSpec("roi", str, None, "region of interest: a GeoJSON polygon file (WGS84: a road, a car park) or 'image' (the whole image); default the ground in --roi-range", "FILE|image", "sampling"),
+    OptionSpec("roi_range", lambda v: parse_floats(v, 2, "ROI range"), (3.0, 40.0), "ground distances from the pole the ROI covers, m (with a layer up to 2 m above the ground)", "MIN,MAX", "sampling"),
     # evaluation
     OptionSpec("trials", _int("trials"), 200, "Monte-Carlo trials per candidate", "N", "evaluation"),
     OptionSpec("seed", _int("seed"), 0, "Monte-Carlo seed", "N", "evaluation"),

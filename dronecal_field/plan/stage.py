@@ -12,7 +12,7 @@ import math
 import os
 import shutil
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -26,19 +26,33 @@ from dronecal_field.plan.route import FlightModel, Route, plan_route
 from dronecal_field.plan.site import CameraSite, LensGuess, Marker, guess_camera, latlon_to_site, resolve_focal_px
 from dronecal_field.plan.strategies import (
     PLAN_FOLD_MIN_SLOPE,
+    ImageCandidate,
     Limits,
     StrategyScore,
     alternatives,
     fold_radius,
+    image_candidate_params,
+    make_strategy,
     paper_strategies,
+    predict_points_on_roi,
     recommended_strategy,
     score_candidates,
+    score_image_candidates,
+    screen_grid,
 )
+from dronecal_field.sampling.design import SAMPLINGS, LegTiming
+from dronecal_field.sampling.predict import NoiseModel, lens_draws, normalised_radius
+from dronecal_field.sampling.roi import Roi, RoiSpec, build_roi
 
 MAX_PRACTICAL_MARKER_M = 1.0  # larger plates make a small copter a sail
 FENCE_MARGIN_M = 3.0
 FOOTPRINT_RANGE_M = 40.0
 PLAN_FILES = ("mission.plan", "mission.waypoints", "mission.geojson", "preview.png", "plan.json", "camera_guess.yaml")
+STRATEGIES = ("image", "paper-far", "paper-near", "paper-full")
+BATTERY_RESERVE = 0.25  # a flight uses at most 75 % of --endurance
+MAX_MC_POINTS = 800  # the Monte-Carlo of the chosen layout thins its leg samples to this many points
+EQUIVALENT_ERROR = 1.03  # candidates within 3 % of the lowest predicted ROI error count as equal: the shortest flight wins
+COVERAGE_SLACK = 0.02  # a smaller marker is chosen when its coverage is within this of the best
 
 
 @dataclass(frozen=True)
@@ -80,6 +94,25 @@ class PlanRequest:
     endurance_s: float = 1200.0
     name: str | None = None
     notes: tuple[str, ...] = ()  # warnings found while reading the inputs
+    strategy: str = "image"
+    sampling: str = "auto"  # 'auto' = the lower predicted ROI error within the battery
+    marker_sizes_m: tuple[float, ...] = (0.3, 0.6)
+    roi: RoiSpec = RoiSpec()
+    timing: LegTiming = LegTiming()
+    reserve: float = BATTERY_RESERVE
+
+    @property
+    def battery_budget_s(self) -> float:
+        """Longest flight allowed, s: ``endurance_s`` less the reserve."""
+        return (1.0 - self.reserve) * self.endurance_s
+
+
+def _opt(opts: dict[str, Any], key: str) -> Any:
+    """The option's value, or its documented default when unset (None); a given 0 stays 0."""
+    from dronecal_field.plan.site import OPTION_BY_KEY
+
+    v = opts.get(key)
+    return OPTION_BY_KEY[key].default if v is None else v
 
 
 def _need(opts: dict[str, Any], key: str, what: str) -> Any:
@@ -114,21 +147,30 @@ def request_from_options(opts: dict[str, Any]) -> PlanRequest:
         lat_deg=lat, lon_deg=lon, ground_h_m=float(g_h), mount_height_m=mount,
         azimuth_deg=float(_need(opts, "azimuth", "the optical axis azimuth in degrees from true north")) % 360.0,
         tilt_deg=float(_need(opts, "tilt", "the optical axis angle below horizontal in degrees")),
-        roll_deg=float(opts.get("roll") or 0.0), geoid_separation_m=n_geoid,
+        roll_deg=float(_opt(opts, "roll")), geoid_separation_m=n_geoid,
     )
     w, h = _need(opts, "image_size", "the image size as WIDTHxHEIGHT")
     f_px, how = resolve_focal_px(w, h, opts.get("focal_px"), opts.get("focal_mm"), opts.get("sensor_width"),
                                  opts.get("sensor_format"), opts.get("pixel_pitch"), opts.get("hfov"))
-    fps = float(opts.get("fps") or 25.0)
+    fps = float(_opt(opts, "fps"))
     if fps <= 0:
         raise InputError(f"--fps {fps:g} must be positive")
-    lens = LensGuess(width=w, height=h, focal_px=f_px, distortion_level=opts.get("distortion") or "medium", focal_source=how, fps=fps)
+    lens = LensGuess(width=w, height=h, focal_px=f_px, distortion_level=_opt(opts, "distortion"), focal_source=how, fps=fps)
 
-    size = float(opts.get("marker_size") or 0.3)
-    if not 0.02 <= size <= MAX_PRACTICAL_MARKER_M:
-        raise InputError(f"--marker-size {size:g} m is outside 0.02-{MAX_PRACTICAL_MARKER_M:g} m: give the printed marker side in metres")
-    marker = Marker(size_m=size, dictionary=opts.get("aruco_dict") or "DICT_4X4_50", marker_id=int(opts.get("marker_id") or 0),
-                    offset_frd_m=tuple(opts.get("marker_offset") or (0.0, 0.0, 0.0)), min_px=float(opts.get("min_marker_px") or 20.0))
+    if opts.get("marker_size") is not None:  # one marker given: that one
+        sizes: tuple[float, ...] = (float(opts["marker_size"]),)
+    else:
+        sizes = tuple(sorted(set(float(v) for v in _opt(opts, "marker_sizes"))))
+    for v in sizes:
+        if not 0.02 <= v <= MAX_PRACTICAL_MARKER_M:
+            flag = "--marker-size" if opts.get("marker_size") is not None else "--marker-sizes"
+            raise InputError(f"{flag} {v:g} m is outside 0.02-{MAX_PRACTICAL_MARKER_M:g} m: give the printed marker side in metres")
+    size = sizes[0]
+    min_px = float(_opt(opts, "min_marker_px"))
+    if min_px <= 0:
+        raise InputError(f"--min-marker-px {min_px:g} must be positive: give the smallest marker side the detector reads, px")
+    marker = Marker(size_m=size, dictionary=_opt(opts, "aruco_dict"), marker_id=int(_opt(opts, "marker_id")),
+                    offset_frd_m=tuple(_opt(opts, "marker_offset")), min_px=min_px)
 
     min_agl = float(opts["min_agl"]) if opts.get("min_agl") is not None else 1.0
     max_agl, max_range = opts.get("max_agl"), opts.get("max_range")
@@ -141,7 +183,7 @@ def request_from_options(opts: dict[str, Any]) -> PlanRequest:
         raise InputError(f"--keep-out {keep_out:g} m is negative: give the no-fly radius around the pole")
     if max_range is not None and max_range <= keep_out:
         raise InputError(f"--max-range {max_range:g} m is inside --keep-out {keep_out:g} m: nowhere is left to fly; raise --max-range or lower --keep-out")
-    speed = float(opts.get("speed") or 1.5)
+    speed = float(_opt(opts, "speed"))
     if not 0.1 <= speed <= 10.0:
         raise InputError(f"--speed {speed:g} m/s is outside 0.1-10 m/s: calibration legs are 1 m long, 1-2 m/s is plenty")
     if opts.get("hover") is None:
@@ -153,7 +195,7 @@ def request_from_options(opts: dict[str, Any]) -> PlanRequest:
         if hover != math.ceil(hover):
             notes.append(f"hover {hover:g} s rounded up to {math.ceil(hover)} s: ArduCopter holds whole seconds")
             hover = float(math.ceil(hover))
-    endurance_min = float(opts.get("endurance") or 20.0)
+    endurance_min = float(_opt(opts, "endurance"))
     if endurance_min <= 0:
         raise InputError(f"--endurance {endurance_min:g} min must be positive")
 
@@ -179,44 +221,183 @@ def request_from_options(opts: dict[str, Any]) -> PlanRequest:
             raise InputError(f"--takeoff is {r:.0f} m from the pole: check the coordinates (lat,lon in degrees)")
     budget = opts.get("max_flight_time")
     evaluation = Evaluation(
-        trials=int(opts.get("trials") or 200), seed=int(opts.get("seed") or 0), sigma_px=float(opts.get("sigma_px") or 2.0),
-        sigma_h_m=float(opts["sigma_h"]) if opts.get("sigma_h") is not None else 0.01,
-        sigma_v_m=float(opts["sigma_v"]) if opts.get("sigma_v") is not None else 0.015,
-        model=str(opts.get("model") or "default"), optimize=bool(opts.get("optimize")),
+        trials=int(_opt(opts, "trials")), seed=int(_opt(opts, "seed")), sigma_px=float(_opt(opts, "sigma_px")),
+        sigma_h_m=float(_opt(opts, "sigma_h")), sigma_v_m=float(_opt(opts, "sigma_v")),
+        model=str(_opt(opts, "model")), optimize=bool(opts.get("optimize")),
         max_flight_time_s=None if budget is None else float(budget) * 60.0,
     )
     if evaluation.trials < 2:
         raise InputError(f"--trials {evaluation.trials} is too few: use at least 20 (200 is the default)")
-    if (opts.get("alt_frame") or "relative") == "amsl" and n_geoid is None:
+    if evaluation.sigma_px < 0 or evaluation.sigma_h_m < 0 or evaluation.sigma_v_m < 0:
+        raise InputError("--sigma-px/--sigma-h/--sigma-v must not be negative: give the noise std (px, m)")
+    if budget is not None and budget <= 0:
+        raise InputError(f"--max-flight-time {budget:g} min must be positive")
+    alt_frame = _opt(opts, "alt_frame")
+    if alt_frame == "amsl" and n_geoid is None:
         raise InputError("--alt-frame amsl needs the geoid separation: add --geoid-separation N (m) or --ground-amsl with --ground-alt")
+    strategy = _opt(opts, "strategy")
+    if evaluation.optimize and strategy == "image":
+        strategy = "paper-far"  # --optimize chooses among the paper's 18 alternatives
+    sampling = _opt(opts, "sampling")
+    exposure_s, gnss_hz = float(_opt(opts, "exposure_s")), float(_opt(opts, "gnss_hz"))
+    if exposure_s <= 0:
+        raise InputError(f"--exposure-s {exposure_s:g} must be positive: give the shutter time in seconds (0.004 is a daylight guess)")
+    if gnss_hz <= 0:
+        raise InputError(f"--gnss-hz {gnss_hz:g} must be positive: give the receiver's fix rate in Hz (GPS_RATE_MS 100 = 10 Hz)")
+    roi = roi_spec_from_options(opts, site)
     return PlanRequest(
         site=site, lens=lens, marker=marker, limits=limits, flight=FlightModel(speed_m_s=speed, hover_s=hover),
         evaluation=evaluation, takeoff_site=takeoff_site, geofence_latlon=opts.get("geofence"),
-        alt_frame=opts.get("alt_frame") or "relative", end=opts.get("end") or "land", yaw_mode=opts.get("yaw_mode") or "roi",
-        endurance_s=endurance_min * 60.0, name=opts.get("name"), notes=tuple(notes),
+        alt_frame=alt_frame, end=_opt(opts, "end"), yaw_mode=_opt(opts, "yaw_mode"),
+        endurance_s=endurance_min * 60.0, name=opts.get("name"), notes=tuple(notes), strategy=strategy, sampling=sampling,
+        marker_sizes_m=sizes, roi=roi, timing=LegTiming(fps=fps, exposure_s=exposure_s, gnss_hz=gnss_hz),
     )
+
+
+def roi_spec_from_options(opts: dict[str, Any], site: CameraSite) -> RoiSpec:
+    """The region of interest of ``--roi`` / ``--roi-range`` (see ``sampling.roi``)."""
+    r_min, r_max = (float(v) for v in _opt(opts, "roi_range"))
+    if not 0 <= r_min < r_max:
+        raise InputError(f"--roi-range {r_min:g},{r_max:g} is not MIN,MAX metres with 0 <= MIN < MAX: e.g. --roi-range 3,40")
+    if r_max > 500:
+        raise InputError(f"--roi-range max {r_max:g} m is beyond 500 m: a marker is not seen that far; give the range you measure in")
+    roi = opts.get("roi")
+    if roi is None:
+        return RoiSpec(kind="range", range_m=(r_min, r_max), source="--roi-range" if opts.get("roi_range") is not None else "default")
+    if str(roi).strip() == "image":
+        return RoiSpec(kind="image", range_m=(r_min, r_max), source="--roi image")
+    lat_lon = read_roi_polygon(str(roi))
+    xy = latlon_to_site(site, lat_lon)[:, :2]
+    return RoiSpec(kind="polygon", range_m=(0.0, max(r_max, float(np.hypot(xy[:, 0], xy[:, 1]).max()) + 1.0)),
+                   polygon_site=tuple(tuple(map(float, p)) for p in xy), source=Path(str(roi)).name)
+
+
+def read_roi_polygon(path: str) -> np.ndarray:
+    """(K, 2) lat, lon (deg) of the first Polygon in a GeoJSON file (WGS84, [lon, lat] order as GeoJSON says)."""
+    import json
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"--roi {path}: no such file; give a GeoJSON polygon (WGS84), 'image' for the whole image, or leave it out")
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InputError(f"--roi {path} is not JSON ({exc}): export the polygon as GeoJSON") from None
+    geoms: list[dict] = []
+    if isinstance(data, dict) and data.get("type") == "FeatureCollection":
+        geoms = [f.get("geometry") or {} for f in data.get("features", []) if isinstance(f, dict)]
+    elif isinstance(data, dict) and data.get("type") == "Feature":
+        geoms = [data.get("geometry") or {}]
+    elif isinstance(data, dict):
+        geoms = [data]
+    for g in geoms:
+        coords = None
+        if g.get("type") == "Polygon" and g.get("coordinates"):
+            coords = g["coordinates"][0]
+        elif g.get("type") == "MultiPolygon" and g.get("coordinates"):
+            coords = g["coordinates"][0][0]
+        if coords is None:
+            continue
+        try:
+            ll = np.asarray([[float(c[1]), float(c[0])] for c in coords], float)
+        except (TypeError, ValueError, IndexError):
+            raise InputError(f"--roi {path}: the polygon's coordinates are not [lon, lat] numbers") from None
+        if len(ll) >= 4 and np.allclose(ll[0], ll[-1]):
+            ll = ll[:-1]
+        if len(ll) < 3 or not np.all(np.abs(ll[:, 0]) <= 90) or not np.all(np.abs(ll[:, 1]) <= 360):
+            raise InputError(f"--roi {path}: the polygon needs 3+ vertices as [lon, lat] degrees (GeoJSON order)")
+        return ll
+    raise InputError(f"--roi {path} holds no Polygon: draw the road or car park as a polygon and export GeoJSON (WGS84)")
+
+
+@dataclass(frozen=True, eq=False)
+class Chosen:
+    """The layout the plan flies, whichever strategy made it.
+
+    Hold points in the order given to the route: ``marker_site`` /
+    ``vehicle_site`` (N, 3) site metres, ``marker_px`` (N,), ``hold_s`` (N,)
+    seconds (0 = fly through), ``leg`` (N,) leg number; ``leg_speed_m_s`` the
+    constant speed of fly-through legs (None when hovering everywhere).
+    ``samples_site`` (S, 3) are all the positions the prediction counts
+    (holds and fixes along legs). ``image`` or ``paper`` is the scored candidate.
+    """
+
+    name: str
+    text: str
+    strategy: str
+    marker_size_m: float
+    marker_site: np.ndarray
+    vehicle_site: np.ndarray
+    marker_px: np.ndarray
+    hold_s: np.ndarray
+    leg: np.ndarray
+    ordered: bool
+    leg_speed_m_s: float | None
+    samples_site: np.ndarray
+    samples_sigma_h_m: np.ndarray
+    heights_m: tuple[float, ...] = ()
+    image: ImageCandidate | None = None
+    paper: StrategyScore | None = None
+
+    @property
+    def sampling(self) -> str:
+        return self.image.design.params.sampling if self.image is not None else "hover"
+
+    @classmethod
+    def from_image(cls, c: ImageCandidate) -> "Chosen":
+        d = c.design
+        return cls(name=c.name, text=d.params.describe(), strategy="image", marker_size_m=d.params.marker_size_m,
+                   marker_site=d.marker_site, vehicle_site=d.vehicle_site, marker_px=d.marker_px, hold_s=d.hold_s, leg=d.leg,
+                   ordered=True, leg_speed_m_s=None if d.params.sampling == "hover" else d.speed_m_s,
+                   samples_site=d.samples_site, samples_sigma_h_m=d.samples_sigma_h_m, image=c)
+
+    @classmethod
+    def from_paper(cls, s: StrategyScore, hover_s: float, marker_size_m: float) -> "Chosen":
+        pts = s.screen.points
+        n = len(pts)
+        return cls(name=s.strategy.name, text=s.strategy.describe(), strategy="paper", marker_size_m=marker_size_m,
+                   marker_site=pts, vehicle_site=s.screen.vehicle_points, marker_px=s.screen.marker_px[s.screen.keep],
+                   hold_s=np.full(n, float(hover_s)), leg=np.arange(n), ordered=False, leg_speed_m_s=None,
+                   samples_site=pts, samples_sigma_h_m=np.zeros(n), heights_m=s.screen.heights_m, paper=s)
 
 
 @dataclass(frozen=True, eq=False)
 class PlanResult:
-    """A finished plan: the chosen candidate, the route, the mission and the report."""
+    """A finished plan: the chosen layout, its flights (routes and missions) and the report."""
 
     request: PlanRequest
     camera_enu: Camera
     camera_site: Camera
-    chosen: StrategyScore
-    candidates: tuple[StrategyScore, ...]
-    route: Route
-    mission: msn.Mission
+    chosen: Chosen
+    candidates: tuple
+    routes: tuple[Route, ...]
+    missions: tuple[msn.Mission, ...]
+    point_flight: np.ndarray  # (N,) flight number (0-based) of each hold point
+    point_index: np.ndarray  # (N,) index of each hold point in its flight's route grid
     fence_site: np.ndarray  # (M, 2) inclusion polygon, site XY
     footprint_site: np.ndarray  # (K, 2) ground footprint of the image, site XY
+    roi: Roi | None
+    roi_prediction: Any  # sampling.predict.RoiPrediction of the chosen layout, or None
     summary: dict
     warnings: tuple[str, ...] = field(default_factory=tuple)
 
     @property
+    def route(self) -> Route:
+        """The first flight's route (the only one unless the plan was split)."""
+        return self.routes[0]
+
+    @property
+    def mission(self) -> msn.Mission:
+        return self.missions[0]
+
+    @property
     def grid_site(self) -> np.ndarray:
         """(N, 3) marker centres of the plan, site frame."""
-        return self.chosen.screen.points
+        return self.chosen.marker_site
+
+    def mission_names(self) -> list[str]:
+        """File stems: 'mission' for one flight, 'mission-1', 'mission-2', ... when split."""
+        return ["mission"] if len(self.missions) == 1 else [f"mission-{k + 1}" for k in range(len(self.missions))]
 
 
 def _objective(score: StrategyScore) -> float:
@@ -320,27 +501,114 @@ def _json_safe(x: Any) -> Any:
 
 
 def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
-    """Evaluate the candidates for this camera, pick one, and build the mission and the report.
+    """Design or pick the sampling for this camera, split it into flights, build the missions and the report.
 
-    The candidates are scored by ``plan.strategies.score_candidates`` (the
-    survey's row function): in this process, or on a Dask cluster when
-    ``client`` (a ``distributed.Client``, see ``dronecal_field.cluster.dask_client``)
-    is given; the plan is the same either way.
+    ``--strategy image`` (default): candidates from ``sampling.design`` scored by
+    the predicted ROI error (``sampling.predict``, linearised + extrapolation);
+    the chosen one also gets the paper's Monte-Carlo. ``paper-*``: the paper's
+    strategies scored by ``plan.strategies.score_candidates`` (the survey's row
+    function; on a Dask cluster when ``client`` is given). Either way the
+    chosen layout is scored on the ROI, and compared with paper-far.
 
     Raises ``PlanError`` (with what to change) when no safe, useful mission exists.
     """
     cam_site = guess_camera(req.site, req.lens, frame="site")
     cam_enu = guess_camera(req.site, req.lens, frame="enu")
     _check_sees_ground(req, cam_site)
+    warnings = list(req.notes)
+    roi = build_roi(cam_site, req.roi)
+    from dronecal_field.sampling.roi import evaluation_points
+
+    roi_pts, _ = evaluation_points(roi)
+    draws = lens_draws(cam_site, cam_site.distortion.as_array(), float(normalised_radius(cam_site, roi_pts).max()), seed=req.evaluation.seed)
+    noise = NoiseModel(sigma_px=req.evaluation.sigma_px, sigma_h_m=req.evaluation.sigma_h_m, sigma_v_m=req.evaluation.sigma_v_m,
+                       model="auto" if req.evaluation.model == "default" else req.evaluation.model)
+    if req.strategy == "image":
+        chosen, candidates, rows = _choose_image(req, cam_site, roi, noise, draws, warnings)
+    else:
+        chosen, candidates, rows = _choose_paper(req, cam_site, client, warnings)
+    prediction = predict_points_on_roi(cam_site, chosen.samples_site, roi, noise, draws, chosen.samples_sigma_h_m)
+    limits = replace(req.limits, marker_size_m=chosen.marker_size_m)
+    routes, flight_of, index_in = _flights(req, chosen, limits)
+    if len(routes) > 1:
+        warnings.append(f"the plan takes {sum(r.flight_time_s for r in routes) / 60:.1f} min: split into {len(routes)} flights "
+                        f"(mission-1 ... mission-{len(routes)}), each within 75 % of the {req.endurance_s / 60:g} min battery, "
+                        "each starting and ending at the take-off point")
+    missions = tuple(
+        msn.build_mission(r, req.site.R_enu_from_site, req.site.origin, req.site.mount_height_m, req.flight.speed_m_s,
+                          alt_frame=req.alt_frame, yaw_mode=req.yaw_mode, geoid_separation_m=req.site.geoid_separation_m)
+        for r in routes
+    )
+    fence = msn.fence_polygon(np.vstack([r.points for r in routes] + [routes[0].takeoff_site[None]]), FENCE_MARGIN_M)
+    footprint = footprint_site(cam_site)
+    longest = max(r.flight_time_s for r in routes)
+    battery_pct = 100.0 * longest / req.endurance_s
+    if battery_pct > 100.0 * (1.0 - req.reserve) + 1e-6:
+        warnings.append(f"a flight takes {battery_pct:.0f} % of a {req.endurance_s / 60:g} min battery (more than the 75 % allowed): shorten --hover or add flights")
+    if req.geofence_latlon is not None:
+        from matplotlib.path import Path as MplPath
+
+        gf = MplPath(np.asarray(req.limits.geofence_xy))
+        if not gf.contains_point(routes[0].takeoff_site[:2]):
+            warnings.append("the take-off point is outside --geofence")
+    monte_carlo = _monte_carlo(req, cam_site, chosen, prediction.model)
+    comparison = _paper_far_comparison(req, cam_site, roi, noise, draws, chosen, prediction)
+    result = PlanResult(
+        request=req, camera_enu=cam_enu, camera_site=cam_site, chosen=chosen, candidates=candidates, routes=routes, missions=missions,
+        point_flight=flight_of, point_index=index_in, fence_site=fence, footprint_site=footprint, roi=roi, roi_prediction=prediction,
+        summary={}, warnings=tuple(warnings),
+    )
+    summary = _json_safe(_summary(result, rows, battery_pct, monte_carlo, comparison))
+    return replace(result, summary=summary)
+
+
+def _choose_image(req: PlanRequest, cam_site: Camera, roi: Roi, noise: NoiseModel, draws: np.ndarray,
+                  warnings: list[str]) -> tuple[Chosen, tuple, list[dict]]:
+    """Score the image-space candidates and pick: smallest marker that covers, then lowest ROI error within the battery."""
+    samplings = SAMPLINGS if req.sampling == "auto" else (req.sampling,)
+    params = image_candidate_params(req.marker_sizes_m, samplings)
+    cands = score_image_candidates(cam_site, roi, params, req.limits, req.flight, req.timing, noise, draws,
+                                   takeoff_site=req.takeoff_site, end=req.end)
+    usable = [c for c in cands if c.usable]
+    if not usable:
+        raise _no_image_plan_error(req, cands)
+    best_cov = {m: max((c.design.coverage for c in usable if c.design.params.marker_size_m == m), default=-1.0) for m in req.marker_sizes_m}
+    top = max(best_cov.values())
+    size = min(m for m, v in best_cov.items() if v >= top - COVERAGE_SLACK)
+    pool = [c for c in usable if c.design.params.marker_size_m == size]
+    budget = req.battery_budget_s
+    fit = [c for c in pool if c.flight_time_s is not None and c.flight_time_s <= budget]
+    if not fit:  # nothing fits one battery: the candidates needing the fewest flights (or one more)
+        n_flights = {id(c): math.ceil((c.flight_time_s or math.inf) / budget) for c in pool}
+        fewest = min(n_flights.values())
+        fit = [c for c in pool if n_flights[id(c)] <= fewest + 1]
+    # the lowest predicted ROI error; within EQUIVALENT_ERROR of it, the shortest flight
+    best = min(c.objective for c in fit)
+    chosen = min((c for c in fit if c.objective <= EQUIVALENT_ERROR * best), key=lambda c: (c.flight_time_s, c.objective))
+    needed = [c.design.needed_marker_m for c in cands if c.design.needed_marker_m]
+    if needed and top < 0.98:
+        warnings.append(f"a {math.ceil(max(needed) * 20) / 20:.2f} m marker would reach more of the ROI (the {max(req.marker_sizes_m):g} m marker is under "
+                        f"{req.limits.min_marker_px:g} px there): add it to --marker-sizes")
+    for part in chosen.design.unreachable:
+        if part["reason"] != "between_samples" and part["share_pct"] >= 2.0:
+            warnings.append(f"not reached: {part['text']}")
+    return Chosen.from_image(chosen), cands, [c.row() for c in cands]
+
+
+def _choose_paper(req: PlanRequest, cam_site: Camera, client: Any, warnings: list[str]) -> tuple[Chosen, tuple, list[dict]]:
+    """The paper's strategies (``--strategy paper-*``, ``--optimize``), scored by the survey's Monte-Carlo rows."""
     ev = req.evaluation
     base = recommended_strategy(cam_site)
+    x_range = req.strategy.split("-", 1)[1]
+    if x_range != base.x_range_name:
+        base = make_strategy(x_range, base.y_step_m, base.n_heights)
     strategies = list(alternatives(base))
     if ev.optimize:
         names = {s.name for s in strategies}
         strategies += [s for s in paper_strategies() if s.name not in names]
-    scores = score_candidates(cam_site, strategies, req.limits, ev.monte_carlo_settings(), req.flight, client)
+    limits = replace(req.limits, marker_size_m=req.marker.size_m)
+    scores = score_candidates(cam_site, strategies, limits, ev.monte_carlo_settings(), req.flight, client)
     usable = [s for s in scores if s.usable]
-    warnings = list(req.notes)
     if not usable:
         raise _no_plan_error(req, scores)
     if ev.optimize:
@@ -358,29 +626,137 @@ def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
         if not chosen.usable:
             chosen = min(usable, key=_objective)
             warnings.append(f"the paper's recommendation {scores[0].strategy.name} cannot be used here ({scores[0].problem}); using {chosen.strategy.name}")
-    screen = chosen.screen
-    dropped_small = screen.reasons.get("marker_too_small", 0)
+    dropped_small = chosen.screen.reasons.get("marker_too_small", 0)
     if dropped_small:
-        need = screen.needed_marker_size_m(req.limits)
+        need = chosen.screen.needed_marker_size_m(limits)
         warnings.append(f"{dropped_small} grid points dropped because the {req.marker.size_m:g} m marker is under {req.limits.min_marker_px:g} px there; a {math.ceil((need or 0) * 20) / 20:.2f} m marker keeps them")
+    return Chosen.from_paper(chosen, req.flight.hover_s, req.marker.size_m), scores, [s.row() for s in scores]
 
-    route = plan_route(screen.vehicle_points, screen.points, req.limits, req.flight, takeoff_site=req.takeoff_site, end=req.end)
-    mission = msn.build_mission(route, req.site.R_enu_from_site, req.site.origin, req.site.mount_height_m, req.flight.speed_m_s,
-                                alt_frame=req.alt_frame, yaw_mode=req.yaw_mode, geoid_separation_m=req.site.geoid_separation_m)
-    fence = msn.fence_polygon(np.vstack([route.points, route.takeoff_site[None]]), FENCE_MARGIN_M)
-    footprint = footprint_site(cam_site)
-    battery_pct = 100.0 * route.flight_time_s / req.endurance_s
-    if battery_pct > 80.0:
-        warnings.append(f"the flight takes {battery_pct:.0f} % of a {req.endurance_s / 60:g} min battery: split it or use --optimize --max-flight-time")
-    if req.geofence_latlon is not None:
-        from matplotlib.path import Path as MplPath
 
-        gf = MplPath(np.asarray(req.limits.geofence_xy))
-        if not gf.contains_point(route.takeoff_site[:2]):
-            warnings.append("the take-off point is outside --geofence")
-    summary = _json_safe(_summary(req, cam_enu, cam_site, chosen, scores, route, mission, fence, warnings, battery_pct))
-    return PlanResult(request=req, camera_enu=cam_enu, camera_site=cam_site, chosen=chosen, candidates=scores, route=route,
-                      mission=mission, fence_site=fence, footprint_site=footprint, summary=summary, warnings=tuple(warnings))
+def _flights(req: PlanRequest, chosen: Chosen, limits: Limits) -> tuple[tuple[Route, ...], np.ndarray, np.ndarray]:
+    """The chosen points as one route, or as several flights when one exceeds the battery budget.
+
+    Returns the routes, and per hold point (N,) its flight number and its
+    index among that flight's points. Flights are cut between legs only.
+    """
+    n = len(chosen.marker_site)
+    one = plan_route(chosen.vehicle_site, chosen.marker_site, limits, req.flight, takeoff_site=req.takeoff_site, end=req.end,
+                     hold_s=chosen.hold_s, ordered=chosen.ordered, leg_speed_m_s=chosen.leg_speed_m_s)
+    if one.flight_time_s <= req.battery_budget_s:
+        return (one,), np.zeros(n, int), np.arange(n)
+    # every flight starts and ends where the one-flight plan would take off
+    takeoff = one.takeoff_site
+    if not chosen.ordered:  # fly the route's own order, cut into flights
+        order = one.grid_order
+    else:
+        order = np.arange(n)
+    veh, mk, hold, leg = chosen.vehicle_site[order], chosen.marker_site[order], chosen.hold_s[order], chosen.leg[order]
+    routes = _split_into_flights(veh, mk, hold, leg, limits, req, takeoff, chosen.leg_speed_m_s)
+    flight_of = np.zeros(n, int)
+    index_in = np.zeros(n, int)
+    start = 0
+    for k, r in enumerate(routes):
+        m = int((r.grid_index >= 0).sum())
+        idx = order[start : start + m]
+        flight_of[idx] = k
+        index_in[idx] = np.arange(m)
+        start += m
+    return tuple(routes), flight_of, index_in
+
+
+def _split_into_flights(veh: np.ndarray, mk: np.ndarray, hold: np.ndarray, leg: np.ndarray, limits: Limits, req: PlanRequest,
+                        takeoff: np.ndarray, leg_speed: float | None) -> list[Route]:
+    """Consecutive legs into flights within the battery budget (``plan.route.split_into_flights`` when it exists)."""
+    try:
+        from dronecal_field.plan.route import split_into_flights  # type: ignore[attr-defined]
+    except ImportError:
+        split_into_flights = None
+    if split_into_flights is not None:
+        import inspect
+
+        kw: dict[str, Any] = {"reserve": req.reserve, "takeoff_site": takeoff, "end": req.end}
+        if "ordered" in inspect.signature(split_into_flights).parameters:
+            kw["ordered"] = True
+        if "leg_speed_m_s" in inspect.signature(split_into_flights).parameters:
+            kw["leg_speed_m_s"] = leg_speed
+        return list(split_into_flights(veh, mk, hold, limits, req.flight, req.endurance_s, **kw))
+    # this module's own cut, until the route module has one: whole legs, greedily
+    starts = np.r_[0, np.flatnonzero(np.diff(leg) != 0) + 1]
+    ends = np.r_[starts[1:], len(leg)]
+
+    def route(a: int, b: int) -> Route:
+        h = hold[a:b].copy()
+        h[0] = max(h[0], 1.0)  # a flight's first point is where the drone settles
+        h[-1] = max(h[-1], 1.0)
+        return plan_route(veh[a:b], mk[a:b], limits, req.flight, takeoff_site=takeoff, end=req.end, hold_s=h, ordered=True,
+                          leg_speed_m_s=leg_speed)
+
+    routes: list[Route] = []
+    a = 0
+    k = 0
+    while k < len(starts):
+        b = int(ends[k])
+        if route(a, b).flight_time_s > req.battery_budget_s:
+            raise PlanError(f"one leg of the plan alone takes longer than 75 % of the {req.endurance_s / 60:g} min battery: "
+                            "raise --endurance or use --sampling hover")
+        while k + 1 < len(starts) and route(a, int(ends[k + 1])).flight_time_s <= req.battery_budget_s:
+            k += 1
+            b = int(ends[k])
+        routes.append(route(a, b))
+        a = b
+        k += 1
+    return routes
+
+
+def _monte_carlo(req: PlanRequest, cam_site: Camera, chosen: Chosen, model: str) -> dict | None:
+    """The paper's Monte-Carlo (``core.uncertainty.monte_carlo``) of the chosen layout, leg samples thinned."""
+    if chosen.paper is not None and chosen.paper.uncertainty is not None:
+        return {**chosen.paper.uncertainty, "points_used": len(chosen.samples_site), "thinned_from": None}
+    from dronecal_field.core.uncertainty import monte_carlo
+    from dronecal_field.sampling.predict import sample_sigmas
+
+    ev = req.evaluation
+    S, sig = chosen.samples_site, chosen.samples_sigma_h_m
+    idx = np.arange(len(S))
+    if len(S) > MAX_MC_POINTS:
+        is_hold = sig == 0
+        holds = idx[is_hold]
+        rest = idx[~is_hold]
+        k = max(MAX_MC_POINTS - len(holds), 0)
+        idx = np.concatenate([holds, rest[np.linspace(0, len(rest) - 1, k).round().astype(int)] if k and len(rest) else rest[:0]])
+    s3 = sample_sigmas(sig[idx], NoiseModel(sigma_px=ev.sigma_px, sigma_h_m=ev.sigma_h_m, sigma_v_m=ev.sigma_v_m))
+    try:
+        mc = monte_carlo(cam_site, S[idx], trials=ev.trials, sigma_3d=s3, sigma_2d=ev.sigma_px, seed=ev.seed, model=model)
+    except Exception as exc:  # a degenerate trial set must not sink the plan: the linearised figures stand
+        return {"error": str(exc)}
+    return {**mc.to_dict(), "points_used": int(len(idx)), "thinned_from": int(len(S)) if len(idx) < len(S) else None}
+
+
+def _paper_far_comparison(req: PlanRequest, cam_site: Camera, roi: Roi, noise: NoiseModel, draws: np.ndarray, chosen: Chosen,
+                          prediction: Any) -> dict:
+    """paper-far (the paper's recommendation) scored by the same ROI prediction, beside the chosen layout."""
+    base = recommended_strategy(cam_site)
+    far = make_strategy("far", base.y_step_m, base.n_heights)
+    limits = replace(req.limits, marker_size_m=chosen.marker_size_m)
+    screen = screen_grid(far, cam_site, limits)
+    row: dict[str, Any] = {"strategy": far.name, "marker_size_m": chosen.marker_size_m, "points": int(len(screen.points))}
+    if len(screen.points) >= 12:
+        p = predict_points_on_roi(cam_site, screen.points, roi, noise, draws)
+        try:
+            r = plan_route(screen.vehicle_points, screen.points, limits, req.flight, takeoff_site=req.takeoff_site, end=req.end)
+            row["flight_time_s"] = round(r.flight_time_s, 1)
+        except PlanError as exc:
+            row["flight_time_s"] = None
+            row["problem"] = str(exc)
+        row["coverage_pct"] = round(100.0 * roi.coverage(cam_site.project(screen.points)), 1)
+        row["prediction"] = p.summary()
+    else:
+        row["problem"] = f"{len(screen.points)} points: too few to calibrate"
+    s = prediction.summary()
+    pf = row.get("prediction")
+    row["text"] = (f"chosen {chosen.name}: ROI {s['combined_px']['rms']:.2f} px RMS combined; paper-far: "
+                   + (f"{pf['combined_px']['rms']:.2f} px" if pf else row.get("problem", "n/a")))
+    return row
 
 
 def _site_to_geo(req: PlanRequest, pts_site: np.ndarray) -> np.ndarray:
@@ -388,54 +764,74 @@ def _site_to_geo(req: PlanRequest, pts_site: np.ndarray) -> np.ndarray:
     return enu_to_geodetic(np.atleast_2d(pts_site) @ req.site.R_enu_from_site.T, req.site.origin)
 
 
-def _summary(req, cam_enu, cam_site, chosen, scores, route, mission, fence, warnings, battery_pct) -> dict:
+def _summary(result: PlanResult, rows: list[dict], battery_pct: float, monte_carlo: dict | None, comparison: dict) -> dict:
     from dronecal_field import __version__
 
-    screen = chosen.screen
-    pts = screen.points
-    veh = screen.vehicle_points
+    req, cam_enu, cam_site, chosen = result.request, result.camera_enu, result.camera_site, result.chosen
+    pts, veh = chosen.marker_site, chosen.vehicle_site
     geo = _site_to_geo(req, veh)
     uv = cam_site.project(pts)
-    seq_of: dict[int, int] = {it.grid_index: seq for seq, it in enumerate(mission.items, start=1) if it.label.startswith("grid")}
-    order = route.grid_order
-    rank = {int(g): k for k, g in enumerate(order)}
-    marker_px = screen.marker_px[screen.keep]
-    alt_written = (geo[:, 2] - mission.home_h_m) if req.alt_frame == "relative" else geo[:, 2] - (req.site.geoid_separation_m or 0.0)
-    grid = [
-        {
+    names = result.mission_names()
+    home_h = result.missions[0].home_h_m
+    alt_written = (geo[:, 2] - home_h) if req.alt_frame == "relative" else geo[:, 2] - (req.site.geoid_separation_m or 0.0)
+    seq_by_flight = [{it.grid_index: seq for seq, it in enumerate(m.items, start=1) if it.label.startswith("grid")} for m in result.missions]
+    order_by_flight = [{int(g): k for k, g in enumerate(r.grid_order)} for r in result.routes]
+    offsets = np.cumsum([0] + [len(r.grid_order) for r in result.routes])
+    grid = []
+    for i in range(len(pts)):
+        k, j = int(result.point_flight[i]), int(result.point_index[i])
+        grid.append({
             "index": i,
-            "order": rank[i],
-            "mission_seq": seq_of.get(i),
+            "flight": k + 1,
+            "order": int(offsets[k] + order_by_flight[k][j]),
+            "mission_seq": seq_by_flight[k].get(j),
             "marker_site_m": [round(float(v), 4) for v in pts[i]],
             "drone_site_m": [round(float(v), 4) for v in veh[i]],
             "drone_enu_m": [round(float(v), 4) for v in (req.site.R_enu_from_site @ veh[i])],
             "lat_deg": float(geo[i, 0]), "lon_deg": float(geo[i, 1]), "h_m": round(float(geo[i, 2]), 4),
             "alt_m": round(float(alt_written[i]), 3),
             "pixel": [round(float(uv[i, 0]), 1), round(float(uv[i, 1]), 1)],
-            "marker_px": round(float(marker_px[i]), 1),
-        }
-        for i in range(len(pts))
-    ]
-    fence_geo = _site_to_geo(req, np.column_stack([fence, np.zeros(len(fence))]))
-    takeoff_geo = _site_to_geo(req, route.takeoff_site)[0]
-    max_alt = float(np.max(route.points[:, 2] - route.takeoff_site[2]))
+            "marker_px": round(float(chosen.marker_px[i]), 1),
+            "hold_s": float(np.round(chosen.hold_s[i])),
+            "leg": int(chosen.leg[i]),
+        })
+    fence_geo = _site_to_geo(req, np.column_stack([result.fence_site, np.zeros(len(result.fence_site))]))
+    takeoff_geo = _site_to_geo(req, result.routes[0].takeoff_site)[0]
+    max_alt = float(max(np.max(r.points[:, 2] - r.takeoff_site[2]) for r in result.routes))
     lens = req.lens
     d = cam_enu.distortion
     ev = req.evaluation
+    keep_px = chosen.marker_px
+    flights = [
+        {"file": f"{n}.plan", "flight_time_s": round(r.flight_time_s, 1), "path_length_m": round(r.path_length_m, 1),
+         "points": int(len(r.grid_order)), "battery_pct": round(100.0 * r.flight_time_s / req.endurance_s, 1),
+         "mission_items": len(m.items) + 1}
+        for n, r, m in zip(names, result.routes, result.missions)
+    ]
+    pred = result.roi_prediction.summary() if result.roi_prediction is not None else None
+    design = chosen.image.design if chosen.image is not None else None
+    coverage = design.coverage if design is not None else (result.roi.coverage(cam_site.project(chosen.samples_site)) if result.roi is not None else None)
+    strategy_row = dict(chosen.image.row()) if chosen.image is not None else dict(chosen.paper.row())
+    strategy_row.update({"name": chosen.name, "kind": chosen.strategy, "text": chosen.text, "sampling": chosen.sampling,
+                         "optimized": ev.optimize, "requested": req.strategy, "sampling_requested": req.sampling})
+    if chosen.paper is not None:
+        strategy_row.update({"recommended": result.candidates[0].strategy.name, "dropped": chosen.paper.screen.reasons,
+                             "heights_m": list(chosen.heights_m)})
+    total_time = sum(r.flight_time_s for r in result.routes)
     return {
-        "format": "dronecal-field plan summary, version 1",
+        "format": "dronecal-field plan summary, version 2",
         "created_by": f"dronecal-field {__version__} plan",
         "name": req.name,
         "altitude_frame": req.alt_frame,
-        "altitude_frame_text": mission.alt_frame_text,
+        "altitude_frame_text": result.missions[0].alt_frame_text,
         "heights_text": "h_m values are WGS84 ellipsoidal heights; alt_m values are the mission altitudes in altitude_frame",
         "enu_origin": {"lat_deg": req.site.lat_deg, "lon_deg": req.site.lon_deg, "h_m": req.site.ground_h_m,
                         "text": "ENU frame (east, north, up, m) at the pole's foot; h is ellipsoidal"},
         "site_frame": {"azimuth_deg": req.site.azimuth_deg, "R_enu_from_site": np.round(req.site.R_enu_from_site, 12).tolist(),
                         "text": "site frame: X along the camera azimuth (horizontal), Y left, Z up, origin at the pole's foot"},
         "geoid_separation_m": req.site.geoid_separation_m,
-        "home": {"lat_deg": mission.home_lat_deg, "lon_deg": mission.home_lon_deg, "h_m": round(mission.home_h_m, 3),
-                 "alt_written_m": round(mission.home_alt_m, 3), "alt_written_is_amsl": mission.home_alt_is_amsl,
+        "home": {"lat_deg": result.missions[0].home_lat_deg, "lon_deg": result.missions[0].home_lon_deg, "h_m": round(home_h, 3),
+                 "alt_written_m": round(result.missions[0].home_alt_m, 3), "alt_written_is_amsl": result.missions[0].home_alt_is_amsl,
                  "text": "home = take-off and landing point, away from the pole; the vehicle replaces it with where it arms"},
         "camera_guess": {
             "file": "camera_guess.yaml", "width": lens.width, "height": lens.height, "focal_px": round(lens.focal_px, 2),
@@ -445,32 +841,50 @@ def _summary(req, cam_enu, cam_site, chosen, scores, route, mission, fence, warn
             "mount_height_m": req.site.mount_height_m, "azimuth_deg": req.site.azimuth_deg, "tilt_deg": req.site.tilt_deg,
             "roll_deg": req.site.roll_deg, "position_enu_m": cam_enu.pose.position_world.tolist(),
             "rotation_world_to_camera": np.round(cam_enu.pose.R_cam_from_world, 12).tolist(), "fps": lens.fps,
+            "exposure_s": req.timing.exposure_s,
         },
-        "marker": {"size_m": req.marker.size_m, "dictionary": req.marker.dictionary, "id": req.marker.marker_id,
-                   "offset_frd_m": list(req.marker.offset_frd_m), "min_px": req.marker.min_px,
+        "marker": {"size_m": chosen.marker_size_m, "sizes_offered_m": list(req.marker_sizes_m), "dictionary": req.marker.dictionary,
+                   "id": req.marker.marker_id, "offset_frd_m": list(req.marker.offset_frd_m), "min_px": req.marker.min_px,
+                   "needed_m": None if design is None or design.needed_marker_m is None else round(design.needed_marker_m, 3),
                    "mounting": "upright on the drone's nose, facing forward: the nose (and marker) faces the camera at every point",
-                   "px_min": round(float(screen.marker_px[screen.keep].min()), 1), "px_max": round(float(screen.marker_px[screen.keep].max()), 1)},
+                   "px_min": round(float(keep_px.min()), 1), "px_max": round(float(keep_px.max()), 1)},
         "limits": {"min_agl_m": req.limits.min_agl_m, "max_agl_m": req.limits.max_agl_m, "max_range_m": req.limits.max_range_m,
                    "keep_out_m": req.limits.keep_out_m, "geofence": None if req.geofence_latlon is None else [list(p) for p in req.geofence_latlon]},
-        "strategy": {**chosen.row(), "recommended": scores[0].strategy.name, "optimized": ev.optimize, "dropped": screen.reasons},
+        "roi": None if result.roi is None else result.roi.to_dict(),
+        "coverage": {
+            "pct": None if coverage is None else round(100.0 * coverage, 1),
+            "text": "share of the ROI's image cells (a 16-column grid) within one cell of a sample pixel (holds and fixes along legs)",
+            "unreachable": [] if design is None else list(design.unreachable),
+        },
+        "strategy": strategy_row,
         "points": len(pts),
+        "samples": {"holds": int(np.sum(chosen.hold_s > 0)), "pass_through_points": int(np.sum(chosen.hold_s <= 0)),
+                    "leg_samples": int(len(chosen.samples_site) - len(pts)) if chosen.image is not None else 0,
+                    "leg_speed_m_s": None if chosen.leg_speed_m_s is None else round(chosen.leg_speed_m_s, 3),
+                    "gnss_hz": req.timing.gnss_hz, "exposure_s": req.timing.exposure_s},
         "grid": grid,
         "flight": {
-            "flight_time_s": round(route.flight_time_s, 1), "path_length_m": round(route.path_length_m, 1),
-            "battery_pct": round(battery_pct, 1), "endurance_min": req.endurance_s / 60.0,
+            "flight_time_s": round(total_time, 1), "path_length_m": round(sum(r.path_length_m for r in result.routes), 1),
+            "battery_pct": round(battery_pct, 1), "endurance_min": req.endurance_s / 60.0, "reserve_pct": round(100 * req.reserve),
+            "flights": flights, "n_flights": len(flights),
             "hover_s": req.flight.hover_s, "speed_m_s": req.flight.speed_m_s, "end": req.end, "yaw_mode": req.yaw_mode,
             "takeoff": {"lat_deg": float(takeoff_geo[0]), "lon_deg": float(takeoff_geo[1]), "h_m": round(float(takeoff_geo[2]), 3),
-                        "site_m": [round(float(v), 3) for v in route.takeoff_site], "alt_m": route.takeoff_alt_m},
-            "mission_items": len(mission.items) + 1,
+                        "site_m": [round(float(v), 3) for v in result.routes[0].takeoff_site], "alt_m": result.routes[0].takeoff_alt_m},
+            "mission_items": sum(f["mission_items"] for f in flights),
             "max_alt_m": round(max_alt, 2),
         },
+        "prediction": pred,
         "uncertainty": {
             "trials": ev.trials, "seed": ev.seed, "sigma_px": ev.sigma_px, "sigma_3d_m": [ev.sigma_h_m, ev.sigma_h_m, ev.sigma_v_m],
-            "model": ev.model, "rms_mean_px": chosen.rms_mean_px, "rms_p95_px": chosen.rms_p95_px,
-            "ground_error_15m_cm": chosen.ground_error_15m_cm, "ground_error_15m_cm_p95": chosen.ground_error_15m_cm_p95,
-            "monte_carlo": chosen.uncertainty,
+            "timing_sigma_s": 0.01, "model": None if pred is None else pred["model"],
+            "rms_mean_px": None if not monte_carlo else monte_carlo.get("rms_mean"),
+            "rms_p95_px": None if not monte_carlo else (monte_carlo.get("rms_percentiles") or {}).get("95"),
+            "ground_error_15m_cm": None if not monte_carlo else monte_carlo.get("ground_error_15m_cm"),
+            "ground_error_15m_cm_p95": None if not monte_carlo else monte_carlo.get("ground_error_15m_cm_p95"),
+            "monte_carlo": monte_carlo,
         },
-        "candidates": [s.row() for s in scores],
+        "comparison": comparison,
+        "candidates": rows,
         "fence": {"inclusion_polygon_latlon": fence_geo[:, :2].tolist(), "margin_m": FENCE_MARGIN_M,
                   "exclusion_circle": {"lat_deg": req.site.lat_deg, "lon_deg": req.site.lon_deg, "radius_m": req.limits.keep_out_m}},
         "ardupilot_advice": {
@@ -479,12 +893,12 @@ def _summary(req, cam_enu, cam_site, chosen, scores, route, mission, fence, warn
             "text": "set RTL_ALT to clear the pole top (mount height + 2 m) but not the default 15 m climb; "
                     "the fence polygon and keep-out circle are in mission.plan (QGC uploads them)",
         },
-        "warnings": list(warnings),
+        "warnings": list(result.warnings),
         "files": {
-            "mission.plan": "QGroundControl plan (upload with QGC or dronecal-field fly)",
-            "mission.waypoints": "Mission Planner QGC WPL 110, home as item 0",
+            **{f"{n}.plan": "QGroundControl plan (upload with QGC or dronecal-field fly)" for n in names},
+            **{f"{n}.waypoints": "Mission Planner QGC WPL 110, home as item 0" for n in names},
             "mission.geojson": "map features; coordinates [lon, lat, h ellipsoidal]",
-            "preview.png": "top view and predicted image",
+            "preview.png": "top view, predicted image with the ROI, and the predicted error over the ROI",
             "plan.json": "this summary",
             "camera_guess.yaml": "the guessed camera (OpenCV FileStorage, world = ENU at the pole's foot)",
         },
@@ -492,8 +906,8 @@ def _summary(req, cam_enu, cam_site, chosen, scores, route, mission, fence, warn
 
 
 def mission_geojson(result: PlanResult) -> dict:
-    """GeoJSON of the plan: camera, take-off, grid points, path, fence, keep-out, footprint."""
-    req, mission = result.request, result.mission
+    """GeoJSON of the plan: camera, take-off, points, paths (one per flight), fence, keep-out, footprint."""
+    req = result.request
     feats: list[dict] = []
     cam_geo = _site_to_geo(req, np.array([0.0, 0.0, req.site.mount_height_m]))[0]
     feats.append(msn.point_feature(cam_geo[1], cam_geo[0], cam_geo[2], {
@@ -502,13 +916,14 @@ def mission_geojson(result: PlanResult) -> dict:
     feats.append(msn.point_feature(t_geo[1], t_geo[0], t_geo[2], {"kind": "takeoff", "text": "home: take-off and landing"}))
     for g in result.summary["grid"]:
         feats.append(msn.point_feature(g["lon_deg"], g["lat_deg"], g["h_m"], {
-            "kind": "grid", "index": g["index"], "order": g["order"], "mission_seq": g["mission_seq"], "alt_m": g["alt_m"],
-            "alt_frame": req.alt_frame, "hold_s": req.flight.hover_s, "pixel": g["pixel"], "marker_px": g["marker_px"]}))
-    path_site = np.vstack([result.route.takeoff_site[None], result.route.takeoff_site[None] + [0, 0, result.route.takeoff_alt_m], result.route.points])
-    if req.end == "land":
-        path_site = np.vstack([path_site, result.route.takeoff_site[None]])
-    pg = _site_to_geo(req, path_site)
-    feats.append(msn.line_feature(pg[:, [1, 0, 2]], {"kind": "path", "length_m": round(result.route.path_length_m, 1)}))
+            "kind": "grid", "index": g["index"], "order": g["order"], "flight": g["flight"], "mission_seq": g["mission_seq"], "alt_m": g["alt_m"],
+            "alt_frame": req.alt_frame, "hold_s": g["hold_s"], "pixel": g["pixel"], "marker_px": g["marker_px"]}))
+    for k, route in enumerate(result.routes):
+        path_site = np.vstack([route.takeoff_site[None], route.takeoff_site[None] + [0, 0, route.takeoff_alt_m], route.points])
+        if req.end == "land":
+            path_site = np.vstack([path_site, route.takeoff_site[None]])
+        pg = _site_to_geo(req, path_site)
+        feats.append(msn.line_feature(pg[:, [1, 0, 2]], {"kind": "path", "flight": k + 1, "length_m": round(route.path_length_m, 1)}))
     fg = _site_to_geo(req, np.column_stack([result.fence_site, np.zeros(len(result.fence_site))]))
     feats.append(msn.polygon_feature(fg[:, [1, 0]], {"kind": "geofence", "inclusion": True, "margin_m": FENCE_MARGIN_M}))
     ang = np.linspace(0, 2 * np.pi, 33)[:-1]
@@ -518,8 +933,12 @@ def mission_geojson(result: PlanResult) -> dict:
         feats.append(msn.polygon_feature(kg[:, [1, 0]], {"kind": "keep_out", "radius_m": req.limits.keep_out_m}))
     fp = _site_to_geo(req, np.column_stack([result.footprint_site, np.zeros(len(result.footprint_site))]))
     feats.append(msn.polygon_feature(fp[:, [1, 0]], {"kind": "footprint", "text": f"ground seen by the guessed camera, cut at {FOOTPRINT_RANGE_M:g} m"}))
+    if req.roi.kind == "polygon" and req.roi.polygon_site:
+        poly = np.asarray(req.roi.polygon_site, float)
+        rg = _site_to_geo(req, np.column_stack([poly, np.zeros(len(poly))]))
+        feats.append(msn.polygon_feature(rg[:, [1, 0]], {"kind": "roi", "text": req.roi.describe()}))
     return msn.geojson(feats, "dronecal-field plan; coordinates are [lon, lat, h] with h the WGS84 ellipsoidal height in metres; "
-                              f"properties.alt_m are mission altitudes: {mission.alt_frame_text}")
+                              f"properties.alt_m are mission altitudes: {result.mission.alt_frame_text}")
 
 
 def write_plan(result: PlanResult, out_dir: str | os.PathLike) -> list[Path]:
@@ -536,17 +955,23 @@ def write_plan(result: PlanResult, out_dir: str | os.PathLike) -> list[Path]:
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "plan.json").is_file())):
         raise InputError(f"--out {out} exists and is not a plan folder: choose a new folder")
     out.parent.mkdir(parents=True, exist_ok=True)
-    req, mission = result.request, result.mission
+    req = result.request
     ko = (req.site.lat_deg, req.site.lon_deg, req.limits.keep_out_m) if req.limits.keep_out_m > 0 else None
-    plan = msn.qgc_plan(mission, np.asarray(result.summary["fence"]["inclusion_polygon_latlon"]), ko, req.flight.speed_m_s)
-    validate_plan(plan)
+    fence = np.asarray(result.summary["fence"]["inclusion_polygon_latlon"])
+    plans = []
+    for mission in result.missions:
+        plan = msn.qgc_plan(mission, fence, ko, req.flight.speed_m_s)
+        validate_plan(plan)
+        plans.append(plan)
+    names = result.mission_names()
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the plan folder is an ordinary one
     try:
-        (tmp / "mission.plan").write_text(msn.dumps(plan), encoding="utf-8")
-        (tmp / "mission.waypoints").write_text(msn.waypoints_text(mission), encoding="utf-8")
+        for name, plan, mission in zip(names, plans, result.missions):
+            (tmp / f"{name}.plan").write_text(msn.dumps(plan), encoding="utf-8")
+            (tmp / f"{name}.waypoints").write_text(msn.waypoints_text(mission), encoding="utf-8")
         (tmp / "mission.geojson").write_text(msn.dumps(mission_geojson(result)), encoding="utf-8")
         (tmp / "plan.json").write_text(msn.dumps(result.summary), encoding="utf-8")
         write_camera(tmp / "camera_guess.yaml", result.camera_enu,
@@ -562,4 +987,5 @@ def write_plan(result: PlanResult, out_dir: str | os.PathLike) -> list[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return [out / f for f in PLAN_FILES]
+    files = [f"{n}.{ext}" for n in names for ext in ("plan", "waypoints")] + list(PLAN_FILES[2:])
+    return [out / f for f in files]
