@@ -501,6 +501,7 @@ class RunSpec:
     exposure_s: float = 0.0  # motion blur: the frame averages the marker over this long
     with_leg_events: bool = True  # a "leg" event per waypoint-to-waypoint segment of Flight.legs
     gnss_latency_s: float = 0.0  # fixes stamped this late (arrival); declared as gnss.latency_s when > 0
+    quantise_fixes: bool = False  # lat/lon to 1e-7 deg and height to mm, as MAVLink GPS_RAW_INT carries them
 
 
 def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook, spec: RunSpec) -> dict:
@@ -547,6 +548,8 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
             white[k] = a[k] * white[k - 1] + np.sqrt(1.0 - a[k] ** 2) * white[k]
     noise = white * sigma
     geo = enu_to_geodetic(pos + noise, ORIGIN)
+    if spec.quantise_fixes:
+        geo = np.c_[np.round(geo[:, :2] * 1e7) / 1e7, np.round(geo[:, 2] * 1e3) / 1e3]
     if spec.repeat_fixes > 1:
         period = int(round(1e9 / spec.gnss_hz / spec.repeat_fixes))
         idx = np.repeat(np.arange(len(fix_t)), spec.repeat_fixes)

@@ -104,12 +104,14 @@ def distinct_fixes(
         rule = RULES[1]
     else:
         moving_repeats = 0
-        if n >= 3:
-            # Neighbours metres apart around an equal pair: the track moves there.
-            k = np.flatnonzero(same_pos[1:-1]) + 1
+        q = p[~same_time]  # one message per timestamp
+        if len(q) >= 3:
+            # Neighbours far apart around an equal pair: the track moves there.
+            q_same = np.all(np.diff(q, axis=0) == 0.0, axis=1)
+            k = np.flatnonzero(q_same[:-1]) + 1
             lat_m = 111_320.0
-            scale = np.c_[np.full(len(k), lat_m), lat_m * np.cos(np.radians(p[k, 0])), np.ones(len(k))]
-            d = (p[k + 1] - p[k - 1]) * scale
+            scale = np.c_[np.full(len(k), lat_m), lat_m * np.cos(np.radians(q[k, 0])), np.ones(len(k))]
+            d = (q[k + 1] - q[k - 1]) * scale
             moving_repeats = int(np.sum(np.linalg.norm(d, axis=1) > moving_m))
         if arrival_stamped or moving_repeats >= min_moving_repeats:
             repeat = same_time | same_pos

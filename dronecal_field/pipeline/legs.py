@@ -157,7 +157,8 @@ def cubic_track_at(
     """
     q = np.asarray(t_query_ns, np.int64)
     t = np.asarray(t_ns, np.int64)
-    y = np.asarray(values, float).reshape(len(t), -1)
+    y = np.asarray(values, float)
+    y = y.reshape(len(t), -1) if y.size else np.zeros((len(t), y.shape[-1] if y.ndim > 1 else 1))
     m, d = len(q), y.shape[1]
     at = np.full((m, d), np.nan)
     rate = np.full((m, d), np.nan)

@@ -17,10 +17,17 @@ it are discarded (counted apart, not as drops) and the source's drop counter
 is taken as the zero: ``dropped`` counts only frames lost while recording.
 
 Every timestamp is the host's UTC clock at arrival (the run clock); frames
-too, hence ``camera.latency_s`` in the metadata.
+too, hence ``camera.latency_s`` in the metadata. GNSS fixes are the
+exception the contract asks for: ``/gnss/fix`` is stamped at the fix's own
+measurement time, ``GPS_RAW_INT.time_usec`` mapped onto the run clock
+(:class:`FixClock`), and written once per fix (a new ``time_usec``) however
+often the telemetry stream repeats it; ``/mavlink/GPS_RAW_INT`` keeps every
+message as it arrived.
 
 Events on ``/events``: ``hover`` (the hold that ends with each
-MISSION_ITEM_REACHED: ArduCopter reports at the end of a hold), ``video_gap``,
+MISSION_ITEM_REACHED: ArduCopter reports at the end of a hold), ``leg`` (from
+one waypoint reached to the next when the drone flies through at least one of
+them: hold 0), ``video_gap``,
 ``link_lost`` (with its duration) and ``link_restored``.
 """
 
@@ -48,6 +55,59 @@ from dronecal_field.recording.status import (
     remaining_s,
 )
 from dronecal_field.runfile.records import Frame, RunEvent
+
+
+class FixClock:
+    """Maps ``GPS_RAW_INT.time_usec`` (the fix's measurement time) onto the run clock.
+
+    ``time_usec`` is boot time on ArduPilot (real ArduCopter 4.7: about 104 ms
+    older than the message carrying it) or Unix time on other autopilots.
+    Boot time maps through the pairs (host arrival, ``time_boot_ms``) of the
+    vehicle's messages: ``host = c + boot / rate`` with ``c`` the smallest
+    ``host - boot / rate`` over the last ``window`` pairs (arrival delays are
+    never negative, so the minimum is the link's latency floor, as TIMESYNC
+    takes it). Unix time goes to boot time through SYSTEM_TIME first. A fix
+    time that cannot be mapped, or lands after its message's arrival or more
+    than ``max_age_s`` before it, falls back to the arrival.
+    """
+
+    def __init__(self, window: int = 64, max_age_s: float = 2.0) -> None:
+        self._pairs: collections.deque[tuple[int, int]] = collections.deque(maxlen=window)  # (host ns, boot ns)
+        self._unix_minus_boot_ns: int | None = None
+        self.max_age_ns = int(max_age_s * 1e9)
+        self.mapped = 0
+        self.fallbacks = 0
+
+    def observe(self, host_ns: int, boot_ms: int) -> None:
+        """One vehicle message's (host UTC ns at arrival, time_boot_ms), in arrival order."""
+        if self._pairs and boot_ms * 1_000_000 < self._pairs[-1][1] - 1_000_000_000:
+            self._pairs.clear()  # the vehicle rebooted
+        self._pairs.append((int(host_ns), int(boot_ms) * 1_000_000))
+
+    def observe_system_time(self, time_unix_usec: int, time_boot_ms: int) -> None:
+        """SYSTEM_TIME: the vehicle's Unix clock against its boot clock."""
+        if time_unix_usec > 0:
+            self._unix_minus_boot_ns = int(time_unix_usec) * 1000 - int(time_boot_ms) * 1_000_000
+
+    def to_run_ns(self, time_usec: int, arrival_ns: int, rate: float = 1.0) -> int:
+        """Run-clock ns of a fix measured at ``time_usec``, carried by a message that arrived at ``arrival_ns``."""
+        boot_ns = None
+        if time_usec >= 1_000_000_000_000_000:  # microseconds since 1970, i.e. after 2001-09
+            if self._unix_minus_boot_ns is not None:
+                boot_ns = int(time_usec) * 1000 - self._unix_minus_boot_ns
+        elif time_usec > 0:
+            boot_ns = int(time_usec) * 1000
+        if boot_ns is None or not self._pairs:
+            self.fallbacks += 1
+            return int(arrival_ns)
+        rate = rate if rate > 0 else 1.0
+        c = min(h - b / rate for h, b in self._pairs)
+        t = int(round(c + boot_ns / rate))
+        if t > arrival_ns or arrival_ns - t > self.max_age_ns:
+            self.fallbacks += 1
+            return int(arrival_ns)
+        self.mapped += 1
+        return t
 
 
 @dataclass(frozen=True)
@@ -79,6 +139,12 @@ class RecordingReport:
         Wall seconds recorded.
     clock_rate : float
         Vehicle seconds per host second (1 for a real vehicle).
+    fixes_repeated : int
+        GPS_RAW_INT messages that repeated the fix before (same ``time_usec``): not written again.
+    fixes_at_arrival : int
+        Fixes whose ``time_usec`` could not be mapped onto the run clock: stamped at arrival.
+    leg_events : int
+        ``leg`` events written.
     """
 
     frames_written: int
@@ -94,6 +160,9 @@ class RecordingReport:
     link_losses: int
     duration_s: float
     clock_rate: float
+    fixes_repeated: int = 0
+    fixes_at_arrival: int = 0
+    leg_events: int = 0
 
     def summary(self) -> str:
         """One line for the operator."""
@@ -191,6 +260,11 @@ class Recorder:
         self.frames_discarded_at_start = 0
         self.fixes_written = 0
         self.fixes_without_position = 0
+        self.fixes_repeated = 0  # GPS_RAW_INT messages repeating the fix before (same time_usec): not written again
+        self.fix_clock = FixClock()
+        self._last_fix_usec: int | None = None
+        self._last_nav: tuple[int, int] | None = None  # (seq, host ns) of the last NAV_WAYPOINT reached
+        self.leg_events = 0
         self.mavlink_messages = 0
         self.attitudes = 0
         self.hover_events = 0
@@ -293,6 +367,9 @@ class Recorder:
             link_losses=self.link_losses,
             duration_s=time.monotonic() - self._started_mono,
             clock_rate=self.clock.rate,
+            fixes_repeated=self.fixes_repeated,
+            fixes_at_arrival=self.fix_clock.fallbacks,
+            leg_events=self.leg_events,
         )
 
     # ----- link reader thread -----
@@ -337,13 +414,14 @@ class Recorder:
         fields = msg.to_dict()
         self.writer.write_mavlink(mtype, stamp_ns, fields)
         self.mavlink_messages += 1
+        from_vehicle = msg.get_srcSystem() == self.link.target_system
+        boot_ms = getattr(msg, "time_boot_ms", None)
+        if boot_ms is not None and from_vehicle:
+            self.fix_clock.observe(stamp_ns, int(boot_ms))
+        if mtype == "SYSTEM_TIME" and from_vehicle:
+            self.fix_clock.observe_system_time(int(msg.time_unix_usec), int(msg.time_boot_ms))
         if mtype == "GPS_RAW_INT":
-            fix = fix_from_gps_raw(msg, stamp_ns, self.altitude_datum)
-            if fix is None:
-                self.fixes_without_position += 1
-            else:
-                self.writer.write_fix(fix)
-                self.fixes_written += 1
+            self._write_fix(msg, stamp_ns)
         elif mtype == "ATTITUDE":
             self.writer.write_attitude(attitude_from_mavlink(msg, stamp_ns))
             self.attitudes += 1
@@ -352,6 +430,44 @@ class Recorder:
             if event is not None:
                 self.writer.write_event(event)
                 self.hover_events += 1
+            leg = self._leg_event(int(msg.seq), stamp_ns)
+            if leg is not None:
+                self.writer.write_event(leg)
+                self.leg_events += 1
+
+    def _write_fix(self, msg: Any, arrival_ns: int) -> None:
+        """One ``/gnss/fix`` per new fix (time_usec), stamped at the fix's own time on the run clock."""
+        usec = int(getattr(msg, "time_usec", 0) or 0)
+        if usec > 0 and usec == self._last_fix_usec:
+            self.fixes_repeated += 1  # the stream is faster than the receiver: the same fix again
+            return
+        fix = fix_from_gps_raw(msg, self.fix_clock.to_run_ns(usec, arrival_ns, self.clock.rate), self.altitude_datum)
+        if fix is None:
+            self.fixes_without_position += 1
+            return
+        self._last_fix_usec = usec if usec > 0 else None
+        self.writer.write_fix(fix)
+        self.fixes_written += 1
+
+    def _leg_event(self, seq: int, reached_ns: int) -> RunEvent | None:
+        """The leg that ends at NAV_WAYPOINT ``seq``: from the previous NAV_WAYPOINT reached, when the
+        drone flew through at least one end (hold 0) and the two are consecutive in the mission."""
+        items = self.mission.items
+        if not 0 <= seq < len(items) or items[seq].command != CMD_NAV_WAYPOINT:
+            return None
+        last, self._last_nav = self._last_nav, (seq, int(reached_ns))
+        if last is None or last[0] >= seq:
+            return None
+        between = [it for it in items[last[0] + 1 : seq] if it.command == CMD_NAV_WAYPOINT]
+        if between or (items[last[0]].hold_s > 0 and items[seq].hold_s > 0):
+            return None
+        # ArduCopter reports the end of a hold: the leg starts when the previous one was reported.
+        # ... and a hold at its end is reported when it ends: the leg ends that hold earlier.
+        end_ns = int(reached_ns) - int(round(items[seq].hold_s / max(self.clock.rate, 1e-6) * 1e9))
+        if end_ns <= last[1]:
+            return None
+        meta = {"seq_from": str(last[0]), "seq_to": str(seq), "vehicle_clock_rate": repr(float(self.clock.rate))}
+        return RunEvent(timestamp_ns=last[1], duration_ns=end_ns - last[1], type="leg", metadata=meta)
 
     def _writer_loop(self) -> None:
         ending = False
