@@ -234,13 +234,17 @@ def convex_hull(points: np.ndarray) -> np.ndarray:
     def half(pts):
         out: list[np.ndarray] = []
         for p in pts:
-            while len(out) >= 2 and np.cross(out[-1] - out[-2], p - out[-2]) <= 0:
+            while len(out) >= 2 and _cross(out[-1] - out[-2], p - out[-2]) <= 0:
                 out.pop()
             out.append(p)
         return out
 
     lower, upper = half(P), half(P[::-1])
     return np.array(lower[:-1] + upper[:-1])
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> float:
+    return float(a[0] * b[1] - a[1] * b[0])
 
 
 def polygon_area(polygon: np.ndarray) -> float:
