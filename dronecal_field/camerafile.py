@@ -5,7 +5,10 @@ command that takes ``--camera``. Keys: image_width, image_height,
 camera_matrix (3x3), distortion_coefficients (1x5, OpenCV order),
 enu_origin ([lat, lon, h], optional), rotation_world_to_camera (3x3),
 camera_position_enu (3x1, m), and where known parameter_covariance (15x15,
-order of core.camera.PARAM_NAMES), parameter_std (1x15) and parameter_names.
+order of core.camera.PARAM_NAMES), parameter_std (1x15) and parameter_names,
+and validity_polygon_px (Kx2, pixels, OpenCV convention): the region of the
+image the calibration is supported by (pipeline/validity.py); a consumer
+should not measure outside it (``cv2.pointPolygonTest``).
 """
 
 from __future__ import annotations
@@ -19,8 +22,17 @@ from dronecal_field.core.camera import PARAM_NAMES, Camera, CameraPose, Distorti
 from dronecal_field.errors import InputError
 
 
-def write_camera(path: str | os.PathLike, camera: Camera, comment: str | None = None) -> None:
-    """Write ``camera`` atomically (a temporary file renamed into place)."""
+def write_camera(
+    path: str | os.PathLike,
+    camera: Camera,
+    comment: str | None = None,
+    validity_polygon_px: np.ndarray | None = None,
+) -> None:
+    """Write ``camera`` atomically (a temporary file renamed into place).
+
+    ``validity_polygon_px`` (K, 2) pixels, when given, is written as the
+    region of validity (read it back with :func:`read_validity_polygon`).
+    """
     import cv2
 
     path = Path(path)
@@ -46,6 +58,8 @@ def write_camera(path: str | os.PathLike, camera: Camera, comment: str | None = 
             for name in PARAM_NAMES:
                 fs.write("", name)
             fs.endWriteStruct()
+        if validity_polygon_px is not None:
+            fs.write("validity_polygon_px", np.asarray(validity_polygon_px, float).reshape(-1, 2))
     finally:
         fs.release()
     os.replace(tmp, path)
@@ -99,3 +113,24 @@ def read_camera(path: str | os.PathLike) -> Camera:
         enu_origin=None if origin is None else tuple(float(v) for v in origin),
         covariance=None if cov is None or cov.size != 225 else cov.reshape(15, 15),
     )
+
+
+def read_validity_polygon(path: str | os.PathLike) -> np.ndarray | None:
+    """(K, 2) region of validity in pixels from a camera file, None when the file has none."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"camera file {path} does not exist: pass the camera.yaml written by calibrate")
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        node = fs.getNode("validity_polygon_px")
+        m = None if node.empty() else node.mat()
+    finally:
+        fs.release()
+    if m is None:
+        return None
+    m = np.asarray(m, float)
+    if m.ndim != 2 or m.shape[1] != 2 or len(m) < 3 or not np.all(np.isfinite(m)):
+        raise InputError(f"camera file {path}: validity_polygon_px must be a K x 2 matrix of finite pixels (K >= 3): regenerate it")
+    return m

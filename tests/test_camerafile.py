@@ -1,0 +1,43 @@
+"""camera.yaml round trips, with and without the region of validity."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dronecal_field.camerafile import read_camera, read_validity_polygon, write_camera
+from dronecal_field.core.camera import Distortion
+from dronecal_field.core.synthetic import pole_camera
+from dronecal_field.errors import InputError
+
+
+def test_camera_and_validity_polygon_round_trip(tmp_path):
+    cam = pole_camera(900.0, 1920, 1080, (1.0, -2.0, 4.0), 20.0, distortion=Distortion(k1=-0.28, k2=0.07))
+    cam = cam.with_(enu_origin=(46.5, 6.5, 420.0), covariance=np.diag(np.arange(1.0, 16.0)))
+    poly = np.array([[100.5, 200.25], [1800.0, 210.0], [1700.0, 1000.0], [120.0, 990.0]])
+    path = tmp_path / "camera.yaml"
+    write_camera(path, cam, comment="test", validity_polygon_px=poly)
+    back = read_camera(path)
+    assert np.allclose(back.intrinsics.as_array(), cam.intrinsics.as_array())
+    assert np.allclose(back.distortion.as_array(), cam.distortion.as_array())
+    assert np.allclose(back.pose.position_world, cam.pose.position_world)
+    assert np.allclose(back.covariance, cam.covariance)
+    assert np.array_equal(read_validity_polygon(path), poly)
+    # OpenCV reads the same polygon, ready for cv2.pointPolygonTest.
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    m = fs.getNode("validity_polygon_px").mat()
+    fs.release()
+    assert cv2.pointPolygonTest(m.astype(np.float32), (960.0, 600.0), False) > 0
+    assert cv2.pointPolygonTest(m.astype(np.float32), (10.0, 10.0), False) < 0
+
+
+def test_camera_without_polygon_reads_none_and_a_bad_polygon_is_refused(tmp_path):
+    cam = pole_camera(900.0, 1920, 1080, (0.0, 0.0, 4.0), 20.0)
+    path = tmp_path / "camera.yaml"
+    write_camera(path, cam)
+    assert read_validity_polygon(path) is None
+    write_camera(path, cam, validity_polygon_px=np.array([[0.0, 0.0], [1.0, 1.0]]))
+    with pytest.raises(InputError, match="validity_polygon_px"):
+        read_validity_polygon(path)
