@@ -13,10 +13,10 @@ from conftest import REPLAYS as REPLAY, needs_replays
 from dronecal_field.errors import InputError, PlanError
 from dronecal_field.plan.route import FlightModel, detour, leg_time_s, order_points, plan_route
 from dronecal_field.plan.site import CameraSite, LensGuess, guess_camera, load_site_file, resolve_focal_px
-from dronecal_field.plan.strategies import (
+from dronecal_field.plan.strategies import evaluate_strategy
+from dronecal_field.sampling.lattice import (
     Limits,
     alternatives,
-    evaluate_strategy,
     make_strategy,
     paper_strategies,
     recommended_strategy,
@@ -272,7 +272,7 @@ def test_every_leg_of_a_near_route_clears_the_keep_out():
     ],
 )
 def test_fold_radius_is_where_the_radial_map_stops_growing(k, min_slope, expected):
-    from dronecal_field.plan.strategies import fold_radius
+    from dronecal_field.sampling.lattice import fold_radius
 
     r = fold_radius(np.array(k), min_slope)
     if math.isinf(expected):
@@ -323,5 +323,5 @@ def test_make_plan_on_a_local_cluster_gives_the_same_plan():
         assert len(client.scheduler_info()["workers"]) == 2
     assert len(here.candidates) == len(there.candidates) == 18
     assert [c.row() for c in there.candidates] == [c.row() for c in here.candidates]
-    assert there.chosen.strategy.name == here.chosen.strategy.name
+    assert there.chosen.name == here.chosen.name
     assert np.array_equal(there.grid_site, here.grid_site)

@@ -30,7 +30,7 @@ def run_plan(tmp_path: Path, *args: str, name: str = "out") -> tuple[int, Path]:
 @pytest.fixture(scope="module")
 def distorted(tmp_path_factory) -> Path:
     tmp = tmp_path_factory.mktemp("plan")
-    rc, out = run_plan(tmp, "--site", str(MISSIONS / "paper-distorted.toml"))
+    rc, out = run_plan(tmp, "--site", str(MISSIONS / "paper-distorted.toml"), "--strategy", "paper-far")
     assert rc == 0
     return out
 
@@ -173,7 +173,7 @@ def test_summary_and_preview(distorted):
     import matplotlib.image
 
     img = matplotlib.image.imread(distorted / "preview.png")
-    assert img.shape[0] == 640 and img.shape[1] == 1400
+    assert img.shape[0] == 640 and img.shape[1] == 1800
     assert not list(distorted.parent.glob(".out.tmp-*"))
 
 
@@ -182,7 +182,7 @@ def test_cli_flags_amsl_condition_yaw_rtl_and_takeoff(tmp_path):
         tmp_path, "--lat", "-35.363261", "--lon", "149.165230", "--ground-alt", "604.5", "--geoid-separation", "20.5",
         "--mount-height", "4", "--azimuth", "90", "--tilt", "25", "--image-size", "1920x1080", "--hfov", "90",
         "--alt-frame", "amsl", "--yaw-mode", "condition-yaw", "--end", "rtl", "--takeoff=-35.363330,149.165290",
-        "--hover", "2.5",
+        "--hover", "2.5", "--strategy", "paper-far",
     )
     assert rc == 0
     plan = json.loads((out / "mission.plan").read_text())
@@ -229,9 +229,20 @@ BASE = ["--lat", "-35.363261", "--lon", "149.165230", "--ground-alt", "584", "--
         (["--tilt", "-60"], "tilted 60 deg up"),
         (["--max-range", "1.5"], "--max-range"),
         (["--min-agl", "3", "--max-agl", "2"], "--max-agl"),
-        (["--marker-size", "0.03"], "--marker-size"),
-        (["--focal-px", "700", "--marker-size", "0.05", "--min-marker-px", "60"], "more than a drone can carry"),
-        (["--tilt", "5", "--max-agl", "1.5", "--max-range", "3"], "sees no reachable volume"),
+        (["--marker-size", "0.03", "--strategy", "paper-far"], "--marker-size"),
+        (["--focal-px", "700", "--marker-size", "0.05", "--min-marker-px", "60", "--strategy", "paper-far"], "more than a drone can carry"),
+        (["--tilt", "5", "--max-agl", "1.5", "--max-range", "3", "--strategy", "paper-far"], "sees no reachable volume"),
+        (["--focal-px", "700", "--marker-size", "0.05", "--min-marker-px", "60"], "print a marker of at least"),
+        (["--tilt", "5", "--max-agl", "1.5", "--max-range", "3"], "sees no reachable point"),
+        (["--marker-sizes", "0.3,0"], "--marker-sizes 0 m"),
+        (["--roi-range", "40,3"], "--roi-range"),
+        (["--roi", "nowhere.geojson"], "--roi nowhere.geojson"),
+        (["--exposure-s", "0"], "--exposure-s 0"),
+        (["--gnss-hz", "0"], "--gnss-hz 0"),
+        (["--endurance", "0"], "--endurance 0"),
+        (["--min-marker-px", "0"], "--min-marker-px 0"),
+        (["--sampling", "sometimes"], "--sampling"),
+        (["--strategy", "paper"], "--strategy"),
         (["--takeoff=-35.363261,149.165240"], "keep-out"),
         (["--alt-frame", "amsl"], "--geoid-separation"),
     ],
@@ -271,7 +282,7 @@ def test_geofence_keeps_every_waypoint_inside(tmp_path):
     corners_en = np.array([[-1.5, -8.0, 0.0], [9.0, -8.0, 0.0], [9.0, 12.0, 0.0], [-1.5, 12.0, 0.0]])  # cuts the west of the grid
     ll = enu_to_geodetic(corners_en, origin)[:, :2]
     fence_arg = ";".join(f"{a:.8f},{b:.8f}" for a, b in ll)
-    rc, out = run_plan(tmp_path, "--site", str(MISSIONS / "paper-pinhole.toml"), f"--geofence={fence_arg}")
+    rc, out = run_plan(tmp_path, "--site", str(MISSIONS / "paper-pinhole.toml"), f"--geofence={fence_arg}", "--strategy", "paper-far")
     assert rc == 0
     s = json.loads((out / "plan.json").read_text())
     assert s["strategy"]["dropped"]["outside_geofence"] > 0

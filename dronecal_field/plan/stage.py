@@ -440,6 +440,39 @@ def _no_plan_error(req: PlanRequest, scores: tuple[StrategyScore, ...]) -> PlanE
     )
 
 
+def _no_image_plan_error(req: PlanRequest, cands: tuple[ImageCandidate, ...]) -> PlanError:
+    """The most useful message when no image-space layout can be flown: the rule that blocks most target rays."""
+    from collections import Counter
+
+    from dronecal_field.sampling.design import REASON_TEXT
+
+    best = max(cands, key=lambda c: c.design.n_points)
+    needed = [c.design.needed_marker_m for c in cands if c.design.needed_marker_m]
+    reasons = Counter(r for c in cands for r in c.design.target_reason if r is not None)
+    if best.design.n_points == 0 and req.site.tilt_deg < 0:
+        return PlanError(f"the camera is tilted {-req.site.tilt_deg:g} deg up and sees no point it can be calibrated from: check --tilt (deg below horizontal)")
+    if needed and reasons and reasons.most_common(1)[0][0] == "marker_too_small":
+        need = max(needed)
+        if need > MAX_PRACTICAL_MARKER_M:
+            return PlanError(
+                f"a marker {req.limits.min_marker_px:g} px wide where this camera sees the ROI needs {need:.2f} m, more than a drone can carry "
+                f"({MAX_PRACTICAL_MARKER_M:g} m): lower --min-marker-px only if your detector reads smaller markers, or narrow --roi-range"
+            )
+        return PlanError(f"the {max(req.marker_sizes_m):g} m marker is under {req.limits.min_marker_px:g} px where the ROI is: print a marker of at least "
+                         f"{math.ceil(need * 20) / 20:.2f} m (--marker-sizes)")
+    if best.design.n_points == 0:
+        why, _ = reasons.most_common(1)[0] if reasons else ("behind_camera", 0)
+        fmt = {"min_agl": req.limits.min_agl_m, "max_agl": "unset" if req.limits.max_agl_m is None else f"{req.limits.max_agl_m:g} m",
+               "keep_out": req.limits.keep_out_m, "max_range": "unset" if req.limits.max_range_m is None else f"{req.limits.max_range_m:g} m",
+               "size": max(req.marker_sizes_m), "min_px": req.limits.min_marker_px, "margin": req.limits.margin_px, "ratio": 1.5}
+        return PlanError(
+            f"the camera sees no reachable point along the rays of its region of interest ({REASON_TEXT.get(why, why).format(**fmt)}): "
+            "check --tilt/--azimuth, lower --min-agl or raise --max-agl/--max-range"
+        )
+    return PlanError(f"too few usable points for a non-coplanar calibration: best layout {best.name} has {best.problem}; "
+                     "relax --min-agl/--max-agl/--keep-out/--max-range, or widen --roi-range")
+
+
 def footprint_site(camera_site: Camera, n_side: int = 24, range_m: float = FOOTPRINT_RANGE_M) -> np.ndarray:
     """(K, 2) ground footprint of the image border in site XY (rays above the horizon cut at ``range_m``)."""
     w, h = camera_site.width, camera_site.height

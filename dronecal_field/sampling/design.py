@@ -330,7 +330,7 @@ def design_sampling(camera: Camera, roi: Roi, params: DesignParams, limits: Limi
             leg += 1
             direction = -direction
     if not order:
-        return _empty_design(params, targets, reasons, roi)
+        return replace(_empty_design(params, targets, reasons, roi), needed_marker_m=_needed_marker(s, lim, reasons))
     ti = np.array([o[0] for o in order], int)
     di = np.array([o[1] for o in order], int)
     layer_of = np.array([o[2] for o in order], int)
