@@ -51,11 +51,13 @@ def _free_port(kind: int = socket.SOCK_DGRAM) -> int:
         return s.getsockname()[1]
 
 
-def _cli(*args: str) -> list[str]:
+def cli_argv(*args: object) -> list[str]:
+    """argv running ``dronecal-field ARGS`` in a fresh process of this interpreter."""
     return [sys.executable, "-m", "dronecal_field", *[str(a) for a in args]]
 
 
-def _run(step: str, argv: list[str], log: Path, timeout_s: float) -> None:
+def run_step(step: str, argv: list[str], log: Path, timeout_s: float) -> None:
+    """Run one command to completion, its output into ``log``; DronecalError naming the step if it fails."""
     with log.open("w") as f:
         proc = subprocess.run(argv, stdout=f, stderr=subprocess.STDOUT, timeout=timeout_s)
     if proc.returncode != 0:
@@ -87,6 +89,84 @@ def _stop(proc: subprocess.Popen) -> None:
             proc.wait()
 
 
+@dataclass(frozen=True, eq=False)
+class Simulators:
+    """The running simulated vehicle and camera (each its own process) and where to reach them."""
+
+    vehicle_url: str  # udp:127.0.0.1:PORT, what `fly --connect` takes
+    video_url: str  # http://127.0.0.1:PORT/stream.mjpg, what `fly --video` takes
+    vehicle: subprocess.Popen
+    camera: subprocess.Popen
+    camera_log: Path
+
+    def wait_ready(self, timeout_s: float = 60.0) -> None:
+        """Block until the camera serves (it builds its ray map first: seconds at 4K)."""
+        _wait_for_tcp(int(self.video_url.rsplit(":", 1)[1].split("/")[0]), self.camera, self.camera_log, timeout_s)
+
+    def stop(self) -> None:
+        """SIGINT both (as Ctrl-C), camera first; kill what does not stop within 10 s."""
+        _stop(self.camera)
+        _stop(self.vehicle)
+
+
+def start_simulators(
+    truth_path: Path,
+    home: tuple[float, float, float],
+    logs: Path,
+    speedup: float,
+    fps: float,
+    marker: dict,
+    latency_s: float = 0.0,
+    noise_px: float = 2.0,
+) -> Simulators:
+    """Start ``sim vehicle`` (home LAT,LON,H, vehicle clock ``speedup`` x wall) and ``sim camera`` on free loopback ports.
+
+    Parameters
+    ----------
+    truth_path : the truth camera.yaml the simulated camera renders through.
+    home : take-off point, degrees, degrees, metres (the plan's plannedHomePosition).
+    logs : folder for sim-vehicle.log and sim-camera.log.
+    speedup : vehicle seconds per wall second.
+    fps : camera frames per wall second.
+    marker : dictionary, marker_id, size_m, offset_frd_m (as ``MARKER``).
+    latency_s : the camera's frames show the vehicle this late, seconds (host clock).
+    noise_px : the camera's pixel noise, standard deviation in grey levels.
+    """
+    vehicle_port, camera_link_port, http_port = _free_port(), _free_port(), _free_port(socket.SOCK_STREAM)
+    video_url = f"http://127.0.0.1:{http_port}/stream.mjpg"
+    home_lat, home_lon, home_alt = home
+    vehicle = subprocess.Popen(cli_argv(
+        "sim", "vehicle", "--listen", f"udp:127.0.0.1:{vehicle_port}", "--out", f"udp:127.0.0.1:{camera_link_port}",
+        "--home", f"{home_lat},{home_lon},{home_alt}", "--speedup", speedup,
+    ), stdout=(logs / "sim-vehicle.log").open("w"), stderr=subprocess.STDOUT)
+    camera = subprocess.Popen(cli_argv(
+        "sim", "camera", "--connect", f"udpin:127.0.0.1:{camera_link_port}", "--camera", truth_path, "--serve", video_url,
+        "--fps", fps, "--latency-s", latency_s, "--noise-px", noise_px, "--marker-dictionary", marker["dictionary"],
+        "--marker-id", marker["marker_id"], "--marker-size", marker["size_m"],
+        "--marker-offset", ",".join(str(v) for v in marker["offset_frd_m"]),
+    ), stdout=(logs / "sim-camera.log").open("w"), stderr=subprocess.STDOUT)
+    return Simulators(vehicle_url=f"udp:127.0.0.1:{vehicle_port}", video_url=video_url, vehicle=vehicle, camera=camera,
+                      camera_log=logs / "sim-camera.log")
+
+
+def used_marker_points(
+    report: dict, report_origin: tuple[float, float, float] | None, origin: tuple[float, float, float] | None
+) -> np.ndarray:
+    """(N, 3) ENU metres at ``origin``: the marker positions calibrate used (report.json's hover windows).
+
+    report.json gives them in the calibration's ENU frame (``report_origin``,
+    the calibrated camera's ``enu_origin``); they are moved to ``origin`` (the
+    truth's) when the two differ.
+    """
+    from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic, geodetic_to_enu
+
+    sampled = np.array([w["marker_enu_m"] for w in report["hover_windows"]["windows"] if w.get("used")], float).reshape(-1, 3)
+    if report_origin is not None and origin is not None and not np.allclose(report_origin, origin, atol=1e-10):
+        llh = enu_to_geodetic(sampled, EnuOrigin(*report_origin))
+        sampled = geodetic_to_enu(llh[:, 0], llh[:, 1], llh[:, 2], EnuOrigin(*origin))
+    return sampled
+
+
 def run_demo(
     out_dir: Path, speedup: float = 3.0, trials: int = 500, fps: float = 15.0, echo=print, latency_s: float = 0.0
 ) -> DemoResult:
@@ -115,7 +195,7 @@ def run_demo(
 
     echo("1/4 plan: mission for the simulated camera (rough guess: focal -5%, medium distortion)")
     plan_dir = out_dir / "plan"
-    _run("plan", _cli(
+    run_step("plan", cli_argv(
         "plan", "--out", plan_dir, f"--lat={SITE['lat']}", f"--lon={SITE['lon']}", "--ground-alt", SITE["ground_h"],
         "--mount-height", SITE["mount_height"], "--azimuth", SITE["azimuth"], "--tilt", SITE["tilt"],
         "--image-size", f"{TRUTH['width']}x{TRUTH['height']}", "--focal-px", TRUTH["focal_px"] * 0.95,
@@ -127,35 +207,24 @@ def run_demo(
     home_lat, home_lon, home_alt = plan["mission"]["plannedHomePosition"]
     echo(f"    {len(plan['mission']['items'])} mission items; take-off point {home_lat:.7f}, {home_lon:.7f}")
 
-    vehicle_port, camera_link_port, http_port = _free_port(), _free_port(), _free_port(socket.SOCK_STREAM)
-    video_url = f"http://127.0.0.1:{http_port}/stream.mjpg"
-    echo(f"2/4 simulators: vehicle on udp:127.0.0.1:{vehicle_port} (speed-up {speedup:g}x), camera at {video_url}")
-    vehicle = subprocess.Popen(_cli(
-        "sim", "vehicle", "--listen", f"udp:127.0.0.1:{vehicle_port}", "--out", f"udp:127.0.0.1:{camera_link_port}",
-        "--home", f"{home_lat},{home_lon},{home_alt}", "--speedup", speedup,
-    ), stdout=(logs / "sim-vehicle.log").open("w"), stderr=subprocess.STDOUT)
-    camera = subprocess.Popen(_cli(
-        "sim", "camera", "--connect", f"udpin:127.0.0.1:{camera_link_port}", "--camera", truth_path, "--serve", video_url,
-        "--fps", fps, "--latency-s", latency_s, "--noise-px", "2", "--marker-dictionary", MARKER["dictionary"], "--marker-id", MARKER["marker_id"],
-        "--marker-size", MARKER["size_m"], "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]),
-    ), stdout=(logs / "sim-camera.log").open("w"), stderr=subprocess.STDOUT)
+    sims = start_simulators(truth_path, (home_lat, home_lon, home_alt), logs, speedup, fps, MARKER, latency_s=latency_s)
+    echo(f"2/4 simulators: vehicle on {sims.vehicle_url} (speed-up {speedup:g}x), camera at {sims.video_url}")
     run_path = out_dir / "run.mcap"
     try:
-        _wait_for_tcp(http_port, camera, logs / "sim-camera.log")
+        sims.wait_ready()
         echo("3/4 fly --start: upload, verify, arm in GUIDED, MISSION_START, record (Ctrl-C stops cleanly)")
-        _run("fly", _cli(
-            "fly", "--connect", f"udp:127.0.0.1:{vehicle_port}", "--mission", plan_dir / "mission.plan",
-            "--video", video_url, "--out", run_path, "--start", "--timeout-s", "900",
+        run_step("fly", cli_argv(
+            "fly", "--connect", sims.vehicle_url, "--mission", plan_dir / "mission.plan",
+            "--video", sims.video_url, "--out", run_path, "--start", "--timeout-s", "900",
         ), logs / "fly.log", timeout_s=1200)
     finally:
-        _stop(camera)
-        _stop(vehicle)
+        sims.stop()
 
     echo("4/4 calibrate: hover windows, ArUco, ENU, calibration, Monte-Carlo confidence")
     calib_dir = out_dir / "calibration"
     # The simulator's clock runs `speedup` times faster, so each hold is that much shorter on the
     # run clock: decode more frames per window than a real 3 s hold needs.
-    _run("calibrate", _cli("calibrate", run_path, "--out", calib_dir, "--trials", trials, "--min-fix", "rtk_fixed",
+    run_step("calibrate", cli_argv("calibrate", run_path, "--out", calib_dir, "--trials", trials, "--min-fix", "rtk_fixed",
                            "--max-frames-per-window", int(24 * speedup)),
          logs / "calibrate.log", timeout_s=600)
 
@@ -164,12 +233,7 @@ def run_demo(
     ti, ei = truth.intrinsics, est.intrinsics
     # Compare in the truth's ENU frame (both files use ENU at the pole's foot).
     proj = _projection_error_px(truth, est)
-    sampled = np.array([w["marker_enu_m"] for w in report["hover_windows"]["windows"] if w.get("used")])
-    if est.enu_origin is not None and truth.enu_origin is not None and not np.allclose(est.enu_origin, truth.enu_origin, atol=1e-10):
-        from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic, geodetic_to_enu
-
-        llh = enu_to_geodetic(sampled, EnuOrigin(*est.enu_origin))
-        sampled = geodetic_to_enu(llh[:, 0], llh[:, 1], llh[:, 2], EnuOrigin(*truth.enu_origin))
+    sampled = used_marker_points(report, est.enu_origin, truth.enu_origin)
     sampled_proj = float(np.sqrt(np.mean(np.sum((truth.project(sampled) - est.project(sampled)) ** 2, axis=1))))
     std = report.get("calibration", {}).get("parameter_std_from_residuals", {})
     return DemoResult(
