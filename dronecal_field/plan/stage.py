@@ -51,7 +51,7 @@ PLAN_FILES = ("mission.plan", "mission.waypoints", "mission.geojson", "preview.p
 STRATEGIES = ("image", "paper-far", "paper-near", "paper-full")
 BATTERY_RESERVE = 0.25  # a flight uses at most 75 % of --endurance
 MAX_MC_POINTS = 800  # the Monte-Carlo of the chosen layout thins its leg samples to this many points
-EQUIVALENT_ERROR = 1.03  # candidates within 3 % of the lowest predicted ROI error count as equal: the shortest flight wins
+EQUIVALENT_ERROR = 1.10  # candidates within 10 % of the lowest predicted ROI error count as equal: the shortest flight wins
 COVERAGE_SLACK = 0.02  # a smaller marker is chosen when its coverage is within this of the best
 
 
@@ -335,6 +335,7 @@ class Chosen:
     leg_speed_m_s: float | None
     samples_site: np.ndarray
     samples_sigma_h_m: np.ndarray
+    samples_rtk_factor: np.ndarray
     heights_m: tuple[float, ...] = ()
     image: ImageCandidate | None = None
     paper: StrategyScore | None = None
@@ -349,7 +350,7 @@ class Chosen:
         return cls(name=c.name, text=d.params.describe(), strategy="image", marker_size_m=d.params.marker_size_m,
                    marker_site=d.marker_site, vehicle_site=d.vehicle_site, marker_px=d.marker_px, hold_s=d.hold_s, leg=d.leg,
                    ordered=True, leg_speed_m_s=None if d.params.sampling == "hover" else d.speed_m_s,
-                   samples_site=d.samples_site, samples_sigma_h_m=d.samples_sigma_h_m, image=c)
+                   samples_site=d.samples_site, samples_sigma_h_m=d.samples_sigma_h_m, samples_rtk_factor=d.samples_rtk_factor, image=c)
 
     @classmethod
     def from_paper(cls, s: StrategyScore, hover_s: float, marker_size_m: float) -> "Chosen":
@@ -358,7 +359,7 @@ class Chosen:
         return cls(name=s.strategy.name, text=s.strategy.describe(), strategy="paper", marker_size_m=marker_size_m,
                    marker_site=pts, vehicle_site=s.screen.vehicle_points, marker_px=s.screen.marker_px[s.screen.keep],
                    hold_s=np.full(n, float(hover_s)), leg=np.arange(n), ordered=False, leg_speed_m_s=None,
-                   samples_site=pts, samples_sigma_h_m=np.zeros(n), heights_m=s.screen.heights_m, paper=s)
+                   samples_site=pts, samples_sigma_h_m=np.zeros(n), samples_rtk_factor=np.ones(n), heights_m=s.screen.heights_m, paper=s)
 
 
 @dataclass(frozen=True, eq=False)
@@ -560,7 +561,7 @@ def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
         chosen, candidates, rows = _choose_image(req, cam_site, roi, noise, draws, warnings)
     else:
         chosen, candidates, rows = _choose_paper(req, cam_site, client, warnings)
-    prediction = predict_points_on_roi(cam_site, chosen.samples_site, roi, noise, draws, chosen.samples_sigma_h_m)
+    prediction = predict_points_on_roi(cam_site, chosen.samples_site, roi, noise, draws, chosen.samples_sigma_h_m, chosen.samples_rtk_factor)
     limits = replace(req.limits, marker_size_m=chosen.marker_size_m)
     routes, flight_of, index_in = _flights(req, chosen, limits)
     if len(routes) > 1:
@@ -757,7 +758,7 @@ def _monte_carlo(req: PlanRequest, cam_site: Camera, chosen: Chosen, model: str)
         rest = idx[~is_hold]
         k = max(MAX_MC_POINTS - len(holds), 0)
         idx = np.concatenate([holds, rest[np.linspace(0, len(rest) - 1, k).round().astype(int)] if k and len(rest) else rest[:0]])
-    s3 = sample_sigmas(sig[idx], NoiseModel(sigma_px=ev.sigma_px, sigma_h_m=ev.sigma_h_m, sigma_v_m=ev.sigma_v_m))
+    s3 = sample_sigmas(sig[idx], NoiseModel(sigma_px=ev.sigma_px, sigma_h_m=ev.sigma_h_m, sigma_v_m=ev.sigma_v_m), chosen.samples_rtk_factor[idx])
     try:
         mc = monte_carlo(cam_site, S[idx], trials=ev.trials, sigma_3d=s3, sigma_2d=ev.sigma_px, seed=ev.seed, model=model)
     except Exception as exc:  # a degenerate trial set must not sink the plan: the linearised figures stand

@@ -196,8 +196,9 @@ def _finite(v: object) -> float | None:
 # --------------------------------------------------------------------------
 # The image-space design (``--strategy image``): candidates scored by the predicted ROI error
 
-DEFAULT_LATTICES: tuple[tuple[int, int], ...] = ((5, 4), (6, 4), (7, 5), (8, 5), (9, 6))
-DEFAULT_DEPTHS: tuple[tuple[int, float | None], ...] = ((2, None), (2, 2.0), (3, None))
+DEFAULT_LATTICES: tuple[tuple[int, int], ...] = ((5, 4), (7, 5), (8, 5), (9, 6))
+# (depths per ray, far / near ratio or None for the widest, nearest distance from the camera or None)
+DEFAULT_DEPTHS: tuple[tuple[int, float | None, float | None], ...] = ((2, None, None), (2, 2.0, None), (3, None, None), (2, None, 4.0), (3, None, 4.0))
 
 
 @dataclass(frozen=True, eq=False)
@@ -245,12 +246,12 @@ class ImageCandidate:
 
 def image_candidate_params(marker_sizes: Sequence[float], samplings: Sequence[str],
                            lattices: Sequence[tuple[int, int]] = DEFAULT_LATTICES,
-                           depths: Sequence[tuple[int, float | None]] = DEFAULT_DEPTHS) -> list:
+                           depths: Sequence[tuple[int, float | None, float | None]] = DEFAULT_DEPTHS) -> list:
     """Every layout to score: lattice x depths x marker size x sampling (``sampling.design.DesignParams``)."""
     from dronecal_field.sampling.design import DesignParams
 
-    return [DesignParams(n_u=nu, n_v=nv, n_depths=nd, depth_ratio=ratio, marker_size_m=float(m), sampling=smp)
-            for m in marker_sizes for (nu, nv) in lattices for (nd, ratio) in depths for smp in samplings]
+    return [DesignParams(n_u=nu, n_v=nv, n_depths=nd, depth_ratio=ratio, min_depth_m=near, marker_size_m=float(m), sampling=smp)
+            for m in marker_sizes for (nu, nv) in lattices for (nd, ratio, near) in depths for smp in samplings]
 
 
 def design_problem(points: np.ndarray) -> str | None:
@@ -303,13 +304,15 @@ def score_image_candidates(
 
     roi_pts, roi_ground = evaluation_points(roi)
     cache: dict[tuple[int, int, float], Any] = {}
+    legs_cache: dict = {}
+    extrap_cache: dict = {}
     out = []
     for p in params:
         key = (p.n_u, p.n_v, p.marker_size_m)
         lim = replace(limits, marker_size_m=p.marker_size_m)
         if key not in cache:
             cache[key] = screen_targets(camera, roi, p.n_u, p.n_v, lim)
-        d = design_sampling(camera, roi, p, lim, timing, hover_s=flight.hover_s, screened=cache[key])
+        d = design_sampling(camera, roi, p, lim, timing, hover_s=flight.hover_s, screened=cache[key], legs_cache=legs_cache)
         problem = design_problem(d.marker_site) if d.n_points else "no target pixel has an allowed point along its ray"
         ft = None
         if d.n_points:
@@ -321,15 +324,20 @@ def score_image_candidates(
                 problem = problem or str(exc)
         pred = None
         if problem is None:
-            pred = predict_roi(camera, d.samples_site, d.samples_sigma_h_m, roi_pts, roi_ground, noise, draws)
+            same_samples = (p.n_u, p.n_v, p.n_depths, p.depth_ratio, p.min_depth_m, p.marker_size_m, p.sampling == "hover")
+            pred = predict_roi(camera, d.samples_site, d.samples_sigma_h_m, roi_pts, roi_ground, noise, draws, d.samples_rtk_factor,
+                               extrap_cache=extrap_cache, cache_key=same_samples)
         out.append(ImageCandidate(design=d, prediction=pred, flight_time_s=ft, problem=problem))
     return tuple(out)
 
 
-def predict_points_on_roi(camera: Camera, points: np.ndarray, roi: Any, noise: Any, draws: np.ndarray) -> Any:
-    """The ROI prediction of a fixed set of hover points (N, 3) (the paper's grid, scored the same way)."""
+def predict_points_on_roi(camera: Camera, points: np.ndarray, roi: Any, noise: Any, draws: np.ndarray,
+                          sigma_h_extra_m: np.ndarray | None = None, rtk_factor: np.ndarray | None = None) -> Any:
+    """The ROI prediction (``sampling.predict.RoiPrediction``) of samples (N, 3); hover points unless
+    ``sigma_h_extra_m`` (N,) adds a timing term per sample (the paper's grid is scored the same way)."""
     from dronecal_field.sampling.predict import predict_roi
     from dronecal_field.sampling.roi import evaluation_points
 
     roi_pts, roi_ground = evaluation_points(roi)
-    return predict_roi(camera, points, np.zeros(len(points)), roi_pts, roi_ground, noise, draws)
+    extra = np.zeros(len(points)) if sigma_h_extra_m is None else np.asarray(sigma_h_extra_m, float)
+    return predict_roi(camera, points, extra, roi_pts, roi_ground, noise, draws, rtk_factor)

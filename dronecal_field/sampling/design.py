@@ -37,6 +37,7 @@ from dronecal_field.sampling.roi import Roi
 MIN_DEPTH_RATIO = 1.5  # far / near along one ray: enough depth spread to separate focal length from distance
 DEPTH_GRID_M = np.geomspace(0.6, 120.0, 200)  # distances along a ray that are screened, m
 TIMING_SIGMA_S = 0.01  # std of the offset between a frame's time and the GNSS fix time, s
+RTK_CORRELATION_S = 5.0  # RTK errors drift over seconds: fixes within this time of each other share their error
 SAMPLINGS = ("hover", "through", "mixed")
 REASON_TEXT = {
     "too_low": "the drone would have to fly below --min-agl {min_agl:g} m",
@@ -57,7 +58,9 @@ class DesignParams:
 
     ``n_u`` x ``n_v`` target pixels; ``n_depths`` per target (2 or 3);
     ``depth_ratio``: far / near distance along the ray (None: the widest the
-    ray allows); ``marker_size_m``; ``sampling`` one of :data:`SAMPLINGS`.
+    ray allows); ``marker_size_m``; ``sampling`` one of :data:`SAMPLINGS`;
+    ``min_depth_m``: keep the points at least this far from the camera where the
+    ray allows two depths there (far points: less RTK noise in pixels, faster legs).
     """
 
     n_u: int = 7
@@ -66,15 +69,18 @@ class DesignParams:
     depth_ratio: float | None = None
     marker_size_m: float = 0.3
     sampling: str = "hover"
+    min_depth_m: float | None = None
 
     @property
     def name(self) -> str:
         ratio = "max" if self.depth_ratio is None else f"{self.depth_ratio:g}"
-        return f"image-{self.n_u}x{self.n_v}-d{self.n_depths}-r{ratio}-m{self.marker_size_m:g}-{self.sampling}"
+        near = "" if self.min_depth_m is None else f"-n{self.min_depth_m:g}"
+        return f"image-{self.n_u}x{self.n_v}-d{self.n_depths}-r{ratio}{near}-m{self.marker_size_m:g}-{self.sampling}"
 
     def describe(self) -> str:
         ratio = "as far apart as allowed" if self.depth_ratio is None else f"{self.depth_ratio:g}x apart"
-        return (f"{self.n_u}x{self.n_v} target pixels over the ROI, {self.n_depths} depths per ray ({ratio}), "
+        near = "" if self.min_depth_m is None else f", none nearer than {self.min_depth_m:g} m where the ray allows"
+        return (f"{self.n_u}x{self.n_v} target pixels over the ROI, {self.n_depths} depths per ray ({ratio}{near}), "
                 f"{self.marker_size_m:g} m marker, {self.sampling}")
 
 
@@ -99,7 +105,11 @@ class Design:
     ``depth_index`` (N,), ``hold_s`` (N,) seconds (0 = fly through), ``leg`` (N,)
     leg number. Samples for the prediction: ``samples_site`` (S, 3) marker
     centres (holds and fixes along legs), ``samples_sigma_h_m`` (S,) extra
-    horizontal std from timing (0 at holds), ``samples_uv`` (S, 2).
+    horizontal std from timing (0 at holds), ``samples_uv`` (S, 2),
+    ``samples_rtk_factor`` (S,): the fixes of a leg taken within
+    :data:`RTK_CORRELATION_S` share one RTK error, so treating them as
+    independent would average it away; each gets the RTK std times
+    sqrt(fixes sharing it), which gives their mean the right variance.
     ``unreachable`` lists the ROI parts no sample reaches, with the reason.
     """
 
@@ -120,6 +130,7 @@ class Design:
     samples_uv: np.ndarray
     samples_sigma_h_m: np.ndarray
     samples_is_hold: np.ndarray
+    samples_rtk_factor: np.ndarray  # (S,) RTK std multiplier: sqrt(fixes sharing one error) along legs, 1 at holds
     coverage: float
     unreachable: tuple[dict, ...] = field(default_factory=tuple)
     needed_marker_m: float | None = None
@@ -279,7 +290,7 @@ def screen_targets(camera: Camera, roi: Roi, n_u: int, n_v: int, limits: Limits)
 
 
 def design_sampling(camera: Camera, roi: Roi, params: DesignParams, limits: Limits, timing: LegTiming = LegTiming(),
-                    hover_s: float = 3.0, screened: TargetScreen | None = None) -> Design:
+                    hover_s: float = 3.0, screened: TargetScreen | None = None, legs_cache: dict | None = None) -> Design:
     """The holds, legs and prediction samples of ``params`` for ``camera`` over ``roi``.
 
     Parameters
@@ -293,6 +304,8 @@ def design_sampling(camera: Camera, roi: Roi, params: DesignParams, limits: Limi
     screened : the lattice's rays already screened (``screen_targets`` with the same
         ``n_u``, ``n_v`` and marker size), so candidates differing only in depths or
         sampling share the work
+    legs_cache : a dict shared by candidates: the fixes along the legs of one
+        layout are computed once for ``through`` and ``mixed`` (same legs)
 
     Returns
     -------
@@ -307,7 +320,12 @@ def design_sampling(camera: Camera, roi: Roi, params: DesignParams, limits: Limi
     picks: list[list[int]] = []
     reasons: list[str | None] = []
     for i in range(T):
-        chosen, why = _pick_depths(ok[i], params.n_depths, params.depth_ratio)
+        ok_i = ok[i]
+        if params.min_depth_m is not None:
+            far_enough = ok_i & (DEPTH_GRID_M >= params.min_depth_m)
+            if _pick_depths(far_enough, 2, None)[1] is None:
+                ok_i = far_enough
+        chosen, why = _pick_depths(ok_i, params.n_depths, params.depth_ratio)
         if why == "none":
             why = _blocker(s, i)
         picks.append(chosen)
@@ -351,6 +369,7 @@ def design_sampling(camera: Camera, roi: Roi, params: DesignParams, limits: Limi
     samples = [marker]
     sig = [np.zeros(len(marker))]
     is_hold = [hold > 0]
+    rtk = [np.ones(len(marker))]
     if params.sampling in ("through", "mixed"):
         step = speed / timing.gnss_hz
         seg_a, seg_b = [], []
@@ -358,19 +377,28 @@ def design_sampling(camera: Camera, roi: Roi, params: DesignParams, limits: Limi
             if leg_arr[k] == leg_arr[k + 1]:
                 seg_a.append(marker[k])
                 seg_b.append(marker[k + 1])
-        extra = []
-        for a, b in zip(seg_a, seg_b):
-            n = int(np.linalg.norm(b - a) // step)
-            if n >= 1:
-                f = (np.arange(1, n + 1) / (n + 1))[:, None]
-                extra.append(a + f * (b - a))
-        if extra:
+        key = (params.n_u, params.n_v, params.n_depths, params.depth_ratio, params.min_depth_m, params.marker_size_m)
+        if legs_cache is not None and key in legs_cache:
+            E = legs_cache[key]
+        else:
+            extra = [np.zeros((0, 3))]
+            for a, b in zip(seg_a, seg_b):
+                n = int(np.linalg.norm(b - a) // step)
+                if n >= 1:
+                    f = (np.arange(1, n + 1) / (n + 1))[:, None]
+                    extra.append(a + f * (b - a))
             E = np.concatenate(extra)
-            se = screen_points(camera, E, lim)
-            E = E[se["in_view"] & se["reachable"] & se["big_enough"]]
+            if len(E):
+                se = screen_points(camera, E, lim)
+                E = E[se["in_view"] & se["reachable"] & se["big_enough"]]
+            if legs_cache is not None:
+                legs_cache[key] = E
+        if len(E):
             samples.append(E)
             sig.append(np.full(len(E), speed * TIMING_SIGMA_S))
             is_hold.append(np.zeros(len(E), bool))
+            shared = max(1.0, min(timing.gnss_hz * RTK_CORRELATION_S, len(E) / max(leg_arr.max() + 1, 1)))
+            rtk.append(np.full(len(E), math.sqrt(shared)))
         # a through point is itself a fix taken in motion
         sig[0] = np.where(hold > 0, 0.0, speed * TIMING_SIGMA_S)
     S = np.concatenate(samples)
@@ -382,7 +410,7 @@ def design_sampling(camera: Camera, roi: Roi, params: DesignParams, limits: Limi
         params=params, targets_uv=targets, target_ok=target_ok, target_reason=tuple(reasons), marker_site=marker,
         vehicle_site=vehicle, uv=uv, marker_px=mpx, target=ti, depth_index=layer_of, hold_s=hold, leg=leg_arr,
         speed_m_s=speed, samples_site=S, samples_uv=S_uv, samples_sigma_h_m=np.concatenate(sig),
-        samples_is_hold=np.concatenate(is_hold), coverage=coverage, needed_marker_m=needed,
+        samples_is_hold=np.concatenate(is_hold), samples_rtk_factor=np.concatenate(rtk), coverage=coverage, needed_marker_m=needed,
     )
     return replace(design, unreachable=tuple(unreachable_parts(roi, design, limits)))
 
@@ -404,7 +432,7 @@ def _empty_design(params: DesignParams, targets: np.ndarray, reasons: list[str |
     d = Design(params=params, targets_uv=targets, target_ok=np.zeros(len(targets), bool), target_reason=tuple(reasons),
                marker_site=z3, vehicle_site=z3, uv=z2, marker_px=z1, target=z1.astype(int), depth_index=z1.astype(int),
                hold_s=z1, leg=z1.astype(int), speed_m_s=0.0, samples_site=z3, samples_uv=z2, samples_sigma_h_m=z1,
-               samples_is_hold=z1.astype(bool), coverage=0.0)
+               samples_is_hold=z1.astype(bool), samples_rtk_factor=z1, coverage=0.0)
     return d
 
 

@@ -1,0 +1,95 @@
+"""Benchmark: scoring every image-space candidate of ``plan`` for the three cameras of issue 10.
+
+Run by hand:  .venv/bin/python benchmarks/bench_plan.py [--trials 200] [--baseline 12]
+
+For each camera (the wide 1080p, the 4K, the paper's Table 1 distorted one,
+planned from nominal values) it times ``plan.strategies.score_image_candidates``
+(design + route timing + linearised ROI prediction + extrapolation term for
+every candidate), and as the baseline measured in the same run the paper's
+Monte-Carlo (``core.uncertainty.monte_carlo``, ``--trials``) of the first
+``--baseline`` candidates' samples (thinned like ``plan`` does, to 800 points),
+extrapolated to all candidates. Prints seconds, candidates/s and the ratio,
+then the chosen plan's figures and paper-far's, as ``plan`` prints them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from dronecal_field.core.uncertainty import monte_carlo
+from dronecal_field.plan.route import FlightModel
+from dronecal_field.plan.site import resolve_options
+from dronecal_field.plan.stage import make_plan, request_from_options
+from dronecal_field.plan.strategies import image_candidate_params, score_image_candidates
+from dronecal_field.sampling.design import SAMPLINGS
+from dronecal_field.sampling.predict import NoiseModel, lens_draws, normalised_radius, sample_sigmas
+from dronecal_field.sampling.roi import build_roi, evaluation_points
+from dronecal_field.plan.site import guess_camera
+
+SITE = dict(lat=-35.363261, lon=149.165230, ground_alt=584.0, azimuth=90.0)
+CAMERAS = {
+    "a wide 1080p": dict(image_size="1920x1080", focal_px=900, mount_height=3.5, tilt=25, distortion="strong"),
+    "b 4K": dict(image_size="3840x2160", focal_px=2600, mount_height=4.5, tilt=35, distortion="medium"),
+    "c paper Table 1": dict(image_size="1280x960", focal_px=1110, mount_height=2.0, tilt=30, distortion="medium"),
+}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--trials", type=int, default=200, help="Monte-Carlo trials of the baseline (plan's default)")
+    parser.add_argument("--baseline", type=int, default=12, help="candidates scored by Monte-Carlo for the baseline")
+    args = parser.parse_args()
+
+    total_lin, total_mc, total_n = 0.0, 0.0, 0
+    reports = []
+    for name, cam in CAMERAS.items():
+        req = request_from_options(resolve_options({**SITE, **cam, "trials": args.trials}))
+        camera = guess_camera(req.site, req.lens, frame="site")
+        roi = build_roi(camera, req.roi)
+        pts, _ = evaluation_points(roi)
+        noise = NoiseModel()
+        draws = lens_draws(camera, camera.distortion.as_array(), float(normalised_radius(camera, pts).max()))
+        params = image_candidate_params(req.marker_sizes_m, SAMPLINGS)
+        score_image_candidates(camera, roi, params[:2], req.limits, req.flight, req.timing, noise, draws)  # warm the compiled kernels
+        t = time.perf_counter()
+        cands = score_image_candidates(camera, roi, params, req.limits, FlightModel(hover_s=req.flight.hover_s), req.timing, noise, draws)
+        t_lin = time.perf_counter() - t
+        usable = [c for c in cands if c.usable][: args.baseline]
+        t = time.perf_counter()
+        for c in usable:
+            d = c.design
+            idx = np.arange(len(d.samples_site))
+            if len(idx) > 800:
+                idx = idx[np.linspace(0, len(idx) - 1, 800).round().astype(int)]
+            s3 = sample_sigmas(d.samples_sigma_h_m[idx], noise, d.samples_rtk_factor[idx])
+            monte_carlo(camera, d.samples_site[idx], trials=args.trials, sigma_3d=s3, sigma_2d=2.0, model=c.prediction.model)
+        t_mc = (time.perf_counter() - t) / max(len(usable), 1) * len(cands)
+        total_lin += t_lin
+        total_mc += t_mc
+        total_n += len(cands)
+        print(f"{name:<16} {len(cands):>4} candidates: linearised + extrapolation {t_lin:6.2f} s ({len(cands) / t_lin:6.1f}/s); "
+              f"Monte-Carlo {args.trials} trials (from {len(usable)}) {t_mc:7.1f} s; ratio {t_mc / t_lin:5.1f}x")
+        t = time.perf_counter()
+        result = make_plan(req)
+        reports.append((name, result.summary, time.perf_counter() - t))
+    print(f"{'all three':<16} {total_n:>4} candidates: {total_lin:6.2f} s ({total_n / total_lin:.1f}/s); Monte-Carlo {total_mc:.1f} s; ratio {total_mc / total_lin:.1f}x")
+    print()
+    print(f"{'camera':<16} {'plan':<36} {'cover':>5} {'holds':>5} {'pass':>5} {'legpts':>6} {'flight':>6} {'lin':>6} {'extrap':>6} {'comb':>6} {'gnd cm':>6}")
+    for name, s, dt in reports:
+        p, f, smp = s["prediction"], s["flight"], s["samples"]
+        print(f"{name:<16} {s['strategy']['name']:<36} {s['coverage']['pct']:>5.0f} {smp['holds']:>5} {smp['pass_through_points']:>5} {smp['leg_samples']:>6} "
+              f"{f['flight_time_s'] / 60:>6.1f} {p['linearised_px']['rms']:>6.2f} {p['extrapolation_px']['rms']:>6.2f} {p['combined_px']['rms']:>6.2f} "
+              f"{p['ground_combined_cm']['rms']:>6.1f}   ({f['n_flights']} flight(s); make_plan {dt:.1f} s)")
+        c = s["comparison"]
+        cp = c.get("prediction")
+        if cp:
+            print(f"{'':<16} {'paper-far ' + c['strategy']:<36} {c['coverage_pct']:>5.0f} {c['points']:>5} {0:>5} {0:>6} "
+                  f"{(c.get('flight_time_s') or float('nan')) / 60:>6.1f} {cp['linearised_px']['rms']:>6.2f} {cp['extrapolation_px']['rms']:>6.2f} "
+                  f"{cp['combined_px']['rms']:>6.2f} {cp['ground_combined_cm']['rms']:>6.1f}")
+
+
+if __name__ == "__main__":
+    main()
