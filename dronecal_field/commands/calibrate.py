@@ -3,8 +3,11 @@
 Finds the hover windows, detects the marker in the frames around them,
 aligns the camera and GNSS clocks, builds one robust 3D-2D point per
 waypoint, calibrates, and estimates the confidence (Monte-Carlo with the
-measured sigmas). Writes camera.yaml, camera_info.yaml, ground_homography.yaml,
-detections.csv, report.json and report.html into --out.
+measured sigmas) and the region of validity: the part of the image (and of
+the ground) the points support, beyond which the predicted error grows.
+Writes camera.yaml (with validity_polygon_px), camera_info.yaml,
+ground_homography.yaml, validity.geojson, detections.csv, report.json and
+report.html into --out.
 
 Many runs (a campus of cameras, one run each):
   calibrate a.mcap b.mcap ... --out DIR [--workers N | --scheduler tcp://HOST:8786]
@@ -85,6 +88,7 @@ def _options(args: argparse.Namespace, out: Path | None):
 
 def run_single(args: argparse.Namespace, run_path: Path) -> int:
     """One run, in this process: the report's summary on stdout."""
+    from dronecal_field.pipeline.report import all_warnings
     from dronecal_field.pipeline.run import calibrate_run
 
     out = args.out if args.out is not None else run_path.with_name(run_path.stem + "-calibration")
@@ -111,7 +115,16 @@ def run_single(args: argparse.Namespace, run_path: Path) -> int:
         lines.append(f"  dropped window {p.window.index}" + (f" (seq {p.window.seq})" if p.window.seq is not None else "") + f": {p.dropped}")
     if len(dropped) > 5:
         lines.append(f"  ... {len(dropped) - 5} more dropped windows in report.json")
-    for w in report.warnings:
+    validity = getattr(report, "validity", None)
+    if validity is not None:
+        frac = validity.visible_ground_fraction
+        lines.append(
+            f"  region of validity: {validity.image_fraction:.0%} of the image"
+            + (f", {frac:.0%} of the visible ground 3-30 m" if frac is not None else "")
+            + (f"; predicted ground error there {validity.inside_cm_rms:.1f} cm RMS (max {validity.inside_cm_max:.1f} cm)"
+               if validity.inside_cm_rms is not None else "")
+        )
+    for w in all_warnings(report):
         lines.append(f"  warning: {w}")
     lines.append(f"report: {report.outputs.get('report_html', out)}")
     print("\n".join(lines))

@@ -115,24 +115,123 @@ def monte_carlo_figure(report) -> bytes | None:
     return _png(fig)
 
 
+PROJECTION_CLIP_PX = 10.0  # colour scales stop here: beyond, one "over" colour
+GROUND_CLIP_CM = 50.0
+
+
 def uncertainty_map_figure(report) -> bytes:
-    """Projection uncertainty (px) and ground-position uncertainty (cm) over the image."""
+    """Predicted projection error (px) and ground-position error (cm) over the image, with the region of validity.
+
+    Filled contours on the maps' regular grid, colour scales clipped at 10 px
+    and 50 cm (beyond: one red "over" colour, "> max" on the colour bar),
+    the sky (rays that miss the ground within 200 m) hatched grey rather than
+    left blank, the used points, their convex hull (dashed) and the region
+    of validity (solid outline) when the report has one.
+    """
+    from matplotlib import colormaps
+    from matplotlib.patches import Patch, Polygon
+
     m = report.maps
     cam = report.camera
-    extent = (-0.5, cam.width - 0.5, cam.height - 0.5, -0.5)
-    fig = _figure(10.0, 3.9)
-    for k, (data, title, unit) in enumerate(
-        ((m.projection_px, "projection uncertainty", "px"), (m.ground_cm, "ground position uncertainty (z = 0)", "cm"))
-    ):
+    validity = getattr(report, "validity", None)
+    U, V = np.meshgrid(m.u_px, m.v_px)
+    no_ray = m.no_ray if hasattr(m, "no_ray") else np.zeros(m.projection_px.shape, bool)
+    sky = ~np.isfinite(m.ground_cm) & ~no_ray
+    uv = np.array([p.uv_px for p in report.used_points])
+    cmap = colormaps["viridis"].with_extremes(over="#d62728")
+    fig = _figure(12.0, 12.0 * cam.height / cam.width * 0.5 + 1.9)
+    panels = (
+        (m.projection_px, "projection error", "px", PROJECTION_CLIP_PX),
+        (m.ground_cm, "ground position error (z = 0)", "cm", GROUND_CLIP_CM),
+    )
+    for k, (data, title, unit, vmax) in enumerate(panels):
         ax = fig.add_subplot(1, 2, k + 1)
-        shown = np.ma.masked_invalid(data)
-        vmax = float(np.nanpercentile(data, 95)) if np.any(np.isfinite(data)) else 1.0
-        im = ax.imshow(shown, extent=extent, origin="upper", cmap="viridis", vmin=0, vmax=max(vmax, 1e-9), interpolation="bilinear")
-        uv = np.array([p.uv_px for p in report.used_points])
-        ax.scatter(uv[:, 0], uv[:, 1], s=6, c="w", edgecolors="k", linewidths=0.3)
-        ax.set_title(f"{title} ({unit})", fontsize=10)
+        ax.set_facecolor("#e6e6e6")
+        # Beyond the model's fold the error is unbounded: drawn in the "over" colour and hatched.
+        shown = np.where(no_ray, 1e9, data)
+        shown = np.ma.masked_invalid(np.where(sky, np.nan, shown) if k == 1 else shown)
+        levels = np.linspace(0.0, vmax, 11)
+        cs = ax.contourf(U, V, np.minimum(shown, 1e9), levels=levels, cmap=cmap, extend="max")
+        if sky.any():
+            # Sky: no ground point, so no ground error; hatched, never a white hole.
+            ax.contourf(U, V, sky.astype(float), levels=[0.5, 1.5], colors="none", hatches=["//"])
+            ax.contour(U, V, sky.astype(float), levels=[0.5], colors="0.35", linewidths=0.8, linestyles=":")
+        if no_ray.any():
+            ax.contourf(U, V, no_ray.astype(float), levels=[0.5, 1.5], colors="none", hatches=["xx"])
+        cbar = fig.colorbar(cs, ax=ax, shrink=0.6, ticks=levels[::2])
+        labels = [f"{t:g}" for t in levels[::2]]
+        labels[-1] = f"{vmax:g}"
+        cbar.ax.set_yticklabels(labels)
+        cbar.set_label(f"{unit}; red: > {vmax:g} {unit}", fontsize=8)
+        if len(uv):
+            ax.scatter(uv[:, 0], uv[:, 1], s=6, c="w", edgecolors="k", linewidths=0.3, zorder=4)
+        if validity is not None:
+            hull = np.asarray(validity.hull_px)
+            ax.add_patch(Polygon(hull, closed=True, fill=False, ec="w", lw=1.2, ls="--", zorder=5))
+            ax.add_patch(Polygon(np.asarray(validity.polygon_px), closed=True, fill=False, ec="#ff7f0e", lw=2.0, zorder=6))
+        ax.set_xlim(-0.5, cam.width - 0.5)
+        ax.set_ylim(cam.height - 0.5, -0.5)
         ax.set_aspect("equal")
-        fig.colorbar(im, ax=ax, shrink=0.8)
+        ax.set_xlabel("u (px)", fontsize=8)
+        ax.set_ylabel("v (px)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.set_title(f"predicted {title} ({unit})", fontsize=10)
+    handles = [Patch(fc="w", ec="k", label="calibration points")]
+    if validity is not None:
+        handles += [
+            Patch(fc="none", ec="#ff7f0e", lw=2.0, label="region of validity"),
+            Patch(fc="#888888", ec="w", ls="--", label="points' hull (dashed)"),
+        ]
+    if sky.any():
+        handles.append(Patch(fc="#e6e6e6", ec="0.35", hatch="//", label="sky: no ground within 200 m"))
+    if no_ray.any():
+        handles.append(Patch(fc="#d62728", ec="0.2", hatch="xx", label="no ray: the distortion model folds back here"))
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
+    note = "linearised, measured sigmas" if m.samples == 0 else f"{m.samples} sampled cameras"
+    if getattr(m, "extrapolation_px", None) is not None:
+        note += " + model extrapolation"
+    fig.suptitle(f"where the calibration can be trusted ({note})", fontsize=10)
+    return _png(fig)
+
+
+def validity_ground_figure(report) -> bytes | None:
+    """Plan view (ENU) of the ground: what the camera sees 3-30 m out, the region of validity's footprint, the points."""
+    from matplotlib.patches import Circle, Patch, Polygon
+
+    from dronecal_field.pipeline.validity import VISIBLE_GROUND_M, visible_ground
+
+    validity = getattr(report, "validity", None)
+    if validity is None:
+        return None
+    cam = report.camera
+    c = cam.pose.position_world
+    seen, _ = visible_ground(cam, step_m=0.5)
+    fig = _figure(6.5, 6.0)
+    ax = fig.add_subplot(1, 1, 1)
+    handles = []
+    if len(seen):
+        ax.scatter(seen[:, 0], seen[:, 1], s=1.5, c="#bdbdbd", lw=0, zorder=1)
+        handles.append(Patch(fc="#bdbdbd", label=f"ground the camera sees {VISIBLE_GROUND_M[0]:g}-{VISIBLE_GROUND_M[1]:g} m out"))
+    if validity.ground_polygon_enu_m is not None:
+        ax.add_patch(Polygon(validity.ground_polygon_enu_m[:, :2], closed=True, fc="#ff7f0e", alpha=0.35, ec="#ff7f0e", lw=2, zorder=2))
+        frac = validity.visible_ground_fraction
+        handles.append(Patch(fc="#ff7f0e", alpha=0.5, label="region of validity" + (f" ({frac:.0%} of it)" if frac is not None else "")))
+    for r in VISIBLE_GROUND_M:
+        ax.add_patch(Circle((c[0], c[1]), r, fill=False, ls="--", ec="0.5", lw=0.8))
+    X = np.array([p.marker_enu_m for p in report.used_points])
+    if len(X):
+        ax.scatter(X[:, 0], X[:, 1], s=10, c="tab:blue", zorder=3)
+        handles.append(Patch(fc="tab:blue", label="calibration points"))
+    ax.plot([c[0]], [c[1]], "k^", ms=9, zorder=4)
+    handles.append(Patch(fc="k", label="camera"))
+    reach = VISIBLE_GROUND_M[1] + 3.0
+    ax.set_xlim(c[0] - reach, c[0] + reach)
+    ax.set_ylim(c[1] - reach, c[1] + reach)
+    ax.set_aspect("equal")
+    ax.set_xlabel("east (m)")
+    ax.set_ylabel("north (m)")
+    ax.legend(handles=handles, loc="upper left", fontsize=7, framealpha=0.85)
+    ax.set_title("ground plane z = 0: region of validity (also validity.geojson)", fontsize=10)
     return _png(fig)
 
 

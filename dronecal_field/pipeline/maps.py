@@ -223,7 +223,8 @@ class UncertaintyMaps:
     model-extrapolation term ``extrapolation_px``, root-sum-square;
     ``ground_cm`` (nv, nu) the same for the horizontal position of that
     ground point, cm, NaN where the ray misses the ground in front of the
-    camera or lands beyond 200 m (``sky``, (nv, nu) bool). ``samples`` is
+    camera or lands beyond 200 m (``sky``, (nv, nu) bool); both are inf
+    where the distortion model folds (``no_ray``). ``samples`` is
     0 for the linearised maps, else the number of sampled cameras.
     """
 
@@ -237,8 +238,14 @@ class UncertaintyMaps:
     extrapolation_cm: np.ndarray | None = None
 
     @property
+    def no_ray(self) -> np.ndarray:
+        """(nv, nu) pixels the distortion model maps no direction to (beyond its fold)."""
+        return ~np.isfinite(self.projection_px)
+
+    @property
     def sky(self) -> np.ndarray:
-        return ~np.isfinite(self.ground_cm)
+        """(nv, nu) pixels whose ray misses the ground within 200 m."""
+        return ~np.isfinite(self.ground_cm) & ~self.no_ray
 
     def summary(self) -> dict:
         g = self.ground_cm[np.isfinite(self.ground_cm)]
@@ -253,6 +260,7 @@ class UncertaintyMaps:
             "ground_cm_median": float(np.median(g)) if g.size else None,
             "ground_cm_p95": float(np.percentile(g, 95)) if g.size else None,
             "ground_fraction_of_image": float(np.isfinite(self.ground_cm).mean()),
+            "no_ray_fraction_of_image": float(self.no_ray.mean()),
         }
 
 
@@ -300,6 +308,7 @@ def uncertainty_maps(
     std_px, std_cm = e.std_px, e.std_cm
     if samples > 0:
         std_px, std_cm = _sampled_std(camera, covariance, uv, e.ground_enu_m, samples, seed, ground_z)
+        std_px[~e.has_ray] = np.inf
     proj = np.hypot(std_px, e.extrapolation_px)
     ground_cm = np.hypot(std_cm, e.extrapolation_cm)
     shape = (nv, nu)

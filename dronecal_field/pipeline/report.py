@@ -1,5 +1,6 @@
 """The offline stage's files: camera.yaml, camera_info.yaml, report.json, report.html,
-ground_homography.yaml, detections.csv (and, on request, an annotated copy of the run).
+ground_homography.yaml, validity.geojson, detections.csv (and, on request, an
+annotated copy of the run).
 
 Writers only: every number comes from the CalibrationReport. Files are
 written to a temporary name and renamed, so a reader never sees half a file.
@@ -25,6 +26,7 @@ CAMERA_INFO_FILE = "camera_info.yaml"
 REPORT_JSON = "report.json"
 REPORT_HTML = "report.html"
 HOMOGRAPHY_FILE = "ground_homography.yaml"
+VALIDITY_GEOJSON = "validity.geojson"
 DETECTIONS_CSV = "detections.csv"
 ANNOTATED_SUFFIX = ".annotated.mcap"
 
@@ -114,6 +116,7 @@ def report_dict(report) -> dict:
 
     mc, lin = report.monte_carlo, report.linearised
     headline = mc if mc is not None else lin
+    validity = getattr(report, "validity", None)
     out = {
         "tool": {"name": "dronecal-field", "version": __version__, "stage": "calibrate"},
         "run": {
@@ -203,10 +206,19 @@ def report_dict(report) -> dict:
                 "speed_error_kmh_at_50kmh": headline.speed_error_15m_kmh,
                 "speed_error_kmh_p95": headline.speed_error_15m_kmh_p95,
             },
+            "over_validity_region": None if validity is None else {
+                "method": "linearised std (measured sigmas) and model extrapolation, root-sum-square, "
+                          "over the visible ground 3-30 m inside the region",
+                "ground_position_error_cm_rms": validity.inside_cm_rms,
+                "ground_position_error_cm_max": validity.inside_cm_max,
+                "projection_error_px_rms": validity.inside_px_rms,
+                "projection_error_px_max": validity.inside_px_max,
+            },
         },
+        "validity": None if validity is None else validity.to_dict(),
         "ground_homography": {"H_image_from_ground": report.homography, "pixels": "undistorted"},
         "timings_s": report.timings_s,
-        "warnings": report.warnings,
+        "warnings": all_warnings(report),
         "options": {
             "min_fix": report.options.min_fix, "model": report.options.model, "loss": report.options.loss,
             "trials": report.options.trials, "seed": report.options.seed, "hover_source": report.options.hover_source,
@@ -265,7 +277,22 @@ def homography_yaml(report) -> str:
         + _yaml_matrix("H_ground_from_image", Hinv)
         + _yaml_matrix("camera_matrix", cam.intrinsics.matrix)
         + _yaml_matrix("distortion_coefficients", cam.distortion.as_array()[None])
+        + _validity_yaml(getattr(report, "validity", None))
     )
+
+
+def _validity_yaml(validity) -> str:
+    """The region of validity for ground_homography.yaml: pixel polygon and its ground footprint (ENU)."""
+    if validity is None:
+        return ""
+    out = (
+        "# Region of validity: measure only inside validity_polygon_px (DISTORTED pixels, as measured;\n"
+        "# cv2.pointPolygonTest), i.e. on the ground inside validity_ground_enu_m (E, N, z metres).\n"
+        + _yaml_matrix("validity_polygon_px", validity.polygon_px)
+    )
+    if validity.ground_polygon_enu_m is not None:
+        out += _yaml_matrix("validity_ground_enu_m", validity.ground_polygon_enu_m)
+    return out
 
 
 def detections_csv(report) -> str:
@@ -322,6 +349,8 @@ def report_html(report, data: dict) -> str:
     unc = data["uncertainty"]
     mc = unc["monte_carlo"] or {}
     at15 = unc["at_15m"] or {}
+    region = unc.get("over_validity_region") or {}
+    validity = getattr(report, "validity", None)
     off = data["time_offset"]
     summary = _table([
         ("run", f"{report.run_path.name}{' (cut off)' if report.truncated else ''}"),
@@ -334,10 +363,11 @@ def report_html(report, data: dict) -> str:
         ("camera position ENU", " ".join(f"{v:.3f}" for v in cam.pose.position_world) + " m"),
         ("ENU origin", f"{report.origin.lat_deg:.8f}, {report.origin.lon_deg:.8f}, {report.origin.h_m:.3f} m ({report.altitude_datum}; {report.origin_source})"),
         ("camera time offset", f"{_fmt(off['offset_s'], '+.3f', ' s')} ± {_fmt(off['std_s'], '.3f', ' s')} ({off['method']})"),
-        ("fit vs measured sigmas", html.escape((unc.get("consistency") or {}).get("note", "-"))),
+        ("fit vs measured sigmas", (unc.get("consistency") or {}).get("note", "-")),
         ("MC RMS mean / p95", f"{_fmt(mc.get('rms_mean'), '.3f')} / {_fmt((mc.get('rms_percentiles') or {}).get('95'), '.3f')} px ({mc.get('trials', 0)} trials)"),
         ("ground position error at 15 m", f"{_fmt(at15.get('ground_position_error_cm'), '.2f', ' cm')} RMS, p95 {_fmt(at15.get('ground_position_error_cm_p95'), '.2f', ' cm')}"),
         ("speed error at 15 m (50 km/h)", f"{_fmt(at15.get('speed_error_kmh_at_50kmh'), '.3f', ' km/h')} RMS, p95 {_fmt(at15.get('speed_error_kmh_p95'), '.3f', ' km/h')}"),
+        *_validity_rows(validity, region),
         ("frames decoded / read", f"{report.frames.frames_decoded} / {report.frames.frames_read} ({report.frames.frames_corrupt} corrupt)"),
     ])
     std_rows = [(k, f"{cal['parameter_std_from_measured_sigmas'][k]:.4g}") for k in PARAM_NAMES[:9] if cal["parameter_std_from_measured_sigmas"][k] > 0]
@@ -348,24 +378,29 @@ def report_html(report, data: dict) -> str:
         f"<tr><td>{p.window.index}</td><td>{'' if p.window.seq is None else p.window.seq}</td><td>{html.escape(p.dropped)}</td></tr>"
         for p in report.points if not p.used
     ) or "<tr><td colspan=3>none</td></tr>"
-    warnings = "".join(f"<li>{html.escape(w)}</li>" for w in report.warnings) or "<li>none</li>"
+    warning_list = data["warnings"]
+    warnings = "".join(f"<li>{html.escape(w)}</li>" for w in warning_list) or "<li>none</li>"
     figs = [
         _img(figures.residuals_figure(report, getattr(report, "background", None)), "detected waypoints and residual vectors (scaled up)"),
         _img(figures.coverage_figure(report), "coverage of the image"),
         _img(figures.monte_carlo_figure(report), "Monte-Carlo RMS reprojection error"),
-        _img(figures.uncertainty_map_figure(report), "uncertainty over the image"),
+        _img(figures.uncertainty_map_figure(report), "predicted error over the image: where the calibration can be trusted"),
+        _img(figures.validity_ground_figure(report), "the region of validity on the ground (plan view, ENU)"),
         _img(figures.track_figure(report), "GNSS track over the hover windows"),
     ]
     style = (
         "body{font-family:sans-serif;max-width:1100px;margin:1em auto;color:#222}"
         "table{border-collapse:collapse;margin:.5em 0}th,td{border:1px solid #ccc;padding:2px 8px;text-align:left;font-size:14px}"
         "th{background:#f4f4f4}img{max-width:100%}figure{margin:1em 0}figcaption{font-size:13px;color:#555}"
+        ".warn{background:#fff4e5;border-left:5px solid #e67e00;padding:.4em 1em;margin:.8em 0}"
+        ".ok{background:#eef8ee;border-left:5px solid #2e8b2e;padding:.4em 1em;margin:.8em 0}"
     )
     return (
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>dronecal-field calibration report</title>"
         f"<style>{style}</style></head><body>"
-        f"<h1>Calibration of {html.escape(report.run_path.name)}</h1>{summary}"
-        f"<h2>Warnings</h2><ul>{warnings}</ul>"
+        f"<h1>Calibration of {html.escape(report.run_path.name)}</h1>"
+        + _verdict(validity, warning_list)
+        + f"{summary}<h2>Warnings</h2><ul>{warnings}</ul>"
         f"<h2>Dropped hover windows</h2><table><tr><th>window</th><th>seq</th><th>reason</th></tr>{dropped}</table>"
         "<h2>Parameter standard deviations</h2><div style='display:flex;gap:2em'>"
         f"<div><h3>from the fit's residuals</h3>{_table(resid_rows)}</div>"
@@ -374,6 +409,47 @@ def report_html(report, data: dict) -> str:
         "<h2>Figures</h2>" + "".join(figs)
         + "<p style='font-size:12px;color:#777'>All numbers are in report.json.</p></body></html>"
     )
+
+
+def _validity_rows(validity, region: dict) -> list[tuple[str, str]]:
+    """Summary rows on the region of validity (none without one)."""
+    if validity is None:
+        return []
+    v = validity
+    frac = "n/a" if v.visible_ground_fraction is None else f"{v.visible_ground_fraction:.0%}"
+    rows = [
+        ("ground position error over the region of validity",
+         f"{_fmt(region.get('ground_position_error_cm_rms'), '.1f', ' cm')} RMS, max {_fmt(region.get('ground_position_error_cm_max'), '.1f', ' cm')} "
+         "(predicted over the visible ground 3-30 m inside the region)"),
+        ("region of validity",
+         f"{v.image_fraction:.0%} of the image (the points' hull: {v.hull_fraction:.0%}), {frac} of the visible ground 3-30 m"
+         + (f"; outside it the predicted error reaches {_reach_px(v.outside_px_max)}" if v.outside_px_max is not None else "")),
+        ("model extrapolation", f"{v.chosen_model} against {v.richer_model or 'no richer model'} fitted to the same points"),
+    ]
+    g = v.geometry
+    rows.append(("geometry", f"focal std {100 * g.focal_std_rel:.2f} %, principal point std {g.principal_point_std_px:.1f} px, "
+                             f"focal/distance correlation {g.focal_distance_correlation:.2f}, points over {g.image_coverage:.0%} of the image, "
+                             f"heights spanning {g.thickness_m:.1f} m"))
+    return rows
+
+
+def _reach_px(v: float) -> str:
+    return "over 1000 px" if not math.isfinite(v) or v > 1000 else f"{v:.0f} px"
+
+
+def _verdict(validity, warnings: list[str]) -> str:
+    """One box at the top: where this calibration may be used."""
+    if validity is None:
+        return ""
+    v = validity
+    frac = v.visible_ground_fraction
+    where = f"{frac:.0%} of the visible ground 3-30 m" if frac is not None else f"{v.image_fraction:.0%} of the image"
+    if v.geometry.degenerate or (frac is not None and frac < 0.95):
+        return (f"<div class='warn'><b>Use this calibration only inside the region of validity</b> (the outlined area in the maps "
+                f"below; <code>validity_polygon_px</code> in camera.yaml, <code>validity.geojson</code> on the ground): it covers {where}."
+                + (" The geometry of the points leaves the focal length and principal point poorly determined." if v.geometry.degenerate else "")
+                + " See the warnings.</div>")
+    return f"<div class='ok'><b>The region of validity covers {where}.</b></div>"
 
 
 # --------------------------------------------------------------------------
@@ -392,6 +468,7 @@ def write_outputs(report, out_dir: Path) -> dict[str, str]:
         "report_json": str(out_dir / REPORT_JSON),
         "report_html": str(out_dir / REPORT_HTML),
     }
+    validity = getattr(report, "validity", None)
     o = report.origin
     write_camera(
         out_dir / CAMERA_FILE,
@@ -401,11 +478,18 @@ def write_outputs(report, out_dir: Path) -> dict[str, str]:
             f"RMS {report.result.rms_px:.3f} px over {len(report.used_points)} waypoints\n"
             f"world frame ENU at enu_origin {o.lat_deg:.8f} {o.lon_deg:.8f} {o.h_m:.3f} m ({report.altitude_datum} heights)\n"
             "parameter_covariance: linearised, from the measured per-waypoint sigmas"
+            + ("\nvalidity_polygon_px: the image region the calibration is supported by; do not measure outside it"
+               if validity is not None else "")
         ),
+        validity_polygon_px=None if validity is None else validity.polygon_px,
     )
     _atomic_write(out_dir / CAMERA_INFO_FILE, camera_info_yaml(report.camera))
     _atomic_write(out_dir / HOMOGRAPHY_FILE, homography_yaml(report))
     _atomic_write(out_dir / DETECTIONS_CSV, detections_csv(report))
+    geojson = None if validity is None else validity.geojson()
+    if geojson is not None:
+        outputs["validity_geojson"] = str(out_dir / VALIDITY_GEOJSON)
+        _atomic_write(out_dir / VALIDITY_GEOJSON, json.dumps(_clean(geojson), indent=1, allow_nan=False))
     if report.options.annotate:
         from dronecal_field.pipeline.annotate import write_annotated_copy
 
@@ -417,6 +501,16 @@ def write_outputs(report, out_dir: Path) -> dict[str, str]:
     _atomic_write(out_dir / REPORT_JSON, json.dumps(data, indent=1, allow_nan=False))
     _atomic_write(out_dir / REPORT_HTML, report_html(report, data))
     return outputs
+
+
+def all_warnings(report) -> list[str]:
+    """The stage's warnings and the region of validity's (degenerate geometry, uncovered ground), once each."""
+    validity = getattr(report, "validity", None)
+    out = list(report.warnings)
+    for w in () if validity is None else validity.warnings:
+        if w not in out:
+            out.append(w)
+    return out
 
 
 def _fix_rate_hz(report) -> float | None:

@@ -31,6 +31,7 @@ import numpy as np
 from dronecal_field.core.calibrate import BatchState, CalibrationModel, CalibrationResult
 from dronecal_field.core.camera import Camera, intersect_plane_z, pixel_rays_batch, project_batch
 from dronecal_field.errors import DronecalError
+from dronecal_field.sampling.lattice import fold_radius
 
 THRESHOLD_PX = 1.0
 HULL_FACTOR = 2.0  # the region may reach twice the predicted error RMS inside the hull
@@ -68,7 +69,9 @@ class PixelErrors:
     projects; ``extrapolation_px`` (M,): the distance between its projections
     by the chosen and the richer model (0 without a richer model).
     ``std_cm``, ``extrapolation_cm`` (M,): the same on the ground,
-    horizontal, cm (NaN in the sky).
+    horizontal, cm (NaN in the sky). ``has_ray`` (M,): False where the
+    distortion model folds and the pixel is no direction's image; the pixel
+    errors are infinite there.
     """
 
     uv_px: np.ndarray
@@ -77,6 +80,7 @@ class PixelErrors:
     extrapolation_px: np.ndarray
     std_cm: np.ndarray
     extrapolation_cm: np.ndarray
+    has_ray: np.ndarray
 
     @property
     def total_px(self) -> np.ndarray:
@@ -124,17 +128,35 @@ def fit_richer(result: CalibrationResult, loss_scale_px: float = 2.0) -> Calibra
         return None
 
 
-def _probe_points(camera: Camera, uv: np.ndarray, ground_z: float) -> tuple[np.ndarray, np.ndarray]:
-    """Ground points (M, 3) (NaN in the sky) and probe points (M, 3) of pixels uv (M, 2)."""
+def _probe_points(camera: Camera, uv: np.ndarray, ground_z: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Ground points (M, 3) (NaN in the sky), probe points (M, 3) and the has-a-ray mask (M,) of pixels uv (M, 2).
+
+    A pixel has no ray when the distortion model cannot be inverted there:
+    a radial model with k1 < 0 folds back at r^2 = -1/(3 k1), and pixels
+    beyond that radius are not the image of any direction under it.
+    """
     arrays = camera.batch_arrays()
-    ground = intersect_plane_z(*arrays, uv[None], ground_z)[0]
     centre = camera.pose.position_world
-    reach = np.linalg.norm(ground[:, :2] - centre[:2], axis=1)
-    on_ground = np.all(np.isfinite(ground), axis=1) & (reach < MAX_GROUND_RANGE_M)
-    ground[~on_ground] = np.nan
     rays = pixel_rays_batch(arrays[0], arrays[1], arrays[2], uv[None])[0]
-    probe = np.where(on_ground[:, None], ground, centre + PROBE_DISTANCE_M * rays)
-    return ground, probe
+    probe = centre + PROBE_DISTANCE_M * rays
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        back = project_batch(*arrays, probe[None])[0]
+        d_cam = rays @ camera.pose.R_cam_from_world.T
+        r_undistorted = np.hypot(d_cam[:, 0], d_cam[:, 1]) / d_cam[:, 2]
+        # Newton can also land on the far side of the fold, where the model
+        # maps back into the image: that is no ray either (one fold for plan,
+        # the survey and here: sampling.lattice.fold_radius).
+        has_ray = (
+            (np.linalg.norm(back - uv, axis=1) < 0.05)
+            & (d_cam[:, 2] > 0)
+            & (r_undistorted < fold_radius(camera.distortion.as_array()))
+        )
+    ground = intersect_plane_z(*arrays, uv[None], ground_z)[0]
+    reach = np.linalg.norm(ground[:, :2] - centre[:2], axis=1)
+    on_ground = has_ray & np.all(np.isfinite(ground), axis=1) & (reach < MAX_GROUND_RANGE_M)
+    ground[~on_ground] = np.nan
+    probe = np.where(on_ground[:, None], ground, probe)
+    return ground, probe, has_ray
 
 
 def _covariance_steps(covariance: np.ndarray) -> np.ndarray:
@@ -195,9 +217,10 @@ def pixel_errors(
     data stop, and the chosen model's covariance cannot say so.
     """
     uv = np.asarray(uv_px, float).reshape(-1, 2)
-    ground, probe = _probe_points(camera, uv, ground_z)
+    ground, probe, has_ray = _probe_points(camera, uv, ground_z)
     on_ground = np.all(np.isfinite(ground), axis=1)
     std_px, std_m = _linear_std(camera, covariance, uv, probe, on_ground, ground_z, step)
+    std_px[~has_ray] = np.inf  # the model does not say where this pixel looks: no bound at all
     extra_px = np.zeros(len(uv))
     extra_m = np.where(on_ground, 0.0, np.nan)
     if richer is not None:
@@ -215,9 +238,10 @@ def pixel_errors(
                 extra_m = np.sqrt(extra_m**2 + more)
         extra_px = EXTRAPOLATION_FACTOR * extra_px
         extra_m = EXTRAPOLATION_FACTOR * extra_m
+    extra_px[~has_ray] = np.inf
     return PixelErrors(
         uv_px=uv, ground_enu_m=ground, std_px=std_px, extrapolation_px=extra_px,
-        std_cm=100.0 * std_m, extrapolation_cm=100.0 * extra_m,
+        std_cm=100.0 * std_m, extrapolation_cm=100.0 * extra_m, has_ray=has_ray,
     )
 
 
