@@ -8,6 +8,10 @@ from north (MAVLink's convention).
 
 The behaviours copied from ArduCopter 4.7 SITL (shared/replays/arducopter-sitl
 README, "Quirks seen") are marked ``# ArduCopter:`` where they happen.
+
+AUTO waypoints are flown on leg profiles (:class:`Leg`): a NAV_WAYPOINT with
+hold 0 followed by another waypoint is flown through as ArduCopter's SCurve
+blends two legs (docs/simulators.md, "Fly-through waypoints").
 """
 
 from __future__ import annotations
