@@ -107,6 +107,10 @@ def test_bad_waypoints_are_input_errors():
         (MissionItem(seq=1, frame=6, command=20), dict(frame=0)),
         # absolute altitude frame
         (MissionItem(seq=1, frame=5, command=16, x=1, y=2, z=600.25), dict(frame=0, z=600.25)),
+        # a fly-through waypoint: hold 0 stays 0; Copter drops the acceptance radius (p2), WPNAV_RADIUS applies
+        (MissionItem(seq=1, frame=3, command=16, p1=0.0, p2=0.5, x=1, y=2, z=2.0), dict(p1=0.0, p2=0.0, frame=3, z=2.0)),
+        # a hold under half a second is stored as 0: flown through as well
+        (MissionItem(seq=1, frame=3, command=16, p1=0.4, x=1, y=2, z=2.0), dict(p1=0.0)),
     ],
 )
 def test_ardupilot_readback_table(item, expected):
