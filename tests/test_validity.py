@@ -159,12 +159,36 @@ def test_roi_fraction_counts_the_roi_ground_the_region_sees():
     truth = pole_camera(**WIDE)
     result, cov, s3, s2 = _flight(truth, paper_grid(truth), 0)
     region = V.assess_validity(result, cov, s3, s2)
-    inside_roi = region.ground_polygon_enu_m  # the footprint itself lies inside the region
-    r = V.assess_validity(result, cov, s3, s2, roi_ground_enu=inside_roi[:, :2], richer=region.richer)
-    assert r.roi_fraction > 0.9
-    wide_roi = np.array([[3.0, -15.0], [30.0, -15.0], [30.0, 15.0], [3.0, 15.0]])
-    r = V.assess_validity(result, cov, s3, s2, roi_ground_enu=wide_roi, richer=region.richer)
-    assert r.roi_fraction < 0.5 and any("plan's ROI" in w for w in r.warnings)
+    # The footprint itself lies inside the region.
+    own = V.PlanRoi(range_m=(3.0, 30.0), polygon_enu_m=region.ground_polygon_enu_m[:, :2], text="the footprint")
+    r = V.assess_validity(result, cov, s3, s2, roi=own, richer=region.richer)
+    assert r.roi_fraction > 0.9 and not any("plan's ROI" in w for w in r.warnings)
+    # A plan's range ROI, 3-40 m: mostly outside.
+    plan = {"roi": {"kind": "range", "range_m": [3.0, 40.0], "polygon_site_m": None, "text": "the ground 3-40 m from the pole"}}
+    roi = V.roi_from_plan(plan)
+    r = V.assess_validity(result, cov, s3, s2, roi=roi, richer=region.richer)
+    assert r.roi_fraction < 0.5 and any("plan's ROI (the ground 3-40 m from the pole)" in w for w in r.warnings)
+
+
+def test_roi_from_plan_turns_a_site_polygon_into_enu():
+    # Site frame: X along azimuth 90 deg (east), Y left (north).
+    plan = {
+        "enu_origin": {"lat_deg": ORIGIN.lat_deg, "lon_deg": ORIGIN.lon_deg, "h_m": ORIGIN.h_m},
+        "site_frame": {"azimuth_deg": 90.0, "R_enu_from_site": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]},
+        "roi": {"kind": "polygon", "range_m": [3.0, 40.0], "polygon_site_m": [[5.0, -2.0], [20.0, -2.0], [20.0, 2.0]], "text": "road.geojson"},
+    }
+    same = V.roi_from_plan(plan, ORIGIN)
+    assert np.allclose(same.polygon_enu_m, [[5.0, -2.0], [20.0, -2.0], [20.0, 2.0]], atol=1e-6)
+    # A calibration frame 10 m east of the plan's: the polygon moves 10 m west in it.
+    east = geodetic_to_enu(ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN.h_m, ORIGIN)  # (0, 0, 0)
+    from dronecal_field.geodesy import enu_to_geodetic
+
+    llh = enu_to_geodetic(east + [10.0, 0.0, 0.0], ORIGIN)[0]
+    moved = V.roi_from_plan(plan, EnuOrigin(lat_deg=float(llh[0]), lon_deg=float(llh[1]), h_m=float(llh[2])))
+    assert np.allclose(moved.polygon_enu_m, same.polygon_enu_m - [10.0, 0.0], atol=1e-3)
+    assert V.roi_from_plan({"roi": None}) is None
+    image = V.roi_from_plan({"roi": {"kind": "image", "range_m": [3.0, 60.0], "text": "the whole image"}})
+    assert image.range_m == (0.0, 60.0) and image.polygon_enu_m is None
 
 
 def test_grow_region_reaches_the_frame_when_all_is_supported_and_keeps_the_hull_when_nothing_is():

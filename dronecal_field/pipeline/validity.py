@@ -624,13 +624,68 @@ def ground_footprint(camera: Camera, polygon_px: np.ndarray, ground_z: float = 0
     return np.c_[c[0] + ring_r * np.cos(ring_b), c[1] + ring_r * np.sin(ring_b), np.full(len(ring_b), ground_z)]
 
 
+@dataclass(frozen=True, eq=False)
+class PlanRoi:
+    """The ground a camera is meant to serve, from the plan: a range of distances from the pole or a polygon.
+
+    ``range_m`` (near, far) metres from the pole's foot; ``polygon_enu_m``
+    (K, 2) metres in the calibration's ENU frame, or None; ``text`` the
+    plan's own description.
+    """
+
+    range_m: tuple[float, float]
+    polygon_enu_m: np.ndarray | None
+    text: str
+
+
+def roi_from_plan(plan: dict, origin=None) -> PlanRoi | None:
+    """The ROI of a plan.json (as ``plan`` writes it and ``fly`` attaches it to the run), None without one.
+
+    Parameters
+    ----------
+    plan : the parsed plan.json
+    origin : geodesy.EnuOrigin of the calibration's ENU frame; a polygon given
+        in the plan's site frame is moved into it through WGS84 (None: the
+        plan's own frame, at the pole's foot)
+
+    A ``range`` ROI is the ground between two distances from the pole; an
+    ``image`` ROI (every ray up to a range) counts as the ground up to that
+    range; a ``polygon`` ROI is turned from the site frame (X along the
+    camera azimuth, Y left) into ENU.
+    """
+    from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic, geodetic_to_enu
+
+    roi = plan.get("roi") if isinstance(plan, dict) else None
+    if not isinstance(roi, dict):
+        return None
+    try:
+        near, far = (float(v) for v in roi.get("range_m") or VISIBLE_GROUND_M)
+        text = str(roi.get("text") or roi.get("kind"))
+        if roi.get("kind") == "image":
+            return PlanRoi(range_m=(0.0, far), polygon_enu_m=None, text=text)
+        poly = roi.get("polygon_site_m")
+        if roi.get("kind") != "polygon" or not poly:
+            return PlanRoi(range_m=(near, far), polygon_enu_m=None, text=text)
+        R = np.asarray(plan["site_frame"]["R_enu_from_site"], float)
+        xy = np.asarray(poly, float)[:, :2]
+        enu = np.c_[xy, np.zeros(len(xy))] @ R.T
+        o = plan.get("enu_origin") or {}
+        if origin is not None and o:
+            plan_origin = EnuOrigin(lat_deg=float(o["lat_deg"]), lon_deg=float(o["lon_deg"]), h_m=float(o["h_m"]))
+            llh = enu_to_geodetic(enu, plan_origin)
+            enu = geodetic_to_enu(llh[:, 0], llh[:, 1], llh[:, 2], origin)
+        return PlanRoi(range_m=(near, far), polygon_enu_m=enu[:, :2], text=text)
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
 def assess_validity(
     result: CalibrationResult,
     covariance: np.ndarray,
     sigma_3d: np.ndarray,
     sigma_2d: np.ndarray,
     origin=None,
-    roi_ground_enu: np.ndarray | None = None,
+    roi: "PlanRoi | None" = None,
     richer: CalibrationResult | None | str = "fit",
     threshold_px: float = THRESHOLD_PX,
     loss_scale_px: float = 2.0,
@@ -646,7 +701,7 @@ def assess_validity(
     sigma_3d : (N, 3) or (3,) those sigmas of the points, metres; sigma_2d : (N,) or scalar, px
         (for the richer model's covariance)
     origin : geodesy.EnuOrigin of the ENU frame, for the WGS84 footprint (None: ENU only)
-    roi_ground_enu : (R, 2 or 3) polygon on the ground the camera is meant to serve (a plan's ROI), metres
+    roi : the ground the camera is meant to serve (``roi_from_plan`` of the run's plan.json), or None
     richer : "fit" fits the next richer model (``fit_richer``); or a given fit, or None for no extrapolation term
     threshold_px : model-extrapolation term allowed inside the region, px; the linearised
         std may reach this or twice its RMS inside the hull, whichever is larger
@@ -689,9 +744,12 @@ def assess_validity(
     footprint = ground_footprint(camera, polygon, ground_z)
     wgs84 = None
     if footprint is not None and origin is not None:
-        from dronecal_field.geodesy import enu_to_geodetic
+        from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic
 
-        wgs84 = enu_to_geodetic(footprint, origin)
+        # Plain floats: geodesy builds a PROJ string from repr(), and numpy
+        # 2's repr of a float64 ("np.float64(46.5)") is not a number to PROJ.
+        plain = EnuOrigin(lat_deg=float(origin.lat_deg), lon_deg=float(origin.lon_deg), h_m=float(origin.h_m))
+        wgs84 = enu_to_geodetic(footprint, plain)
 
     g, g_uv = visible_ground(camera, ground_z=ground_z)
     stats: dict[str, float | None] = dict.fromkeys(
@@ -710,12 +768,10 @@ def assess_validity(
         if (~inside).any():
             stats["out_px_max"] = float(np.max(px[~inside]))
             stats["out_cm_max"] = float(np.nanmax(cm[~inside]))
-    roi_fraction = None
-    if roi_ground_enu is not None and len(roi_ground_enu) >= 3:
-        roi_fraction = _roi_fraction(camera, np.asarray(roi_ground_enu, float), polygon, ground_z)
+    roi_fraction = None if roi is None else _roi_fraction(camera, roi, polygon, ground_z)
 
     geometry = diagnose_geometry(camera, covariance, result.points_world, result.pixels)
-    warnings = _warnings(stats, roi_fraction, geometry, threshold_px)
+    warnings = _warnings(stats, roi_fraction, None if roi is None else roi.text, geometry, threshold_px)
     return ValidityRegion(
         polygon_px=polygon,
         hull_px=hull,
@@ -751,9 +807,14 @@ def _fill(polygon: np.ndarray, n: int) -> np.ndarray:
     return np.r_[grid[points_in_polygon(grid, polygon)], polygon]
 
 
-def _roi_fraction(camera: Camera, roi: np.ndarray, polygon_px: np.ndarray, ground_z: float) -> float | None:
-    """Share of the ROI's visible ground (a polygon (R, 2|3) on z = ground_z) inside the region."""
-    poly = roi[:, :2]
+def _roi_fraction(camera: Camera, roi: "PlanRoi", polygon_px: np.ndarray, ground_z: float) -> float | None:
+    """Share of the ROI's ground the camera sees that lies inside the region (None when it sees none of it)."""
+    if roi.polygon_enu_m is None:
+        _, uv = visible_ground(camera, roi.range_m, ground_z=ground_z)
+        return float(points_in_polygon(uv, polygon_px).mean()) if len(uv) else None
+    poly = np.asarray(roi.polygon_enu_m, float)[:, :2]
+    if len(poly) < 3:
+        return None
     lo, hi = poly.min(0), poly.max(0)
     step = max(float(np.max(hi - lo)) / 150.0, 0.05)
     E, N = np.meshgrid(np.arange(lo[0], hi[0] + step, step), np.arange(lo[1], hi[1] + step, step))
@@ -768,7 +829,7 @@ def _roi_fraction(camera: Camera, roi: np.ndarray, polygon_px: np.ndarray, groun
     return float(points_in_polygon(uv[seen], polygon_px).mean())
 
 
-def _warnings(stats: dict, roi_fraction: float | None, geometry: GeometryDiagnosis, threshold: float) -> list[str]:
+def _warnings(stats: dict, roi_fraction: float | None, roi_text: str | None, geometry: GeometryDiagnosis, threshold: float) -> list[str]:
     out: list[str] = []
     frac = stats["frac"]
     lo, hi = VISIBLE_GROUND_M
@@ -786,8 +847,8 @@ def _warnings(stats: dict, roi_fraction: float | None, geometry: GeometryDiagnos
         )
     if roi_fraction is not None and roi_fraction < MIN_GROUND_FRACTION:
         out.append(
-            f"the region of validity covers {roi_fraction:.0%} of the plan's ROI: fly points over the rest of it "
-            "(plan --strategy image)"
+            f"the region of validity covers {roi_fraction:.0%} of the plan's ROI ({roi_text}): fly points over the rest "
+            "of it (plan --strategy image)"
         )
     if geometry.message is not None:
         out.append(geometry.message)
