@@ -168,6 +168,122 @@ def print_accuracy(rows: list[dict]) -> None:
 
 
 # --------------------------------------------------------------------------
+# (c) legs (issue 14): fly-through legs against holds at the same points
+
+
+LEG_CAMERAS = {
+    # name: (width, height, f_px, (k1, k2, p1, p2, k3), pole height m, tilt deg, leg depths m, leg heights m)
+    "wide1080": (1920, 1080, 900.0, (-0.28, 0.07, 0.0, 0.0, 0.0), 3.5, 25.0, (3.0, 5.0, 8.0, 12.0), (0.8, 2.0, 3.5, 5.0)),
+    "distorted4k": (3840, 2160, 2600.0, (-0.32, 0.12, 4e-4, -3e-4, -0.02), 4.5, 35.0, (3.0, 4.5, 6.0, 8.0, 10.0), (1.0, 2.5, 4.0)),
+}
+LEG_MODES = ("legs", "holds", "both")
+
+
+def leg_truth(name: str, scale: float = 1.0):
+    """The truth camera of a leg benchmark (``scale`` < 1 renders a smaller image with the same field of view)."""
+    w, h, f, dist, pole, tilt, _d, _h = LEG_CAMERAS[name]
+    return pole_camera(width=int(round(w * scale)), height=int(round(h * scale)), f_px=f * scale, position_enu=(0.0, 0.0, pole),
+                       tilt_deg=tilt, distortion=dist, principal_offset_px=(12.0 * scale, -8.0 * scale))
+
+
+def leg_errors(report, truth) -> dict:
+    """Errors against the truth (sim.compare) and the report's own 1-sigma (linearised) for the same figures."""
+    from dronecal_field.sim.compare import compare_cameras
+
+    cam = report.camera
+    X = np.array([p.marker_enu_m for p in report.used_points])
+    cmp = compare_cameras(truth, cam, sampled_enu_m=X)
+    lin = report.linearised
+    ps = lin.param_std
+    ti, ei = truth.intrinsics, cam.intrinsics
+    return {
+        "focal_px": float(0.5 * (ei.fx + ei.fy) - 0.5 * (ti.fx + ti.fy)),
+        "focal_pct": cmp.focal_error_pct,
+        "pp_px": cmp.principal_point_error_px,
+        "position_cm": cmp.position_error_cm,
+        "volume_px": cmp.sampled.rms_px if cmp.sampled is not None else float("nan"),
+        "ground_px": cmp.ground.rms_px,
+        "ground15_cm": cmp.ground_error_cm_at.get(15.0) or float("nan"),
+        "sigma_focal_px": float(0.5 * (ps.get("fx", 0.0) + ps.get("fy", 0.0))),
+        "sigma_pp_px": float(np.hypot(ps.get("cx", 0.0), ps.get("cy", 0.0))),
+        "sigma_position_cm": 100.0 * float(np.sqrt(ps.get("pos_x", 0.0) ** 2 + ps.get("pos_y", 0.0) ** 2 + ps.get("pos_z", 0.0) ** 2)),
+        "sigma_ground15_cm": float(lin.ground_error_15m_cm),
+        "rms_px": float(report.result.rms_px),
+        "model": report.result.model.name,
+        "points": len(report.used_points),
+        "leg_points": len([p for p in report.used_points if p.window.source == "leg"]),
+        "offset_s": float(report.offset.offset_s),
+        "readout_ms": 1000.0 * report.timing.readout_s if report.timing is not None else float("nan"),
+        "shutter": report.timing.rolling_shutter if report.timing is not None else "",
+    }
+
+
+def legs_benchmark(cameras: list[str], modes: list[str], seeds: int, gnss_hz: float, rtk_tau_s: float, readout_s: float,
+                   speed_mps: float, hold_s: float, fps: float, scale4k: float, workdir: Path) -> list[dict]:
+    from contract_writer import leg_waypoints, make_leg_flight
+    from dronecal_field.pipeline.run import CalibrateOptions, calibrate_run
+
+    rows = []
+    for name in cameras:
+        scale = scale4k if name == "distorted4k" else 1.0
+        truth = leg_truth(name, scale)
+        waypoints = leg_waypoints(truth, LEG_CAMERAS[name][6], LEG_CAMERAS[name][7])
+        look = MarkerLook(marker_id=7, size_m=0.3)
+        for seed in range(seeds):
+            flights = {}
+            if "legs" in modes:
+                flights["legs"] = make_leg_flight(truth, waypoints, hold_s=0.0, speed_mps=speed_mps, offset_frd_m=OFFSET_FRD_M, seed=seed)
+            if "holds" in modes or "both" in modes:
+                flights["holds"] = make_leg_flight(truth, waypoints, hold_s=hold_s, speed_mps=speed_mps, offset_frd_m=OFFSET_FRD_M, seed=seed)
+            for mode in modes:
+                flight = flights["legs" if mode == "legs" else "holds"]
+                spec = RunSpec(fps=fps, gnss_hz=gnss_hz, latency_s=LATENCY_S, declared_latency="unknown", gnss_sigma_m=(0.008, 0.008, 0.012),
+                               site_origin=ORIGIN, seed=100 + seed, gnss_noise_tau_s=rtk_tau_s, readout_s=readout_s, exposure_s=0.004,
+                               with_leg_events=True)
+                path = workdir / f"{name}-{mode}-{seed}.mcap"
+                t = time.perf_counter()
+                written = write_run(path, truth, flight, look, spec)
+                t_write = time.perf_counter() - t
+                t = time.perf_counter()
+                report = calibrate_run(path, CalibrateOptions(trials=0, leg_source="none" if mode == "holds" else "auto"))
+                t_cal = time.perf_counter() - t
+                flight_s = (flight.t_ns[-1] - flight.t_ns[0]) / 1e9
+                row = {"camera": name, "mode": mode, "seed": seed, "flight_s": flight_s, "frames": written["n_frames"],
+                       "write_s": t_write, "calibrate_s": t_cal, **leg_errors(report, truth)}
+                rows.append(row)
+                print(f"  {name:11s} {mode:5s} seed {seed}: focal {row['focal_px']:+.2f} px (1-sigma {row['sigma_focal_px']:.2f})  "
+                      f"pp {row['pp_px']:.2f} px ({row['sigma_pp_px']:.2f})  position {row['position_cm']:.2f} cm ({row['sigma_position_cm']:.2f})  "
+                      f"volume {row['volume_px']:.3f} px  ground 3-30 m {row['ground_px']:.2f} px  at 15 m {row['ground15_cm']:.1f} cm ({row['sigma_ground15_cm']:.1f})  "
+                      f"rms {row['rms_px']:.2f}  {row['model']}  {row['points']} points ({row['leg_points']} on legs)  offset {row['offset_s']:.3f} s  "
+                      f"readout {row['readout_ms']:.1f} ms ({row['shutter']})  [flight {flight_s:.0f} s, {row['frames']} frames: write {t_write:.0f} s, "
+                      f"calibrate {t_cal:.1f} s]", flush=True)
+                path.unlink()
+    return rows
+
+
+def print_legs(rows: list[dict]) -> None:
+    keys = (("focal_pct", "focal error (%)"), ("pp_px", "principal point (px)"), ("position_cm", "position (cm)"),
+            ("volume_px", "projection, sampled volume (px RMS)"), ("ground_px", "projection, ground 3-30 m (px RMS)"),
+            ("ground15_cm", "ground error at 15 m (cm)"), ("flight_s", "flight (s)"), ("calibrate_s", "calibrate (s)"))
+    groups = sorted({(r["camera"], r["mode"]) for r in rows}, key=lambda g: (g[0], LEG_MODES.index(g[1])))
+    print("\n| median over seeds | " + " | ".join(f"{c} {m}" for c, m in groups) + " |")
+    print("|---|" + "---:|" * len(groups))
+    for key, label in keys:
+        print(f"| {label} | " + " | ".join(f"{np.median([abs(r[key]) for r in rows if (r['camera'], r['mode']) == g]):.3g}" for g in groups) + " |")
+    print("\nmedian |true error| / reported 1-sigma (linearised), target 0.5-1.5:")
+    for g in groups:
+        sel = [r for r in rows if (r["camera"], r["mode"]) == g]
+        ratios = {k: float(np.median([abs(r[t]) / max(r[s], 1e-12) for r in sel])) for k, t, s in (
+            ("focal", "focal_px", "sigma_focal_px"), ("pp", "pp_px", "sigma_pp_px"), ("position", "position_cm", "sigma_position_cm"),
+            ("ground15", "ground15_cm", "sigma_ground15_cm"))}
+        print(f"  {g[0]} {g[1]}: " + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()))
+    all_ratios = {k: float(np.median([abs(r[t]) / max(r[s], 1e-12) for r in rows])) for k, t, s in (
+        ("focal", "focal_px", "sigma_focal_px"), ("pp", "pp_px", "sigma_pp_px"), ("position", "position_cm", "sigma_position_cm"),
+        ("ground15", "ground15_cm", "sigma_ground15_cm"))}
+    print("  all runs: " + ", ".join(f"{k} {v:.2f}" for k, v in all_ratios.items()))
+
+
+# --------------------------------------------------------------------------
 # (b) speed
 
 
@@ -311,7 +427,13 @@ def print_speed(s: dict) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--only", choices=("accuracy", "speed"))
+    parser.add_argument("--only", choices=("accuracy", "speed", "legs"))
+    parser.add_argument("--leg-cameras", default="wide1080,distorted4k", help="cameras of the legs part (default both)")
+    parser.add_argument("--leg-modes", default="legs,holds,both", help="legs only, holds only (same points), both")
+    parser.add_argument("--readout", type=float, default=0.03, metavar="S", help="rolling-shutter readout of the legs runs (default 0.03)")
+    parser.add_argument("--leg-speed", type=float, default=2.0, help="leg speed, m/s (default 2)")
+    parser.add_argument("--leg-hold", type=float, default=3.0, help="hold at each leg end in the holds runs, s (default 3)")
+    parser.add_argument("--scale4k", type=float, default=1.0, help="render the 4K camera at this scale (default 1: full 3840x2160)")
     parser.add_argument("--seeds", type=int, default=3, help="seeds per camera for the accuracy part (default 3)")
     parser.add_argument("--accuracy-fps", type=float, default=10.0, help="frame rate of the accuracy runs (default 10)")
     parser.add_argument("--gnss-hz", type=float, default=10.0,
@@ -333,6 +455,15 @@ def main() -> None:
                   f"RTK noise ({'white' if not args.rtk_tau else f'correlated over {args.rtk_tau:g} s'}), {LATENCY_S} s unknown latency, {args.accuracy_fps:g} fps, {args.gnss_hz:g} Hz GNSS, {args.seeds} seeds per camera", flush=True)
             rows = accuracy(args.seeds, args.accuracy_fps, args.gnss_hz, workdir, args.rtk_tau)
             print_accuracy(rows)
+        if args.only == "legs":
+            cams = args.leg_cameras.split(",")
+            modes = args.leg_modes.split(",")
+            print(f"(c) legs: {', '.join(cams)}; {', '.join(modes)}; {args.leg_speed:g} m/s legs, {args.leg_hold:g} s holds, readout "
+                  f"{args.readout * 1000:g} ms, {args.accuracy_fps:g} fps, {args.gnss_hz:g} Hz GNSS, RTK noise "
+                  f"{'white' if not args.rtk_tau else f'correlated over {args.rtk_tau:g} s'}, {LATENCY_S} s unknown latency, {args.seeds} seeds", flush=True)
+            rows = legs_benchmark(cams, modes, args.seeds, args.gnss_hz, args.rtk_tau, args.readout, args.leg_speed, args.leg_hold,
+                                  args.accuracy_fps, args.scale4k, workdir)
+            print_legs(rows)
         if args.only in (None, "speed"):
             print(f"\n(b) speed: a {args.minutes:g}-minute {WIDTH}x{HEIGHT} {args.fps:g} fps run through `dronecal-field calibrate`", flush=True)
             print_speed(speed(args.minutes, args.fps, args.move_hz, args.hold_hz, workdir))

@@ -305,9 +305,10 @@ def leg_waypoints(
     heights_m: tuple[float, ...] = (1.5, 3.5, 5.5),
     half_width_frac: float = 0.9,
 ) -> np.ndarray:
-    """(M, 3) ENU waypoints of legs across the camera's view: for each depth and height, one
-    waypoint at each side of the image (``half_width_frac`` of the horizontal field of view at
-    that depth), alternating direction, so the marker crosses the image left-right and
+    """(M, 3) ENU waypoints of legs across the camera's view: for each depth and height whose
+    centre the camera sees, one waypoint at each side of the image (``half_width_frac`` of the
+    horizontal field of view at that depth, pulled in until the marker is in the image with a
+    5 % margin), alternating direction, so the marker crosses the image left-right and
     right-left at several rows.
     """
     R = camera.pose.R_cam_from_world
@@ -316,15 +317,29 @@ def leg_waypoints(
     fwd /= np.linalg.norm(fwd)
     right = np.array([fwd[1], -fwd[0], 0.0])
     i = camera.intrinsics
-    half = half_width_frac * (i.width / 2) / i.fx
+    margin = 0.05 * np.array([i.width, i.height])
+
+    def inside(p: np.ndarray) -> bool:
+        if camera.depth(p[None])[0] <= 0.5:
+            return False
+        uv = camera.project(p[None])[0]
+        return bool(np.all(uv >= margin) and np.all(uv <= np.array([i.width, i.height]) - margin))
+
     points = []
     k = 0
     for h in heights_m:
         for d in depths_m:
+            centre = c * np.array([1.0, 1.0, 0.0]) + d * fwd
+            centre[2] = h
+            if not inside(centre):
+                continue
+            half = half_width_frac * (i.width / 2) / i.fx * d
+            while half > 0.5 and not (inside(centre - half * right) and inside(centre + half * right)):
+                half *= 0.95
+            if half <= 0.5:
+                continue
             ends = [-1.0, 1.0] if k % 2 == 0 else [1.0, -1.0]
-            for e in ends:
-                base = c * np.array([1.0, 1.0, 0.0]) + d * fwd + e * half * d * right
-                points.append((base[0], base[1], h))
+            points += [tuple(centre + e * half * right) for e in ends]
             k += 1
     return np.array(points, float)
 

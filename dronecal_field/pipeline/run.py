@@ -544,8 +544,13 @@ def _points(
     return hover + moving
 
 
-def _solve(points: list[WaypointPoint], md, options: CalibrateOptions):
-    """Stage 6: the camera from the used points: (CalibrationResult, why this model)."""
+def _solve(points: list[WaypointPoint], md, options: CalibrateOptions, previous=None):
+    """Stage 6: the camera from the used points: (CalibrationResult, why this model).
+
+    ``previous`` (result, reason): an intermediate solve of nearly the same
+    points keeps its model and starts from its camera (one fit instead of the
+    model ladder); the final solve chooses the model again.
+    """
     from dronecal_field.core.calibrate import calibrate
     from dronecal_field.pipeline import maps
 
@@ -554,6 +559,10 @@ def _solve(points: list[WaypointPoint], md, options: CalibrateOptions):
         raise DegenerateGeometryError(_too_few_message(points, len(used)))
     X = np.array([p.marker_enu_m for p in used])
     uv = np.array([p.uv_px for p in used])
+    if previous is not None:
+        result, reason = previous
+        fit = calibrate(X, uv, md.width, md.height, model=result.model, loss=options.loss, loss_scale_px=options.loss_scale_px, initial=result.camera)
+        return fit, reason
     if options.model == "auto":
         return maps.select_model(X, uv, md.width, md.height, options.loss, options.loss_scale_px)
     result = calibrate(X, uv, md.width, md.height, model=options.model, loss=options.loss, loss_scale_px=options.loss_scale_px)
@@ -570,9 +579,9 @@ def _points_and_solve(read: TrackRead, windows, legs, dets: Detections, offset: 
     timing = Timing(offset.offset_s, offset.std_s, 0.0, None, 0.0, "not estimated", n_points=offset.n_points)
     centres = dets.uv_px
 
-    def run(tr: Track, tm: Timing, c: np.ndarray):
+    def run(tr: Track, tm: Timing, c: np.ndarray, previous=None):
         pts = _points(tr, attitude, read.offset_frd_m, windows, legs, dets, c, tm, marker_size_m, options)
-        return (pts, *_solve(pts, md, options))
+        return (pts, *_solve(pts, md, options, previous))
 
     points, result, reason = run(track, timing, centres)
     if attitude[0] is None and np.linalg.norm(read.offset_frd_m) > 0:
@@ -599,13 +608,14 @@ def _points_and_solve(read: TrackRead, windows, legs, dets: Detections, offset: 
             points, result, reason = run(track, timing, centres)
     if legs:
         speed = max((float(np.nanmax(np.linalg.norm(track.velocity_enu_mps, axis=1))) if len(track.t_ns) else 0.0), 0.0)
-        timing = refine_timing(
-            result.camera.project, dets.t_ns, centres, track.t_ns, track.marker_enu_m, offset.offset_s, md.height,
-            max_readout_s=options.max_readout_s, speed_mps=speed,
-        )
-        if timing.offset_std_s is None:
-            timing = replace(timing, offset_std_s=offset.std_s)
-        points, result, reason = run(track, timing, centres)
+        for final in (False, True):  # the camera absorbed part of the timing error: refine, solve, once more
+            timing = refine_timing(
+                result.camera.project, dets.t_ns, centres, track.t_ns, track.marker_enu_m, timing.offset_s, md.height,
+                max_readout_s=options.max_readout_s, speed_mps=speed,
+            )
+            if timing.offset_std_s is None:
+                timing = replace(timing, offset_std_s=offset.std_s)
+            points, result, reason = run(track, timing, centres, None if final else (result, reason))
         if timing.rolling_shutter != "estimated" and timing.bound_m is not None and options.max_readout_s > 0:
             warnings.append(
                 f"rolling shutter not observable from these legs: a readout up to {options.max_readout_s * 1000:.0f} ms would move "
