@@ -307,3 +307,126 @@ def test_committed_mission_folders_are_current(tmp_path, site):
         assert f["params"] == pytest.approx(g["params"], abs=2e-6)
     assert set(p.name for p in (MISSIONS / site).iterdir()) == {
         "mission.plan", "mission.waypoints", "mission.geojson", "preview.png", "plan.json", "camera_guess.yaml"}
+
+
+# ---------------------------------------------------------------------------
+# issue 10: the image-space plan over a region of interest
+
+WIDE = ["--lat=-35.363261", "--lon", "149.165230", "--ground-alt", "584", "--azimuth", "90", "--image-size", "1920x1080",
+        "--focal-px", "900", "--mount-height", "3.5", "--tilt", "25", "--distortion", "strong"]
+
+
+@pytest.fixture(scope="module")
+def wide(tmp_path_factory) -> Path:
+    tmp = tmp_path_factory.mktemp("plan-image")
+    rc, out = run_plan(tmp, *WIDE)
+    assert rc == 0
+    return out
+
+
+def test_image_plan_json_carries_roi_coverage_prediction_and_comparison(wide):
+    s = json.loads((wide / "plan.json").read_text())
+    assert s["strategy"]["kind"] == "image" and s["strategy"]["requested"] == "image"
+    assert s["roi"]["kind"] == "range" and s["roi"]["range_m"] == [3.0, 40.0] and s["roi"]["cells_in_roi"] > 50
+    assert 90.0 <= s["coverage"]["pct"] <= 100.0 and "within one cell" in s["coverage"]["text"]
+    p = s["prediction"]
+    for key in ("linearised_px", "extrapolation_px", "combined_px", "ground_linearised_cm", "ground_extrapolation_cm", "ground_combined_cm"):
+        assert set(p[key]) == {"rms", "p95", "max"} and p[key]["rms"] > 0 and p[key]["max"] >= p[key]["p95"]
+    assert p["combined_px"]["rms"] == pytest.approx(np.hypot(p["linearised_px"]["rms"], p["extrapolation_px"]["rms"]), rel=0.05)
+    assert s["uncertainty"]["monte_carlo"]["trials"] == 30 and s["uncertainty"]["monte_carlo"]["rms_mean"] > 0
+    c = s["comparison"]
+    assert c["strategy"].startswith("far-") and c["prediction"]["combined_px"]["rms"] > 2 * p["combined_px"]["rms"]
+    assert c["coverage_pct"] < s["coverage"]["pct"]
+    cands = s["candidates"]
+    assert len(cands) >= 100 and {r["sampling"] for r in cands} == {"hover", "through", "mixed"}
+    assert {r["marker_size_m"] for r in cands} == {0.3, 0.6}
+    f = s["flight"]
+    assert f["n_flights"] == 1 and f["flights"][0]["file"] == "mission.plan" and f["flight_time_s"] <= 0.75 * 1200
+    assert s["marker"]["size_m"] in (0.3, 0.6) and s["marker"]["sizes_offered_m"] == [0.3, 0.6]
+    # every grid point is where the mission puts the drone, and its pixel is inside the image
+    assert len(s["grid"]) == s["points"] and all(0 <= g["pixel"][0] < 1920 and 0 <= g["pixel"][1] < 1080 for g in s["grid"])
+    import matplotlib.image
+
+    img = matplotlib.image.imread(wide / "preview.png")
+    assert img.shape[:2] == (640, 1800)
+
+
+def test_image_plan_prints_the_prediction_and_paper_far(tmp_path, capsys):
+    rc, out = run_plan(tmp_path, *WIDE, "--sampling", "through", "--marker-sizes", "0.3")
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "ROI coverage:" in printed and "predicted ROI error" in printed and "paper-far" in printed
+    s = json.loads((out / "plan.json").read_text())
+    assert s["strategy"]["sampling"] == "through" and s["marker"]["size_m"] == 0.3
+    assert s["samples"]["pass_through_points"] > 0 and s["samples"]["leg_samples"] > 0 and s["samples"]["leg_speed_m_s"] > 0
+    plan = json.loads((out / "mission.plan").read_text())
+    holds = [it["params"][0] for it in nav_items(plan, 16)]
+    assert 0.0 in holds and max(holds) >= 2.0  # fly-through items (hold 0) and holds where legs end
+    wps = parse_waypoints((out / "mission.waypoints").read_text())
+    assert sum(1 for w in wps if w["command"] == 16 and w["params"][0] == 0.0) >= s["samples"]["pass_through_points"]
+
+
+def test_a_plan_longer_than_the_battery_is_split_into_flights(tmp_path):
+    rc, out = run_plan(tmp_path, *WIDE, "--sampling", "hover", "--endurance", "6")
+    assert rc == 0
+    s = json.loads((out / "plan.json").read_text())
+    f = s["flight"]
+    assert f["n_flights"] >= 2
+    names = {p.name for p in out.iterdir()}
+    for k in range(1, f["n_flights"] + 1):
+        assert {f"mission-{k}.plan", f"mission-{k}.waypoints"} <= names
+        plan = json.loads((out / f"mission-{k}.plan").read_text())
+        jsonschema.validate(plan, QGC_PLAN_SCHEMA)
+        items = plan["mission"]["items"]
+        assert items[0]["command"] == 22 and items[-1]["command"] == 21
+        # each flight starts and ends at the same take-off point
+        assert plan["mission"]["plannedHomePosition"][:2] == pytest.approx([s["home"]["lat_deg"], s["home"]["lon_deg"]], abs=1e-9)
+        assert items[-2]["params"][4:6] == pytest.approx(plan["mission"]["plannedHomePosition"][:2], abs=1e-7)
+    assert all(x["flight_time_s"] <= 0.75 * 6 * 60 + 1e-6 for x in f["flights"])
+    assert s["points"] <= sum(x["points"] for x in f["flights"]) <= s["points"] + f["n_flights"]  # a re-entered leg repeats one hold
+    assert sorted({g["flight"] for g in s["grid"]}) == list(range(1, f["n_flights"] + 1))
+    assert "mission.plan" not in names and any("split into" in w for w in s["warnings"])
+
+
+def test_geojson_roi_is_read_in_wgs84_and_kept(tmp_path):
+    from dronecal_field.geodesy import enu_to_geodetic
+
+    origin = EnuOrigin(-35.363261, 149.165230, 584.0)
+    # a road east of the pole (the camera looks east): 8-20 m out, 6 m wide
+    corners = np.array([[8.0, -3.0, 0.0], [20.0, -3.0, 0.0], [20.0, 3.0, 0.0], [8.0, 3.0, 0.0], [8.0, -3.0, 0.0]])
+    ll = enu_to_geodetic(corners, origin)
+    road = tmp_path / "road.geojson"
+    road.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"name": "road"}, "geometry": {"type": "Polygon", "coordinates": [[[lo, la] for la, lo, _ in ll]]}}]}))
+    rc, out = run_plan(tmp_path, *WIDE, "--roi", str(road), "--sampling", "hover")
+    assert rc == 0
+    s = json.loads((out / "plan.json").read_text())
+    assert s["roi"]["kind"] == "polygon" and s["roi"]["source"] == "road.geojson"
+    xy = np.array(s["roi"]["polygon_site_m"])
+    assert xy[:, 0].min() == pytest.approx(8.0, abs=0.01) and xy[:, 0].max() == pytest.approx(20.0, abs=0.01)
+    full = json.loads((run_plan(tmp_path, *WIDE, "--sampling", "hover", name="full")[1] / "plan.json").read_text())
+    assert s["roi"]["cells_in_roi"] < full["roi"]["cells_in_roi"]
+    g = json.loads((out / "mission.geojson").read_text())
+    assert any(f["properties"].get("kind") == "roi" for f in g["features"])
+
+
+@pytest.mark.parametrize("bad, message", [
+    ('{"type": "Point", "coordinates": [149.1, -35.3]}', "holds no Polygon"),
+    ("not json", "is not JSON"),
+    ('{"type": "Polygon", "coordinates": [[[149.1, -35.3], [149.2, -35.3]]]}', "3+ vertices"),
+])
+def test_bad_roi_files_are_one_line_errors(tmp_path, capsys, bad, message):
+    f = tmp_path / "roi.geojson"
+    f.write_text(bad)
+    rc, out = run_plan(tmp_path, *WIDE, "--roi", str(f))
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err and err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_a_zero_is_a_real_zero_or_an_error_never_the_default(tmp_path, capsys):
+    rc, out = run_plan(tmp_path, *WIDE, "--keep-out", "0", "--sampling", "hover", "--marker-sizes", "0.3")
+    assert rc == 0
+    assert json.loads((out / "plan.json").read_text())["limits"]["keep_out_m"] == 0.0
+    rc, _ = run_plan(tmp_path, *WIDE, "--speed", "0", name="speed0")
+    assert rc == 2 and "--speed 0 m/s" in capsys.readouterr().err

@@ -374,7 +374,6 @@ class PlanResult:
     routes: tuple[Route, ...]
     missions: tuple[msn.Mission, ...]
     point_flight: np.ndarray  # (N,) flight number (0-based) of each hold point
-    point_index: np.ndarray  # (N,) index of each hold point in its flight's route grid
     fence_site: np.ndarray  # (M, 2) inclusion polygon, site XY
     footprint_site: np.ndarray  # (K, 2) ground footprint of the image, site XY
     roi: Roi | None
@@ -563,7 +562,7 @@ def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
         chosen, candidates, rows = _choose_paper(req, cam_site, client, warnings)
     prediction = predict_points_on_roi(cam_site, chosen.samples_site, roi, noise, draws, chosen.samples_sigma_h_m, chosen.samples_rtk_factor)
     limits = replace(req.limits, marker_size_m=chosen.marker_size_m)
-    routes, flight_of, index_in = _flights(req, chosen, limits)
+    routes, flight_of = _flights(req, chosen, limits)
     if len(routes) > 1:
         warnings.append(f"the plan takes {sum(r.flight_time_s for r in routes) / 60:.1f} min: split into {len(routes)} flights "
                         f"(mission-1 ... mission-{len(routes)}), each within 75 % of the {req.endurance_s / 60:g} min battery, "
@@ -589,7 +588,7 @@ def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
     comparison = _paper_far_comparison(req, cam_site, roi, noise, draws, chosen, prediction)
     result = PlanResult(
         request=req, camera_enu=cam_enu, camera_site=cam_site, chosen=chosen, candidates=candidates, routes=routes, missions=missions,
-        point_flight=flight_of, point_index=index_in, fence_site=fence, footprint_site=footprint, roi=roi, roi_prediction=prediction,
+        point_flight=flight_of, fence_site=fence, footprint_site=footprint, roi=roi, roi_prediction=prediction,
         summary={}, warnings=tuple(warnings),
     )
     summary = _json_safe(_summary(result, rows, battery_pct, monte_carlo, comparison))
@@ -667,17 +666,17 @@ def _choose_paper(req: PlanRequest, cam_site: Camera, client: Any, warnings: lis
     return Chosen.from_paper(chosen, req.flight.hover_s, req.marker.size_m), scores, [s.row() for s in scores]
 
 
-def _flights(req: PlanRequest, chosen: Chosen, limits: Limits) -> tuple[tuple[Route, ...], np.ndarray, np.ndarray]:
+def _flights(req: PlanRequest, chosen: Chosen, limits: Limits) -> tuple[tuple[Route, ...], np.ndarray]:
     """The chosen points as one route, or as several flights when one exceeds the battery budget.
 
-    Returns the routes, and per hold point (N,) its flight number and its
-    index among that flight's points. Flights are cut between legs only.
+    Returns the routes (their ``grid_index`` are the plan's point indices) and
+    per point (N,) the (first) flight that flies it. Flights are cut between legs only.
     """
     n = len(chosen.marker_site)
     one = plan_route(chosen.vehicle_site, chosen.marker_site, limits, req.flight, takeoff_site=req.takeoff_site, end=req.end,
                      hold_s=chosen.hold_s, ordered=chosen.ordered, leg_speed_m_s=chosen.leg_speed_m_s)
     if one.flight_time_s <= req.battery_budget_s:
-        return (one,), np.zeros(n, int), np.arange(n)
+        return (one,), np.zeros(n, int)
     # every flight starts and ends where the one-flight plan would take off
     takeoff = one.takeoff_site
     if not chosen.ordered:  # fly the route's own order, cut into flights
@@ -686,16 +685,13 @@ def _flights(req: PlanRequest, chosen: Chosen, limits: Limits) -> tuple[tuple[Ro
         order = np.arange(n)
     veh, mk, hold, leg = chosen.vehicle_site[order], chosen.marker_site[order], chosen.hold_s[order], chosen.leg[order]
     routes = _split_into_flights(veh, mk, hold, leg, limits, req, takeoff, chosen.leg_speed_m_s)
-    flight_of = np.zeros(n, int)
-    index_in = np.zeros(n, int)
-    start = 0
+    # grid indices of every flight refer to the points as given to the split: map them back to the plan's points
+    routes = [replace(r, grid_index=np.where(r.grid_index >= 0, order[np.maximum(r.grid_index, 0)], -1)) for r in routes]
+    flight_of = np.full(n, -1)
     for k, r in enumerate(routes):
-        m = int((r.grid_index >= 0).sum())
-        idx = order[start : start + m]
-        flight_of[idx] = k
-        index_in[idx] = np.arange(m)
-        start += m
-    return tuple(routes), flight_of, index_in
+        g = r.grid_order
+        flight_of[g[flight_of[g] < 0]] = k  # a point flown twice (a leg re-entered) belongs to its first flight
+    return tuple(routes), flight_of
 
 
 def _split_into_flights(veh: np.ndarray, mk: np.ndarray, hold: np.ndarray, leg: np.ndarray, limits: Limits, req: PlanRequest,
@@ -722,8 +718,9 @@ def _split_into_flights(veh: np.ndarray, mk: np.ndarray, hold: np.ndarray, leg: 
         h = hold[a:b].copy()
         h[0] = max(h[0], 1.0)  # a flight's first point is where the drone settles
         h[-1] = max(h[-1], 1.0)
-        return plan_route(veh[a:b], mk[a:b], limits, req.flight, takeoff_site=takeoff, end=req.end, hold_s=h, ordered=True,
-                          leg_speed_m_s=leg_speed)
+        r = plan_route(veh[a:b], mk[a:b], limits, req.flight, takeoff_site=takeoff, end=req.end, hold_s=h, ordered=True,
+                       leg_speed_m_s=leg_speed)
+        return replace(r, grid_index=np.where(r.grid_index >= 0, r.grid_index + a, -1))
 
     routes: list[Route] = []
     a = 0
@@ -808,17 +805,18 @@ def _summary(result: PlanResult, rows: list[dict], battery_pct: float, monte_car
     names = result.mission_names()
     home_h = result.missions[0].home_h_m
     alt_written = (geo[:, 2] - home_h) if req.alt_frame == "relative" else geo[:, 2] - (req.site.geoid_separation_m or 0.0)
+    # mission items and routes carry the plan's point indices (a point flown twice belongs to its first flight)
     seq_by_flight = [{it.grid_index: seq for seq, it in enumerate(m.items, start=1) if it.label.startswith("grid")} for m in result.missions]
     order_by_flight = [{int(g): k for k, g in enumerate(r.grid_order)} for r in result.routes]
     offsets = np.cumsum([0] + [len(r.grid_order) for r in result.routes])
     grid = []
     for i in range(len(pts)):
-        k, j = int(result.point_flight[i]), int(result.point_index[i])
+        k = int(result.point_flight[i])
         grid.append({
             "index": i,
             "flight": k + 1,
-            "order": int(offsets[k] + order_by_flight[k][j]),
-            "mission_seq": seq_by_flight[k].get(j),
+            "order": int(offsets[k] + order_by_flight[k][i]),
+            "mission_seq": seq_by_flight[k].get(i),
             "marker_site_m": [round(float(v), 4) for v in pts[i]],
             "drone_site_m": [round(float(v), 4) for v in veh[i]],
             "drone_enu_m": [round(float(v), 4) for v in (req.site.R_enu_from_site @ veh[i])],
