@@ -62,6 +62,10 @@ def render_preview(result, path: str | os.PathLike) -> None:
         ax.scatter(*en(roi_pts[g]).T, c=err[g], cmap=cmap, norm=norm, s=6, marker="s", alpha=0.7, zorder=2, label="ROI ground (predicted error)")
     if req.roi.kind == "polygon" and req.roi.polygon_site:
         ax.add_patch(Polygon(en(np.asarray(req.roi.polygon_site)), closed=True, fill=False, edgecolor="purple", lw=1.5, label="ROI polygon"))
+    elif req.roi.kind == "range":
+        r0, r1 = req.roi.range_m
+        ax.add_patch(Circle((0, 0), r0, fill=False, edgecolor="purple", lw=1.2, ls="--", label=f"ROI: ground {r0:g}-{r1:g} m in the footprint"))
+        ax.add_patch(Circle((0, 0), r1, fill=False, edgecolor="purple", lw=1.2, ls="--"))
     ax.add_patch(Polygon(en(result.fence_site), closed=True, fill=False, edgecolor="orange", lw=1.5, ls="--", label="geofence"))
     if req.limits.keep_out_m > 0:
         ax.add_patch(Circle((0, 0), req.limits.keep_out_m, fill=True, facecolor="#ffd6d6", edgecolor="red", ls=":", label="keep-out"))
@@ -122,11 +126,14 @@ def render_preview(result, path: str | os.PathLike) -> None:
     depth = cam.depth(pts)
     dnorm = Normalize(vmin=float(depth.min()), vmax=float(max(depth.max(), depth.min() + 1e-6)))
     dcol = matplotlib.colormaps["viridis"](dnorm(depth))
-    for q, c, hd in zip(cuv, dcol, hold):
+    # the depths of one target share its pixel: draw the near (large) markers first so the far ones stay visible on top
+    for k in np.argsort(depth):
+        q, c, hd = cuv[k], dcol[k], hold[k]
         ai.add_patch(Polygon(q, closed=True, facecolor=c if hd else "none", edgecolor="black" if hd else c, lw=0.4 if hd else 1.0))
     ai.scatter(uv[:, 0], uv[:, 1], s=3, c="black", zorder=3)
     sm = matplotlib.cm.ScalarMappable(norm=dnorm, cmap="viridis")
-    fig.colorbar(sm, ax=ai, label="marker distance from the camera (m)", shrink=0.7)
+    same_ray = "\n(a target's depths share its pixel)" if chosen.strategy == "image" else ""
+    fig.colorbar(sm, ax=ai, label=f"marker distance from the camera (m){same_ray}", shrink=0.7)
     n_hold, n_pass = int(hold.sum()), int((~hold).sum())
     title = f"predicted image {w}x{h}: {n_hold} holds" + (f", {n_pass} fly-through points (open)" if n_pass else "")
     ai.set_title(title + f"\n{chosen.marker_size_m:g} m marker, {chosen.marker_px.min():.0f}-{chosen.marker_px.max():.0f} px; ROI outlined", fontsize=9)
