@@ -139,7 +139,7 @@ def uncertainty_map_figure(report) -> bytes:
     sky = ~np.isfinite(m.ground_cm) & ~no_ray
     uv = np.array([p.uv_px for p in report.used_points])
     cmap = colormaps["viridis"].with_extremes(over="#d62728")
-    fig = _figure(12.0, 12.0 * cam.height / cam.width * 0.5 + 1.9)
+    fig = _figure(12.0, 12.0 * cam.height / cam.width * 0.4 + 1.3)
     panels = (
         (m.projection_px, "projection error", "px", PROJECTION_CLIP_PX),
         (m.ground_cm, "ground position error (z = 0)", "cm", GROUND_CLIP_CM),
