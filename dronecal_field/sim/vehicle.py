@@ -622,6 +622,13 @@ class SimVehicle:
         if name == "MISSION_CURRENT":
             total = max(0, len(self.mission.items) - 1)
             return enc.mission_current_encode(m.current_seq, total, m.mission_state, 1 if m.mode == ap.MODE_AUTO else 0)
+        if name == "LOCAL_POSITION_NED":
+            # not in the default streams; ArduPilot sends it on request (the recorded SITL had it at 5 Hz):
+            # float metres and m/s, north-east-down from the EKF origin (home here)
+            if not self.home_set:
+                return None
+            pos, v = m.position, m.vel
+            return enc.local_position_ned_encode(boot_ms, float(pos[1]), float(pos[0]), float(-pos[2]), float(v[1]), float(v[0]), float(-v[2]))
         if name == "AUTOPILOT_VERSION":
             return enc.autopilot_version_encode(
                 0xFFFF, (4 << 24) | (7 << 16) | (0 << 8), 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, c.sysid, [0] * 18
