@@ -205,7 +205,7 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("sigma_v", _F("sigma_v"), 0.015, "vertical position noise, m (paper RTK: 0.015)", "M", "evaluation"),
     OptionSpec("model", str, "default", "calibration model used in the prediction (see calibrate --help)", "MODEL", "evaluation"),
     OptionSpec("optimize", _bool, False, "pick the candidate with the best predicted error within --max-flight-time", None, "evaluation", flag_only=True),
-    OptionSpec("max_flight_time", _F("max_flight_time"), None, "flight-time budget for --optimize, min (default: --endurance x 0.8)", "MIN", "evaluation"),
+    OptionSpec("max_flight_time", _F("max_flight_time"), None, "flight-time budget, min: --strategy image chooses within it (default 75 % of --endurance), --optimize too (default --endurance x 0.8)", "MIN", "evaluation"),
 )
 OPTION_BY_KEY: dict[str, OptionSpec] = {o.key: o for o in OPTIONS}
 

@@ -106,6 +106,12 @@ class PlanRequest:
         """Longest flight allowed, s: ``endurance_s`` less the reserve."""
         return (1.0 - self.reserve) * self.endurance_s
 
+    @property
+    def choice_budget_s(self) -> float:
+        """Flight time the image layouts are chosen within, s: the battery budget, or ``--max-flight-time`` if shorter."""
+        cap = self.evaluation.max_flight_time_s
+        return self.battery_budget_s if cap is None else min(cap, self.battery_budget_s)
+
 
 def _opt(opts: dict[str, Any], key: str) -> Any:
     """The option's value, or its documented default when unset (None); a given 0 stays 0."""
@@ -609,7 +615,7 @@ def _choose_image(req: PlanRequest, cam_site: Camera, roi: Roi, noise: NoiseMode
     top = max(best_cov.values())
     size = min(m for m, v in best_cov.items() if v >= top - COVERAGE_SLACK)
     pool = [c for c in usable if c.design.params.marker_size_m == size]
-    budget = req.battery_budget_s
+    budget = req.choice_budget_s
     fit = [c for c in pool if c.flight_time_s is not None and c.flight_time_s <= budget]
     if not fit:  # nothing fits one battery: the candidates needing the fewest flights (or one more)
         n_flights = {id(c): math.ceil((c.flight_time_s or math.inf) / budget) for c in pool}
