@@ -15,6 +15,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from dronecal_field.geodesy import EnuOrigin, geodetic_to_enu
 from dronecal_field.mavlink import ardupilot as ap
@@ -232,3 +234,46 @@ def test_a_long_straight_run_of_pass_through_points_flies_at_constant_speed():
     assert len(speeds) > 500 and np.allclose(speeds, LEG_SPEED, rtol=1e-6)
     gaps = np.diff([reached[s] for s in range(3, 12)])
     assert np.allclose(gaps, 5.0 / LEG_SPEED, atol=0.051)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.lists(st.tuples(st.floats(-15, 15), st.floats(-15, 15), st.floats(1.5, 5.0), st.sampled_from([0.0, 0.0, 0.0, 1.0, 2.0])), min_size=2, max_size=9),
+       st.floats(0.5, 3.0), st.floats(0.5, 3.0))
+def test_the_time_model_and_the_simulated_vehicle_agree_on_any_route(points, speed, radius):
+    """Random routes (any turn angle, short and long legs, climbs, holds): ``path_time_s`` against the vehicle model."""
+    from dronecal_field.plan.route import path_time_s, takeoff_time_s
+    from dronecal_field.sim.vehicle_flight import CopterModel
+
+    pts = np.array([p[:3] for p in points])
+    holds = np.array([p[3] for p in points])
+    holds[-1] = 1.0
+    params = CopterParams(wp_radius_m=radius)
+    fm = FlightModel(speed_m_s=speed, accel_m_s2=params.wp_accel_mps2, leg_overhead_s=0.0, spool_up_s=params.spool_up_s - 0.3,
+                     wp_radius_m=radius, climb_m_s=params.climb_mps, descent_m_s=params.descent_mps)
+    alt = 2.0
+
+    def to_enu(item):
+        return np.array([item.x * 1e-4, item.y * 1e-4, item.z]) if (item.x or item.y) else None
+
+    items = [mf.MissionItem(0, 0, mf.CMD_NAV_WAYPOINT), mf.MissionItem(1, 3, mf.CMD_NAV_TAKEOFF, z=alt),
+             mf.MissionItem(2, 2, mf.CMD_DO_CHANGE_SPEED, p1=1.0, p2=speed, p3=-1.0)]
+    for k, (p, h) in enumerate(zip(pts, holds)):
+        items.append(mf.MissionItem(3 + k, 3, mf.CMD_NAV_WAYPOINT, p1=float(h), x=int(round(p[0] * 1e4)) or 1, y=int(round(p[1] * 1e4)), z=float(p[2])))
+    m = CopterModel(to_enu, params, np.random.default_rng(0))
+    m.ready = True
+    m.set_mission(items)
+    m.set_mode(ap.MODE_GUIDED)
+    m.arm()
+    m.mission_start()
+    last = items[-1].seq
+    while last not in m.reached and m.time_s < 600.0:
+        m.step(0.05)
+    flown = m.time_s
+    start = np.array([0.0, 0.0, alt])
+    targets = np.array([to_enu(it) for it in items[3:]])
+    path = np.vstack([start, targets])
+    legs = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    through = (holds == 0) & (np.append(legs[1:], 0.0) > 0.01)
+    through[-1] = False
+    predicted = takeoff_time_s(alt, fm) + path_time_s(path, np.concatenate([[True], ~through]), np.full(len(pts), speed), fm) + holds.sum()
+    assert abs(predicted - flown) < 0.01 * flown + 0.05 * (len(pts) + 2)
