@@ -181,3 +181,15 @@ def test_leg_samples_are_spaced_by_speed_over_gnss_rate():
     gaps = np.linalg.norm(np.diff(legs, axis=0), axis=1)
     assert np.median(gaps) <= d.speed_m_s / timing.gnss_hz + 1e-6
     assert math.isclose(float(d.samples_sigma_h_m[~d.samples_is_hold][0]), d.speed_m_s * 0.01)
+
+
+def test_survey_and_sampling_do_not_import_plan():
+    """One home for sampling design: survey -> sampling, plan -> sampling and survey, never survey -> plan."""
+    import subprocess
+    import sys
+
+    code = ("import sys, dronecal_field.survey.catalogue, dronecal_field.survey.runner, dronecal_field.survey.report, "
+            "dronecal_field.sampling.design, dronecal_field.sampling.predict; "
+            "print(sorted(m for m in sys.modules if m.startswith('dronecal_field.plan')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "[]"

@@ -26,6 +26,7 @@ origin at the pole's foot); the camera is the guessed one, in that frame.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -86,13 +87,19 @@ class DesignParams:
 
 @dataclass(frozen=True)
 class LegTiming:
-    """What sets the leg speed: frame rate, exposure, GNSS rate (s, Hz) and the blur allowed (px)."""
+    """What sets the leg speed: frame rate, exposure, GNSS rate (s, Hz) and the blur allowed (px).
+
+    ``speed_rule``: a function with ``plan.route.through_speed_m_s``'s signature;
+    ``plan`` passes that one (sampling must not import plan), None uses the
+    fallback of :func:`through_speed`.
+    """
 
     fps: float = 25.0
     exposure_s: float = 0.004
     gnss_hz: float = 10.0
     blur_px: float = 1.0
     max_speed_m_s: float = 3.0
+    speed_rule: Callable[..., float] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,20 +151,13 @@ class Design:
         return int((~self.samples_is_hold).sum())
 
 
-def through_speed(focal_px: float, min_depth_m: float, timing: LegTiming, max_fix_spacing_m: float = 0.3) -> float:
-    """Leg speed, m/s: blur under ``timing.blur_px`` at the nearest point, a fix every ``max_fix_spacing_m``.
-
-    Uses ``plan.route.through_speed_m_s`` when it exists (the route's own
-    rule); this fallback applies the same three limits: blur = speed x
-    exposure x focal / depth, fix spacing = speed / GNSS rate, and the cap.
-    """
-    try:  # the route module owns the rule once it has it; sampling must not import plan at import time
-        from dronecal_field.plan.route import through_speed_m_s  # type: ignore[attr-defined]
-
-        return float(through_speed_m_s(focal_px, min_depth_m, timing.fps, timing.exposure_s, timing.gnss_hz,
-                                       blur_px=timing.blur_px, max_speed_m_s=timing.max_speed_m_s))
-    except ImportError:
-        pass
+def through_speed(focal_px: float, min_depth_m: float, timing: LegTiming, marker_size_m: float = 0.3, max_fix_spacing_m: float = 0.3) -> float:
+    """Leg speed, m/s: ``timing.speed_rule`` when given (``plan`` passes ``plan.route.through_speed_m_s``,
+    the route's own rule), else the same limits here: blur = speed x exposure x focal / depth under
+    ``timing.blur_px`` at the nearest point, a fix every ``max_fix_spacing_m``, and the cap."""
+    if timing.speed_rule is not None:
+        return float(timing.speed_rule(focal_px, min_depth_m, timing.fps, timing.exposure_s, timing.gnss_hz,
+                                       blur_px=timing.blur_px, max_speed_m_s=timing.max_speed_m_s, marker_size_m=marker_size_m))
     blur = timing.blur_px * min_depth_m / max(focal_px * timing.exposure_s, 1e-12)
     fixes = max_fix_spacing_m * timing.gnss_hz
     return float(max(0.1, min(blur, fixes, timing.max_speed_m_s)))
@@ -358,7 +358,7 @@ def design_sampling(camera: Camera, roi: Roi, params: DesignParams, limits: Limi
     mpx = s["marker_px"][ti, di]
     leg_arr = np.asarray(leg_of, int)
     depth_cam = camera.depth(marker)
-    speed = through_speed(camera.intrinsics.fx, float(depth_cam.min()), timing)
+    speed = through_speed(camera.intrinsics.fx, float(depth_cam.min()), timing, params.marker_size_m)
     last_of_leg = np.r_[leg_arr[1:] != leg_arr[:-1], True]
     first_of_leg = np.r_[True, leg_arr[1:] != leg_arr[:-1]]
     if params.sampling == "through":
