@@ -221,16 +221,20 @@ def validity_ground_figure(report) -> bytes | None:
     X = np.array([p.marker_enu_m for p in report.used_points])
     if len(X):
         ax.scatter(X[:, 0], X[:, 1], s=10, c="tab:blue", zorder=3)
-        handles.append(Patch(fc="tab:blue", label="calibration points"))
+        handles.append(Patch(fc="tab:blue", label="calibration points (flown above the ground)"))
     ax.plot([c[0]], [c[1]], "k^", ms=9, zorder=4)
     handles.append(Patch(fc="k", label="camera"))
+    # Frame what the camera sees (and the camera), not the whole 30 m circle.
     reach = VISIBLE_GROUND_M[1] + 3.0
-    ax.set_xlim(c[0] - reach, c[0] + reach)
-    ax.set_ylim(c[1] - reach, c[1] + reach)
+    shown = np.r_[c[None, :2], seen[:, :2]] if len(seen) else np.array([c[:2] - reach, c[:2] + reach])
+    lo = np.maximum(shown.min(0), c[:2] - reach) - 2.0
+    hi = np.minimum(shown.max(0), c[:2] + reach) + 2.0
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
     ax.set_aspect("equal")
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
-    ax.legend(handles=handles, loc="upper left", fontsize=7, framealpha=0.85)
+    ax.legend(handles=handles, loc="lower left", fontsize=7, framealpha=0.85)
     ax.set_title("ground plane z = 0: region of validity (also validity.geojson)", fontsize=10)
     return _png(fig)
 

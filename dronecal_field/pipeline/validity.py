@@ -34,7 +34,7 @@ from dronecal_field.errors import DronecalError
 from dronecal_field.sampling.lattice import fold_radius
 
 THRESHOLD_PX = 1.0
-HULL_FACTOR = 2.0  # the region may reach twice the predicted error RMS inside the hull
+HULL_FACTOR = 2.0  # the linearised std may reach twice its RMS inside the hull
 # The richer model is fitted to the same limited points, so beyond them it
 # is itself about as far from the truth as from the chosen model: the term
 # counts twice. Measured on the wide 1080p camera (k1 chosen, k1k2 richer,
@@ -576,14 +576,18 @@ def visible_ground(camera: Camera, ranges_m: tuple[float, float] = VISIBLE_GROUN
 def seen_on_ground(camera: Camera, points: np.ndarray, ground_z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(N,) mask of ground points (N, 3) the camera sees, and their pixels (N, 2).
 
-    Seen: in front, inside the image, and the pixel's own ray comes back to
-    the point. The last test matters for a radial model fitted near the
-    centre: beyond its fold (k1 < 0 turns back at r^2 = -1/(3 k1)) it maps
-    points far outside the view into the middle of the image.
+    Seen: in front, inside the fold of the distortion model, inside the
+    image, and the pixel's own ray comes back to the point. The fold matters
+    for a radial model fitted near the centre: beyond it (k1 < 0 turns back
+    at r^2 = -1/(3 k1)) the model maps points far outside the view into the
+    middle of the image.
     """
     pts = np.asarray(points, float).reshape(-1, 3)
     uv = np.full((len(pts), 2), np.nan)
-    front = camera.depth(pts) > 0.1
+    Xc = pts @ camera.pose.R_cam_from_world.T + camera.pose.t_cam_from_world
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.hypot(Xc[:, 0], Xc[:, 1]) / Xc[:, 2]
+    front = (Xc[:, 2] > 0.1) & (r < fold_radius(camera.distortion.as_array()))
     uv[front] = camera.project(pts[front])
     with np.errstate(invalid="ignore"):
         ok = front & (uv[:, 0] >= -0.5) & (uv[:, 0] <= camera.width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= camera.height - 0.5)
