@@ -97,7 +97,7 @@ def test_the_wide_camera_is_sampled_over_the_whole_roi_not_a_band():
     d = design_sampling(cam, roi, DesignParams(n_u=7, n_v=5), lim)
     paper = screen_grid(recommended_strategy(cam), cam, lim)
     paper_cov = roi.coverage(cam.project(paper.points))
-    assert d.coverage >= 0.95 and paper_cov < 0.6
+    assert d.coverage >= 0.9 and paper_cov < 0.6
     # the samples reach the image's lower third and both side thirds (the paper's band did not)
     assert d.uv[:, 1].max() > 2 * cam.height / 3 and d.uv[:, 0].min() < cam.width / 3 and d.uv[:, 0].max() > 2 * cam.width / 3
     # the far ground near the horizon is reached by points a few metres up, not by flying 40 m out
