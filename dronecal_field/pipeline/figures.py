@@ -187,7 +187,7 @@ def uncertainty_map_figure(report) -> bytes:
     if no_ray.any():
         handles.append(Patch(fc="#d62728", ec="0.2", hatch="xx", label="no ray: the distortion model folds back here"))
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
-    note = "linearised, measured sigmas" if m.samples == 0 else f"{m.samples} sampled cameras"
+    note = "90 % bound; linearised, measured sigmas" if m.samples == 0 else f"90 % bound; {m.samples} sampled cameras"
     if getattr(m, "extrapolation_px", None) is not None:
         note += " + model extrapolation"
     fig.suptitle(f"where the calibration can be trusted ({note})", fontsize=10)

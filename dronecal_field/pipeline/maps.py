@@ -31,7 +31,7 @@ from dronecal_field.core.camera import (
     project_batch,
 )
 from dronecal_field.errors import CalibrationError, DronecalError
-from dronecal_field.pipeline.validity import pixel_errors
+from dronecal_field.pipeline.validity import BOUND_FACTOR, pixel_errors
 
 MAX_GROUND_RANGE_M = 200.0
 
@@ -218,9 +218,10 @@ class UncertaintyMaps:
 
     ``u_px`` (nu,), ``v_px`` (nv,) grid coordinates; ``projection_px``
     (nv, nu) predicted pixel error of the ground point each grid pixel sees
-    (the ray's point 15 m out where it misses the ground): the linearised
-    std ``std_px`` and, when a richer model was given, the
-    model-extrapolation term ``extrapolation_px``, root-sum-square;
+    (the ray's point 15 m out where it misses the ground): a 90 % bound,
+    1.645 times the linearised std ``std_px`` (validity.BOUND_FACTOR) and,
+    when a richer model was given, the model-extrapolation term
+    ``extrapolation_px``, root-sum-square;
     ``ground_cm`` (nv, nu) the same for the horizontal position of that
     ground point, cm, NaN where the ray misses the ground in front of the
     camera or lands beyond 200 m (``sky``, (nv, nu) bool); both are inf
@@ -309,8 +310,8 @@ def uncertainty_maps(
     if samples > 0:
         std_px, std_cm = _sampled_std(camera, covariance, uv, e.ground_enu_m, samples, seed, ground_z)
         std_px[~e.has_ray] = np.inf
-    proj = np.hypot(std_px, e.extrapolation_px)
-    ground_cm = np.hypot(std_cm, e.extrapolation_cm)
+    proj = np.hypot(BOUND_FACTOR * std_px, e.extrapolation_px)
+    ground_cm = np.hypot(BOUND_FACTOR * std_cm, e.extrapolation_cm)
     shape = (nv, nu)
     return UncertaintyMaps(
         u_px=u, v_px=v, projection_px=proj.reshape(shape), ground_cm=ground_cm.reshape(shape), samples=int(samples),

@@ -207,8 +207,8 @@ def report_dict(report) -> dict:
                 "speed_error_kmh_p95": headline.speed_error_15m_kmh_p95,
             },
             "over_validity_region": None if validity is None else {
-                "method": "linearised std (measured sigmas) and model extrapolation, root-sum-square, "
-                          "over the visible ground 3-30 m inside the region",
+                "method": "90 % bound: 1.645 x the linearised std (measured sigmas), root-sum-square with the "
+                          "model extrapolation, over the visible ground 3-30 m inside the region",
                 "ground_position_error_cm_rms": validity.inside_cm_rms,
                 "ground_position_error_cm_max": validity.inside_cm_max,
                 "projection_error_px_rms": validity.inside_px_rms,
@@ -420,7 +420,7 @@ def _validity_rows(validity, region: dict) -> list[tuple[str, str]]:
     rows = [
         ("ground position error over the region of validity",
          f"{_fmt(region.get('ground_position_error_cm_rms'), '.1f', ' cm')} RMS, max {_fmt(region.get('ground_position_error_cm_max'), '.1f', ' cm')} "
-         "(predicted over the visible ground 3-30 m inside the region)"),
+         "(predicted 90 % bound over the visible ground 3-30 m inside the region)"),
         ("region of validity",
          f"{v.image_fraction:.0%} of the image (the points' hull: {v.hull_fraction:.0%}), {frac} of the visible ground 3-30 m"
          + (f"; outside it the predicted error reaches {_reach_px(v.outside_px_max)}" if v.outside_px_max is not None else "")),
