@@ -235,15 +235,18 @@ def legs_benchmark(cameras: list[str], modes: list[str], seeds: int, gnss_hz: fl
                 flights["legs"] = make_leg_flight(truth, waypoints, hold_s=0.0, speed_mps=speed_mps, offset_frd_m=OFFSET_FRD_M, seed=seed)
             if "holds" in modes or "both" in modes:
                 flights["holds"] = make_leg_flight(truth, waypoints, hold_s=hold_s, speed_mps=speed_mps, offset_frd_m=OFFSET_FRD_M, seed=seed)
+            paths: dict[str, tuple[Path, dict, float]] = {}
             for mode in modes:
-                flight = flights["legs" if mode == "legs" else "holds"]
+                kind = "legs" if mode == "legs" else "holds"
+                flight = flights[kind]
                 spec = RunSpec(fps=fps, gnss_hz=gnss_hz, latency_s=LATENCY_S, declared_latency="unknown", gnss_sigma_m=(0.008, 0.008, 0.012),
                                site_origin=ORIGIN, seed=100 + seed, gnss_noise_tau_s=rtk_tau_s, readout_s=readout_s, exposure_s=0.004,
                                with_leg_events=True)
-                path = workdir / f"{name}-{mode}-{seed}.mcap"
-                t = time.perf_counter()
-                written = write_run(path, truth, flight, look, spec)
-                t_write = time.perf_counter() - t
+                if kind not in paths:  # "holds" and "both" calibrate the same run
+                    path = workdir / f"{name}-{kind}-{seed}.mcap"
+                    t = time.perf_counter()
+                    paths[kind] = (path, write_run(path, truth, flight, look, spec), time.perf_counter() - t)
+                path, written, t_write = paths[kind]
                 t = time.perf_counter()
                 report = calibrate_run(path, CalibrateOptions(trials=0, leg_source="none" if mode == "holds" else "auto"))
                 t_cal = time.perf_counter() - t
@@ -257,6 +260,7 @@ def legs_benchmark(cameras: list[str], modes: list[str], seeds: int, gnss_hz: fl
                       f"rms {row['rms_px']:.2f}  {row['model']}  {row['points']} points ({row['leg_points']} on legs)  offset {row['offset_s']:.3f} s  "
                       f"readout {row['readout_ms']:.1f} ms ({row['shutter']})  [flight {flight_s:.0f} s, {row['frames']} frames: write {t_write:.0f} s, "
                       f"calibrate {t_cal:.1f} s]", flush=True)
+            for path, _w, _t in paths.values():
                 path.unlink()
     return rows
 

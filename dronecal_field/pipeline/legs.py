@@ -29,7 +29,7 @@ from typing import Sequence
 import numpy as np
 
 from dronecal_field.pipeline.hover import HoverWindow
-from dronecal_field.pipeline.points import WaypointPoint, fix_rank
+from dronecal_field.pipeline.points import NOISE_FLOOR_M, NOISE_FLOOR_PX, FixNoise, WaypointPoint, fix_rank
 
 SOURCES = ("event", "gnss_track")
 
@@ -95,44 +95,37 @@ def track_velocity(t_ns: np.ndarray, enu_m: np.ndarray, baseline_s: float = 0.4,
 
 def legs_from_track(t_ns: np.ndarray, enu_m: np.ndarray, options: LegOptions = LegOptions()) -> list[Leg]:
     """Constant-velocity stretches of a GNSS track (N,), (N, 3): speed above ``min_speed_mps``,
-    within ``max_speed_dev`` of the stretch's median, heading within ``max_turn_deg``, at least
-    ``min_duration_s`` long.
+    within ``max_speed_dev`` of the stretch's reference (its first second's median velocity),
+    heading within ``max_turn_deg`` of it, at least ``min_duration_s`` long. A turn at a
+    fly-through waypoint ends one stretch and starts the next.
     """
     t = np.asarray(t_ns, np.int64)
     v = track_velocity(t, enu_m)
     speed = np.linalg.norm(v, axis=1)
     moving = np.isfinite(speed) & (speed > options.min_speed_mps)
-    legs: list[Leg] = []
-    k = 0
-    n = len(t)
     cos_turn = np.cos(np.radians(options.max_turn_deg))
-    while k < n:
-        if not moving[k]:
-            k += 1
+    legs: list[Leg] = []
+    n = len(t)
+    i = 0
+    while i < n:
+        if not moving[i]:
+            i += 1
             continue
-        j = k
+        head = i + max(1, int(np.searchsorted(t[i:], t[i] + 1_000_000_000)))
+        ref = np.median(v[i : min(head, n)][moving[i : min(head, n)]], axis=0)
+        sref = float(np.linalg.norm(ref))
+        j = i
         while j + 1 < n and moving[j + 1] and (t[j + 1] - t[j]) < 1_000_000_000:
+            vj = v[j + 1]
+            if abs(speed[j + 1] - sref) > options.max_speed_dev * sref or (vj @ ref) < cos_turn * speed[j + 1] * sref:
+                break
             j += 1
-        # Inside one moving run, keep the longest stretch near its median velocity.
-        run = np.arange(k, j + 1)
-        vm = np.median(v[run], axis=0)
-        sm = float(np.linalg.norm(vm))
-        if sm > 0:
-            dev = np.abs(speed[run] - sm) <= options.max_speed_dev * sm
-            dev &= (v[run] @ vm) / np.maximum(speed[run] * sm, 1e-12) >= cos_turn
-            best, start = (0, -1), None
-            for i, ok in enumerate(np.r_[dev, False]):
-                if ok and start is None:
-                    start = i
-                elif not ok and start is not None:
-                    if i - start > best[0]:
-                        best = (i - start, start)
-                    start = None
-            if best[0] >= 2:
-                a, b = run[best[1]], run[best[1] + best[0] - 1]
-                if (t[b] - t[a]) * 1e-9 >= options.min_duration_s:
-                    legs.append(Leg(index=len(legs), start_ns=int(t[a]), end_ns=int(t[b]), source="gnss_track", speed_mps=sm))
-        k = j + 1
+        if (t[j] - t[i]) * 1e-9 >= options.min_duration_s:
+            sm = float(np.median(speed[i : j + 1]))
+            legs.append(Leg(index=len(legs), start_ns=int(t[i]), end_ns=int(t[j]), source="gnss_track", speed_mps=sm))
+            i = j + 1
+        else:
+            i += 1  # an acceleration or a turn: try from the next fix
     return legs
 
 
@@ -220,6 +213,7 @@ def leg_points(
     min_fix: str,
     first_index: int,
     options: LegOptions = LegOptions(),
+    noise: FixNoise | None = None,
 ) -> list[WaypointPoint]:
     """One 3D-2D point per GNSS fix on the legs, weighted by its timing uncertainty.
 
@@ -241,6 +235,12 @@ def leg_points(
         Fixes worse than this are not paired.
     first_index : int
         ``window.index`` of the first point (after the hover windows).
+    noise : FixNoise, optional
+        The measured per-fix noise. Each point's 3D sigma is then its white
+        part plus its correlated part inflated by the number of the leg's
+        points it is correlated with (``sum_j rho(t_i - t_j)``): a correlated
+        error shifts the whole leg, which carries no more information about it
+        than one point. Without it: the receiver's std and ``options.sigma_px``.
 
     Returns
     -------
@@ -266,14 +266,22 @@ def leg_points(
             continue
         near = (tc >= leg.start_ns - 1_000_000_000) & (tc <= leg.end_ns + 1_000_000_000)
         at, rate, valid = cubic_track_at(fix_t[inside], tc[near], uv[near], options.max_frame_gap_s)
+        good = np.array([valid[j] and fix_rank(fix_types[i]) >= fix_rank(min_fix) for j, i in enumerate(inside)], bool)
+        t_leg = fix_t[inside[good]] * 1e-9
         for j, i in enumerate(inside):
-            if not valid[j] or fix_rank(fix_types[i]) < fix_rank(min_fix):
+            if not good[j]:
                 continue
             t = int(fix_t[i])
             window = HoverWindow(index=first_index + len(out), start_ns=t, end_ns=t, source="leg", seq=leg.index)
-            sig_fix = np.maximum(np.nan_to_num(S[i], nan=0.0), options.sigma_m_floor)
+            if noise is None:
+                sig_fix = np.maximum(np.nan_to_num(S[i], nan=0.0), options.sigma_m_floor)
+                sig_px = options.sigma_px
+            else:
+                shared = float(noise.rho(t * 1e-9 - t_leg).sum())
+                sig_fix = np.full(3, max(float(np.sqrt(noise.sigma_white_m**2 + noise.sigma_corr_m**2 * shared)), NOISE_FLOOR_M))
+                sig_px = NOISE_FLOOR_PX
             sigma_m = np.sqrt(sig_fix**2 + (V[i] * time_std_s) ** 2)
-            sigma_px = float(np.sqrt(options.sigma_px**2 + (np.linalg.norm(rate[j]) * time_std_s) ** 2 / 2.0))
+            sigma_px = float(np.sqrt(sig_px**2 + (np.linalg.norm(rate[j]) * time_std_s) ** 2 / 2.0))
             out.append(
                 WaypointPoint(
                     window=window, stable_ns=(t, t), n_fixes=1, n_detections=4, worst_fix=fix_types[i],

@@ -32,7 +32,7 @@ Pure numpy.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -41,6 +41,8 @@ from dronecal_field.pipeline.hover import HoverWindow
 # Worst to best; "unknown" (a writer that did not say) ranks just below "3d".
 FIX_TYPES: tuple[str, ...] = ("no_fix", "2d", "unknown", "3d", "dgps", "rtk_float", "rtk_fixed")
 MAD_TO_STD = 1.4826
+NOISE_FLOOR_M = 0.0005  # with a measured noise model: the 3D sigma of a point is at least this
+NOISE_FLOOR_PX = 0.05  # ... and its own 2D sigma this (the detector's noise is in the measured white part)
 
 
 def fix_rank(fix_type: str | None) -> int:
@@ -275,6 +277,7 @@ def window_point(
     det_size_px: np.ndarray | None = None,
     marker_size_m: float | None = None,
     det_marker_enu_m: np.ndarray | None = None,
+    noise: "FixNoise | None" = None,
 ) -> WaypointPoint:
     """The correspondence of one window (before the across-window outlier test).
 
@@ -302,6 +305,11 @@ def window_point(
         ``"fixes"`` (the default) the image track is interpolated at the
         fixes instead. Either way the fixes decide the drops, the scatter and
         the sigma.
+    noise : FixNoise, optional
+        The measured per-fix noise: the point's sigma is then that of the mean
+        of its fixes (:meth:`FixNoise.mean_variance`: white noise averages
+        down, correlated noise does not), all of it in 3D (the white part
+        holds the detector's), instead of the scatter.
     """
     a, b = stable_ns
     fix_t_ns = np.asarray(fix_t_ns, np.int64)
@@ -334,7 +342,11 @@ def window_point(
         if bracketed.sum() >= max(options.min_fixes, options.min_detections):
             xyz, uv = paired_centre(np.asarray(marker_enu_m, float)[fix_idx[bracketed]], uv_at[bracketed])
             _, scatter_uv = robust_centre(np.asarray(det_uv_px, float)[in_det])
-            return _point(base, xyz, sigma_m, uv, scatter_m, scatter_uv, in_det, det_size_px, marker_size_m, options)
+            point = _point(base, xyz, sigma_m, uv, scatter_m, scatter_uv, in_det, det_size_px, marker_size_m, options)
+            if noise is not None:
+                sd = max(float(np.sqrt(noise.mean_variance(fix_t_ns[fix_idx[bracketed]] * 1e-9))), NOISE_FLOOR_M)
+                point = replace(point, sigma_enu_m=np.full(3, sd), sigma_px=NOISE_FLOOR_PX)
+            return point
     if options.paired and options.pair_at == "detections" and det_marker_enu_m is not None:
         paired = in_det & np.all(np.isfinite(np.asarray(det_marker_enu_m, float)), axis=1)
         if paired.sum() >= options.min_detections:
@@ -396,3 +408,115 @@ def drop_outlying_scatter(points: list[WaypointPoint], options: PointOptions) ->
             p = p.with_drop(f"image scatter {p.scatter_px:.2f} px is outlying (limit {lim2:.2f} px)")
         out.append(p)
     return out
+
+
+# --------------------------------------------------------------------------
+# The per-point noise as it really is
+
+
+@dataclass(frozen=True)
+class FixNoise:
+    """The per-fix noise of the 3D-2D pairs, measured on their residuals through the calibrated camera.
+
+    Each paired fix's residual, in metres at the marker, is modelled as white
+    noise (the detector, a receiver's fast jitter; averages down over a hold)
+    plus a first-order Gauss-Markov part correlated over ``tau_s`` (RTK
+    multipath and atmosphere; does not average down over a few seconds).
+
+    Attributes
+    ----------
+    sigma_white_m, sigma_corr_m : per-axis std of the two parts, metres.
+    tau_s : correlation time of the correlated part, seconds (None: none seen).
+    fix_interval_s : median interval between paired fixes.
+    n_residuals : paired fixes measured.
+    method : how it was obtained.
+    """
+
+    sigma_white_m: float
+    sigma_corr_m: float
+    tau_s: float | None
+    fix_interval_s: float
+    n_residuals: int
+    method: str = "residuals through the calibrated camera, autocovariance within holds and legs"
+
+    def rho(self, dt_s: np.ndarray) -> np.ndarray:
+        """Correlation of the correlated part over time differences ``dt_s`` (any shape)."""
+        if self.tau_s is None or self.sigma_corr_m <= 0:
+            return (np.asarray(dt_s) == 0).astype(float)
+        return np.exp(-np.abs(np.asarray(dt_s, float)) / self.tau_s)
+
+    def mean_variance(self, t_s: np.ndarray) -> float:
+        """Per-axis variance (m^2) of the mean of the fixes at times ``t_s`` (K,)."""
+        t = np.asarray(t_s, float)
+        k = max(len(t), 1)
+        g = float(self.rho(t[:, None] - t[None, :]).sum()) / k**2 if len(t) else 1.0
+        return self.sigma_white_m**2 / k + self.sigma_corr_m**2 * g
+
+    def to_dict(self) -> dict:
+        return {
+            "sigma_white_m": self.sigma_white_m,
+            "sigma_corr_m": self.sigma_corr_m,
+            "tau_s": self.tau_s,
+            "fix_interval_s": self.fix_interval_s,
+            "n_residuals": self.n_residuals,
+            "method": self.method,
+        }
+
+
+def estimate_fix_noise(segments: list[tuple[np.ndarray, np.ndarray]], max_lag_s: float = 1.5, min_residuals: int = 30) -> FixNoise | None:
+    """White and correlated parts of the per-fix noise from residual series.
+
+    Parameters
+    ----------
+    segments : list of (t_ns (K,) int64 increasing, residual_m (K, 2))
+        Each hold's settled part or leg: the residuals of its consecutive
+        paired fixes, in metres at the marker (pixel residual x depth / focal).
+    max_lag_s : the autocovariance is measured up to this lag.
+
+    Returns
+    -------
+    FixNoise, or None with fewer than ``min_residuals`` residuals.
+
+    The pooled autocovariance C(k) at lags of k fix intervals gives
+    C(0) = s_w^2 + s_c^2 and C(k) = s_c^2 rho^k: rho from C(K)/C(1) over the
+    longest lag measured, s_c^2 = C(1) / rho, s_w^2 = C(0) - s_c^2. The mean of
+    each segment is NOT removed: a correlated error is exactly what shifts a
+    whole hold or leg.
+    """
+    segs = [(np.asarray(t, np.int64), np.asarray(r, float).reshape(-1, 2)) for t, r in segments if len(t) >= 1]
+    n = sum(len(t) for t, _ in segs)
+    if n < min_residuals:
+        return None
+    diffs = np.concatenate([np.diff(t) for t, _ in segs if len(t) > 1]) if any(len(t) > 1 for t, _ in segs) else np.zeros(0)
+    dt = float(np.median(diffs)) * 1e-9 if len(diffs) else 0.2
+    every = np.concatenate([r for _, r in segs])
+    # Robust scale: a few wild pairs (a detector flip) must not set the noise.
+    c0 = float(np.mean(np.minimum(every**2, 25.0 * np.median(every**2))))
+    max_lag = max(1, int(round(max_lag_s / max(dt, 1e-3))))
+    cov = np.full(max_lag + 1, np.nan)
+    for k in range(1, max_lag + 1):
+        num, cnt = 0.0, 0
+        for t, r in segs:
+            if len(t) <= k:
+                continue
+            ok = np.abs((t[k:] - t[:-k]) * 1e-9 - k * dt) < 0.5 * dt  # regular spacing only
+            num += float(np.sum(r[k:][ok] * r[:-k][ok]))
+            cnt += 2 * int(ok.sum())
+        cov[k] = num / cnt if cnt >= 20 else np.nan
+    c1 = cov[1] if np.isfinite(cov[1]) else 0.0
+    if c1 <= 0.05 * c0:
+        return FixNoise(sigma_white_m=float(np.sqrt(c0)), sigma_corr_m=0.0, tau_s=None, fix_interval_s=dt, n_residuals=n)
+    lags = [k for k in range(2, max_lag + 1) if np.isfinite(cov[k]) and cov[k] > 0]
+    if lags:
+        K = lags[-1]
+        rho = float(np.clip((cov[K] / c1) ** (1.0 / (K - 1)), 0.05, 0.999))
+    else:
+        rho = 0.5
+    s_c2 = min(c1 / rho, c0)
+    return FixNoise(
+        sigma_white_m=float(np.sqrt(max(c0 - s_c2, 0.0))),
+        sigma_corr_m=float(np.sqrt(s_c2)),
+        tau_s=float(-dt / np.log(rho)),
+        fix_interval_s=dt,
+        n_residuals=n,
+    )

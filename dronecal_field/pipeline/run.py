@@ -38,12 +38,15 @@ from dronecal_field.pipeline.hover import (
 from dronecal_field.pipeline.legs import Leg, LegOptions, leg_points, legs_from_intervals, legs_from_track, track_velocity
 from dronecal_field.pipeline.points import (
     FIX_TYPES,
+    FixNoise,
     PointOptions,
     WaypointPoint,
     attitude_at,
     drop_outlying_scatter,
+    estimate_fix_noise,
     lever_arm_enu,
     marker_track_at,
+    track_at,
     window_point,
 )
 from dronecal_field.pipeline.sampling import SamplingOptions
@@ -160,6 +163,7 @@ class CalibrationReport:
     fix_identity: DistinctFixes | None = None  # how fixes were told apart (rule, counts)
     gnss_latency_s: float | None = None  # subtracted from arrival-stamped fixes (metadata gnss.latency_s)
     validity: object | None = None  # the region of validity (filled by the uncertainty stage when available)
+    noise: FixNoise | None = None  # the per-fix noise measured on the residuals (sets the points' sigmas)
 
     @property
     def hover_points(self) -> list[WaypointPoint]:
@@ -226,6 +230,7 @@ class Solved:
     centres: str
     timing: Timing
     warnings: list[str]
+    noise: FixNoise | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -513,8 +518,12 @@ def _points(
     timing: Timing,
     marker_size_m: float | None,
     options: CalibrateOptions,
+    noise: FixNoise | None = None,
 ) -> list[WaypointPoint]:
-    """Stage 5: one 3D-2D point per hover window (averaged over its settled part) and one per fix on the legs."""
+    """Stage 5: one 3D-2D point per hover window (averaged over its settled part) and one per fix on the legs.
+
+    With ``noise`` (measured after a first solve) each point's sigma follows it.
+    """
     po = replace(options.points, min_fix=options.min_fix)
     # Each detection at the instant its marker row was read out.
     det_t = dets.t_ns + np.round(centres_px[:, 1] * timing.line_time_s * 1e9).astype(np.int64) if len(dets.t_ns) else dets.t_ns
@@ -527,7 +536,7 @@ def _points(
     hover = [
         window_point(
             w, w.stable(po.settle_s, po.tail_s), track.t_ns, track.marker_enu_m, track.sigma_enu_m, track.fix_types,
-            det_t, centres_px, timing.offset_ns, po, dets.size_px, marker_size_m, det_marker,
+            det_t, centres_px, timing.offset_ns, po, dets.size_px, marker_size_m, det_marker, noise,
         )
         for w in windows
     ]
@@ -539,9 +548,48 @@ def _points(
     moving = leg_points(
         legs, track.t_ns, track.marker_enu_m, track.velocity_enu_mps, track.sigma_enu_m, track.fix_types,
         dets.t_ns, centres_px, timing.offset_ns, timing.line_time_s, time_std, options.min_fix,
-        first_index=len(windows), options=options.legs,
+        first_index=len(windows), options=options.legs, noise=noise,
     )
     return hover + moving
+
+
+def _fix_residuals(
+    points: list[WaypointPoint], track: Track, dets: Detections, centres_px: np.ndarray, timing: Timing, camera, max_gap_s: float
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per-fix residuals (metres at the marker) through the calibrated camera, one series per hold and per leg.
+
+    A hold's fixes in its settled part are paired with the image track
+    interpolated at each (as its point was made); a leg's points are its fixes.
+    """
+    used = [p for p in points if p.used]
+    if not used:
+        return []
+    det_t = dets.t_ns + np.round(centres_px[:, 1] * timing.line_time_s * 1e9).astype(np.int64) - timing.offset_ns
+    f = 0.5 * (camera.intrinsics.fx + camera.intrinsics.fy)
+    segments: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def metres(X: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        return (camera.project(X) - uv) * (camera.depth(X) / f)[:, None]
+
+    for p in used:
+        if p.window.source == "leg":
+            continue
+        a, b = p.stable_ns
+        k = np.flatnonzero((track.t_ns >= a) & (track.t_ns <= b))
+        if len(k) < 2:
+            continue
+        uv, ok = track_at(track.t_ns[k], det_t, centres_px, max_gap_s)
+        if ok.sum() >= 2:
+            segments.append((track.t_ns[k][ok], metres(track.marker_enu_m[k][ok], uv[ok])))
+    legs: dict[int, list[WaypointPoint]] = {}
+    for p in used:
+        if p.window.source == "leg":
+            legs.setdefault(int(p.window.seq), []).append(p)
+    for pts in legs.values():
+        X = np.array([p.marker_enu_m for p in pts])
+        uv = np.array([p.uv_px for p in pts])
+        segments.append((np.array([p.window.start_ns for p in pts], np.int64), metres(X, uv)))
+    return segments
 
 
 def _solve(points: list[WaypointPoint], md, options: CalibrateOptions, previous=None):
@@ -622,9 +670,13 @@ def _points_and_solve(read: TrackRead, windows, legs, dets: Detections, offset: 
                 f"the marker by up to {100 * timing.bound_m:.1f} cm between the top and bottom rows; fly legs at several image rows "
                 "in both directions to estimate it"
             )
+    # The noise as it really is (white and correlated parts, from the residuals): the points' sigmas follow it.
+    noise = estimate_fix_noise(_fix_residuals(points, track, dets, centres, timing, result.camera, options.points.pair_max_gap_s))
+    if noise is not None:
+        points = _points(track, attitude, read.offset_frd_m, windows, legs, dets, centres, timing, marker_size_m, options, noise)
     return Solved(
         points=points, result=result, model_reason=reason, track=track, attitude_source=attitude_source,
-        centres=method, timing=timing, warnings=warnings,
+        centres=method, timing=timing, warnings=warnings, noise=noise,
     )
 
 
@@ -731,12 +783,13 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
         run_path=path, truncated=truncated, run_warnings=run_warnings, metadata=md,
         origin=read.origin, origin_source=read.origin_source, altitude_datum=md.altitude_datum,
         windows=windows, window_source=window_source, frames=dets.stats, detections=dets.items, detection_groups=dets.groups,
-        offset=_offset_with_timing(offset, solved.timing, read), points=solved.points, attitude_source=solved.attitude_source,
+        offset=_offset_with_timing(offset, solved.timing, read, solved.noise), points=solved.points, attitude_source=solved.attitude_source,
         model_reason=solved.model_reason, result=result, monte_carlo=unc.monte_carlo, linearised=unc.linearised,
         covariance_measured=unc.covariance, maps=unc.maps, homography=unc.homography, track=solved.track,
         timings_s=clock.timings, warnings=warnings, options=options, background=dets.background,
         fixes_repeated=read.identity.n_repeats, centres=solved.centres, legs=legs, leg_source=leg_source,
         timing=solved.timing, fix_identity=read.identity, gnss_latency_s=read.gnss_latency_s, validity=unc.validity,
+        noise=solved.noise,
     )
     if options.out_dir is not None:
         from dronecal_field.pipeline.report import write_outputs
@@ -759,13 +812,13 @@ class _Clock:
             self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - tick
 
 
-def _offset_with_timing(offset: TimeOffset, timing: Timing, read: TrackRead) -> TimeOffset:
+def _offset_with_timing(offset: TimeOffset, timing: Timing, read: TrackRead, noise: FixNoise | None) -> TimeOffset:
     """The offset as report.json's ``time_offset`` shows it: the refined first-row offset when legs
     refined it, with the rolling shutter and how GNSS fixes were timed and told apart."""
     out = offset
     if timing.rolling_shutter != "not estimated" or timing.offset_s != offset.offset_s:
         out = replace(offset, offset_s=timing.offset_s, std_s=timing.offset_std_s if timing.offset_std_s is not None else offset.std_s)
-    gnss = read.identity.to_dict() | {"latency_s_subtracted": read.gnss_latency_s}
+    gnss = read.identity.to_dict() | {"latency_s_subtracted": read.gnss_latency_s, "noise": None if noise is None else noise.to_dict()}
     return replace(out, rolling_shutter=timing.to_dict(), gnss_times=gnss)
 
 
