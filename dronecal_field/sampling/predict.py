@@ -46,24 +46,29 @@ class NoiseModel:
     model: str = "auto"
 
 
-K3_RADIUS_SHARE = 0.85  # samples reaching this share of the ROI's radius make k3 observable
-
-
 def prediction_model(camera: Camera, samples: np.ndarray, roi_points: np.ndarray, model: str) -> str:
-    """The distortion model ``calibrate`` is expected to fit to these samples.
+    """The distortion model ``calibrate --model auto`` is expected to fit to these samples.
 
-    ``'auto'``: the full model (k3 free) when the samples reach
-    :data:`K3_RADIUS_SHARE` of the ROI's largest normalised radius (k3 is then
-    observable and ``calibrate --model auto`` frees it), else k1k2p1p2 (the
-    lean model, which then extrapolates); any other name is kept.
+    ``'auto'`` mirrors ``pipeline.maps.choose_model``'s cap: the samples'
+    pixels reach r = the 90th percentile of their distance from the image
+    centre over the half-diagonal; r < 0.3: no distortion, < 0.55: k1, < 0.6:
+    k1k2p1p2, else the full model (k3 free). Any other name is kept.
+    ``roi_points`` is unused by the rule (kept for callers that pass it).
     """
     if model != "auto":
         return model
     if len(samples) < 16:
         return "default"
-    reach = float(np.max(normalised_radius(camera, samples)))
-    need = float(np.max(normalised_radius(camera, roi_points)))
-    return "full" if reach >= K3_RADIUS_SHARE * need else "default"
+    uv = camera.project(np.asarray(samples, float))
+    centre = np.array([(camera.width - 1) / 2.0, (camera.height - 1) / 2.0])
+    r = float(np.percentile(np.linalg.norm(uv - centre, axis=1), 90) / (0.5 * np.hypot(camera.width, camera.height)))
+    if r < 0.3:
+        return "none"
+    if r < 0.55:
+        return "k1"
+    if r < 0.6:
+        return "k1k2p1p2"
+    return "full"
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,22 +275,34 @@ def predict_roi(camera: Camera, samples: np.ndarray, samples_sigma_h_m: np.ndarr
                 extrap_cache: dict | None = None, cache_key: object = None) -> RoiPrediction:
     """Both terms and their root-sum-square at the ROI points (see the module docstring).
 
+    The model is the one ``calibrate --model auto`` would fit (:func:`prediction_model`);
+    when that allows the full model, k1k2p1p2 is scored too and the lower
+    combined error is kept (``calibrate`` frees k3 only when the data support it).
+
     ``draws`` None leaves the extrapolation term out (zeros): only for tests
     of the noise term. ``extrap_cache`` (a dict) with ``cache_key`` reuses the
     extrapolation term of candidates with the same samples (the term is
     noise-free: it depends on the sample positions only).
     """
     s3 = sample_sigmas(samples_sigma_h_m, noise, rtk_factor)
-    model = prediction_model(camera, samples, roi_points, noise.model)
-    noise = replace(noise, model=model)
-    px_lin, cm_lin = linearised_roi(camera, samples, s3, roi_points, on_ground, noise)
-    if draws is None:
-        px_ex, cm_ex = np.zeros_like(px_lin), np.zeros_like(cm_lin)
-    elif extrap_cache is not None and (cache_key, model) in extrap_cache:
-        px_ex, cm_ex = extrap_cache[(cache_key, model)]
-    else:
-        px_ex, cm_ex = extrapolation_roi(camera, samples, roi_points, on_ground, draws, model)
-        if extrap_cache is not None:
-            extrap_cache[(cache_key, model)] = (px_ex, cm_ex)
+    cap = prediction_model(camera, samples, roi_points, noise.model)
+    # calibrate tries the models up to the cap and keeps a richer one only when the data support it:
+    # with the full model allowed, both it and k1k2p1p2 are scored and the better prediction is the expected fit
+    models = [cap, "k1k2p1p2"] if (noise.model == "auto" and cap == "full") else [cap]
+    best = None
+    for model in models:
+        px_lin, cm_lin = linearised_roi(camera, samples, s3, roi_points, on_ground, replace(noise, model=model))
+        if draws is None:
+            px_ex, cm_ex = np.zeros_like(px_lin), np.zeros_like(cm_lin)
+        elif extrap_cache is not None and (cache_key, model) in extrap_cache:
+            px_ex, cm_ex = extrap_cache[(cache_key, model)]
+        else:
+            px_ex, cm_ex = extrapolation_roi(camera, samples, roi_points, on_ground, draws, model)
+            if extrap_cache is not None:
+                extrap_cache[(cache_key, model)] = (px_ex, cm_ex)
+        score = _rms(np.hypot(px_lin, px_ex))
+        if best is None or score < best[0]:
+            best = (score, model, px_lin, cm_lin, px_ex, cm_ex)
+    _, model, px_lin, cm_lin, px_ex, cm_ex = best
     return RoiPrediction(px_lin=px_lin, px_extrap=px_ex, px_combined=np.hypot(px_lin, px_ex), on_ground=np.asarray(on_ground, bool),
                          ground_cm_lin=cm_lin, ground_cm_extrap=cm_ex, ground_cm_combined=np.hypot(cm_lin, cm_ex), n_samples=int(len(samples)), model=model)
