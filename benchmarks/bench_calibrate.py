@@ -287,6 +287,45 @@ def print_legs(rows: list[dict]) -> None:
     print("  all runs: " + ", ".join(f"{k} {v:.2f}" for k, v in all_ratios.items()))
 
 
+def legs_speed(name: str, minutes: float, fps: float, scale: float, workdir: Path) -> dict:
+    """A ``minutes``-long legs-and-holds run of camera ``name`` (the leg pattern flown again and again,
+    5 s holds at the ends of every other pass), then ``dronecal-field calibrate`` (default options,
+    500 Monte-Carlo trials) in a fresh process: flight duration / wall time."""
+    from contract_writer import leg_waypoints, make_leg_flight
+
+    truth = leg_truth(name, scale)
+    pattern = leg_waypoints(truth, LEG_CAMERAS[name][6], LEG_CAMERAS[name][7])
+    waypoints, holds = [], []
+    k = 0
+    while True:
+        waypoints.append(pattern if k % 2 == 0 else pattern[::-1])
+        holds.append(np.full(len(pattern), 5.0 if k % 2 else 0.0))
+        flight = make_leg_flight(truth, np.vstack(waypoints), hold_s=np.concatenate(holds), speed_mps=2.0, offset_frd_m=OFFSET_FRD_M, seed=k)
+        if (flight.t_ns[-1] - flight.t_ns[0]) / 1e9 >= minutes * 60 or k > 40:
+            break
+        k += 1
+    path = workdir / f"speed-{name}.mcap"
+    t = time.perf_counter()
+    written = write_run(path, truth, flight, MarkerLook(marker_id=7, size_m=0.3), RunSpec(
+        fps=fps, gnss_hz=5.0, latency_s=LATENCY_S, declared_latency="unknown", site_origin=ORIGIN, seed=7, readout_s=0.03, exposure_s=0.004))
+    build_s = time.perf_counter() - t
+    duration = (flight.t_ns[-1] - flight.t_ns[0]) / 1e9
+    res = timed_calibrate(path, workdir / f"speed-{name}-out")
+    if res["rc"] != 0:
+        print(res["output"][-3000:])
+        raise SystemExit(f"calibrate failed with exit code {res['rc']}")
+    report = json.loads((workdir / f"speed-{name}-out" / "report.json").read_text())
+    out = {"camera": name, "size": f"{truth.width}x{truth.height}", "duration_s": duration, "frames": written["n_frames"], "build_s": build_s,
+           "wall_s": res["wall_s"], "cpu_s": res["cpu_s"], "ratio": duration / res["wall_s"], "frames_decoded": report["frames"]["frames_decoded"],
+           "timings_s": report["timings_s"], "legs": len(flight.legs), "holds": len(flight.holds)}
+    path.unlink()
+    print(f"  {name} {out['size']}: flight {duration / 60:.1f} min ({out['legs']} legs, {out['holds']} holds), {out['frames']} frames at {fps:g} fps "
+          f"(built in {build_s:.0f} s); calibrate wall {res['wall_s']:.1f} s, CPU {res['cpu_s']:.1f} s, decoded {out['frames_decoded']} frames; "
+          f"flight / calibrate = {out['ratio']:.1f}x (target >= 10x): {'PASS' if out['ratio'] >= 10 else 'FAIL'}", flush=True)
+    print("    stage timings (s): " + ", ".join(f"{k} {v:.1f}" for k, v in out["timings_s"].items() if isinstance(v, (int, float))), flush=True)
+    return out
+
+
 # --------------------------------------------------------------------------
 # (b) speed
 
@@ -431,7 +470,7 @@ def print_speed(s: dict) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--only", choices=("accuracy", "speed", "legs"))
+    parser.add_argument("--only", choices=("accuracy", "speed", "legs", "legs-speed"))
     parser.add_argument("--leg-cameras", default="wide1080,distorted4k", help="cameras of the legs part (default both)")
     parser.add_argument("--leg-modes", default="legs,holds,both", help="legs only, holds only (same points), both")
     parser.add_argument("--readout", type=float, default=0.03, metavar="S", help="rolling-shutter readout of the legs runs (default 0.03)")
@@ -468,6 +507,11 @@ def main() -> None:
             rows = legs_benchmark(cams, modes, args.seeds, args.gnss_hz, args.rtk_tau, args.readout, args.leg_speed, args.leg_hold,
                                   args.accuracy_fps, args.scale4k, workdir)
             print_legs(rows)
+        if args.only == "legs-speed":
+            print(f"(d) legs speed: {args.minutes:g}-minute legs-and-holds runs at {args.accuracy_fps:g} fps through `dronecal-field calibrate`", flush=True)
+            for name in args.leg_cameras.split(","):
+                legs_speed(name, args.minutes if name == "wide1080" else 0.6 * args.minutes, args.accuracy_fps,
+                           args.scale4k if name == "distorted4k" else 1.0, workdir)
         if args.only in (None, "speed"):
             print(f"\n(b) speed: a {args.minutes:g}-minute {WIDTH}x{HEIGHT} {args.fps:g} fps run through `dronecal-field calibrate`", flush=True)
             print_speed(speed(args.minutes, args.fps, args.move_hz, args.hold_hz, workdir))

@@ -168,3 +168,37 @@ def test_track_at_interpolates_and_says_where_samples_bracket_the_instant():
     at, ok = track_at(np.array([-1, 0, 0.5 * S, 3 * S, 4 * S, 5 * S], np.int64), t[::-1], v[::-1], max_gap_s=0.9)
     np.testing.assert_allclose(at[1:5, 0], [0.0, 0.5, 3.0, 4.0])
     assert ok.tolist() == [False, True, True, False, True, False]  # 3 s lies 1 s from the samples either side
+
+
+@pytest.mark.parametrize("tau_s", [0.0, 5.0, 20.0])
+def test_fix_noise_splits_white_and_correlated_parts(tau_s):
+    # Residual series of 40 holds (3 s at 5 Hz): 6 mm white (detector, jitter) plus, when tau_s > 0,
+    # 8 mm first-order Gauss-Markov RTK noise. The split decides how a hold's mean averages down.
+    from dronecal_field.pipeline.points import FixNoise, estimate_fix_noise
+
+    rng = np.random.default_rng(1)
+    segments = []
+    for s in range(60):
+        t = np.arange(15, dtype=np.int64) * 200_000_000 + s * 10_000_000_000
+        r = rng.normal(size=(15, 2)) * 0.006
+        if tau_s:
+            a = np.exp(-0.2 / tau_s)
+            c = np.zeros((15, 2))
+            c[0] = rng.normal(size=2) * 0.008
+            for k in range(1, 15):
+                c[k] = a * c[k - 1] + np.sqrt(1 - a * a) * rng.normal(size=2) * 0.008
+            r = r + c
+        segments.append((t, r))
+    noise = estimate_fix_noise(segments)
+    assert noise.sigma_white_m == pytest.approx(0.006, rel=0.2)
+    if tau_s:
+        assert noise.sigma_corr_m == pytest.approx(0.008, rel=0.25) and noise.tau_s > 2.0
+    else:
+        assert noise.sigma_corr_m == 0.0 and noise.tau_s is None
+    # The mean of a hold's 15 fixes: white noise averages down, correlated noise hardly does.
+    t15 = np.arange(15) * 0.2
+    white = FixNoise(sigma_white_m=0.006, sigma_corr_m=0.0, tau_s=None, fix_interval_s=0.2, n_residuals=0)
+    assert white.mean_variance(t15) == pytest.approx(0.006**2 / 15)
+    slow = FixNoise(sigma_white_m=0.0, sigma_corr_m=0.008, tau_s=30.0, fix_interval_s=0.2, n_residuals=0)
+    assert slow.mean_variance(t15) == pytest.approx(0.008**2, rel=0.05)
+    assert estimate_fix_noise(segments[:1]) is None  # 15 residuals: too few to say

@@ -673,6 +673,10 @@ def _points_and_solve(read: TrackRead, windows, legs, dets: Detections, offset: 
     # The noise as it really is (white and correlated parts, from the residuals): the points' sigmas follow it.
     noise = estimate_fix_noise(_fix_residuals(points, track, dets, centres, timing, result.camera, options.points.pair_max_gap_s))
     if noise is not None:
+        # Residuals are smaller than the noise by the parameters the fit spent on them.
+        n_eq = 2 * len([p for p in points if p.used])
+        scale = float(np.sqrt(n_eq / max(n_eq - result.model.n_free, 1)))
+        noise = replace(noise, sigma_white_m=noise.sigma_white_m * scale, sigma_corr_m=noise.sigma_corr_m * scale)
         points = _points(track, attitude, read.offset_frd_m, windows, legs, dets, centres, timing, marker_size_m, options, noise)
     return Solved(
         points=points, result=result, model_reason=reason, track=track, attitude_source=attitude_source,
