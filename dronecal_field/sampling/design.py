@@ -487,8 +487,8 @@ def unreachable_parts(roi: Roi, design: Design, limits: Limits) -> list[dict]:
            "size": design.params.marker_size_m, "min_px": limits.min_marker_px, "margin": limits.margin_px, "ratio": MIN_DEPTH_RATIO}
     parts = []
     for (reason, region), ks in sorted(out.items(), key=lambda kv: -len(kv[1])):
-        cell_set = {(int(rows[k]), int(cols[k])) for k in ks}
-        in_cells = np.array([(a, b) in cell_set for a, b in zip(pr, pc)]) & roi.on_ground
+        cell_ids = rows[ks] * roi.cells.shape[1] + cols[ks]
+        in_cells = np.isin(pr * roi.cells.shape[1] + pc, cell_ids) & roi.on_ground
         ground = None
         if in_cells.any():
             d = np.hypot(roi.points_site[in_cells, 0], roi.points_site[in_cells, 1])

@@ -32,8 +32,8 @@ from dronecal_field.core.calibrate import BatchState, levenberg_marquardt, resol
 from dronecal_field.core.camera import Camera, project_batch, project_batch_jacobians
 from dronecal_field.sampling.lattice import PLAN_FOLD_MIN_SLOPE, fold_radius
 
-N_LENS_DRAWS = 20
-MAX_FIT_POINTS = 250  # samples used by the extrapolation fits (noise-free: more add nothing)
+N_LENS_DRAWS = 16
+MAX_FIT_POINTS = 200  # samples used by the extrapolation fits (noise-free: more add nothing)
 
 
 @dataclass(frozen=True)
@@ -139,6 +139,38 @@ def _ground_maps(camera: Camera, roi_points: np.ndarray, on_ground: np.ndarray) 
     return np.linalg.pinv(Jg)
 
 
+@dataclass(frozen=True, eq=False)
+class _Linearisation:
+    """What the noise term needs and no model changes: sample and ROI Jacobians, image noise blocks, ground maps."""
+
+    J_samples: np.ndarray  # (S, 2, 15)
+    blocks: np.ndarray  # (S, 2, 2) each sample's image noise covariance, px^2
+    J_roi: np.ndarray  # (M, 2, 15)
+    ground_maps: np.ndarray  # (G, 2, 2)
+    on_ground: np.ndarray  # (M,) bool
+
+
+def _linearise(camera: Camera, samples: np.ndarray, sigma_3d: np.ndarray, sigma_2d: float, roi_points: np.ndarray,
+               on_ground: np.ndarray) -> _Linearisation:
+    P = np.asarray(samples, float)
+    _, J, Jx = project_batch_jacobians(*camera.batch_arrays(), P[None])
+    s3 = np.broadcast_to(np.asarray(sigma_3d, float), (len(P), 3))
+    blocks = (float(sigma_2d) ** 2) * np.eye(2)[None] + np.einsum("nij,nj,nkj->nik", Jx[0], s3**2, Jx[0])
+    _, Jr, _ = project_batch_jacobians(*camera.batch_arrays(), np.asarray(roi_points, float)[None], with_points=False)
+    return _Linearisation(J_samples=J[0], blocks=blocks, J_roi=Jr[0], ground_maps=_ground_maps(camera, roi_points, on_ground),
+                          on_ground=np.asarray(on_ground, bool))
+
+
+def _covariance(lin: _Linearisation, A: np.ndarray) -> np.ndarray:
+    """(15, 15) (J^T J)^-1 J^T Sigma J (J^T J)^-1 over the free parameters ``A`` (15, m), mapped back."""
+    Jb = lin.J_samples @ A  # (S, 2, m)
+    n = len(Jb)
+    Jm = Jb.reshape(2 * n, -1)
+    middle = Jm.T @ (lin.blocks @ Jb).reshape(2 * n, -1)
+    JtJ_inv = np.linalg.pinv(Jm.T @ Jm)
+    return A @ (JtJ_inv @ middle @ JtJ_inv) @ A.T
+
+
 def fast_parameter_covariance(camera: Camera, points: np.ndarray, sigma_3d: np.ndarray, sigma_2d: float, model: str) -> np.ndarray:
     """(15, 15) ``core.uncertainty.parameter_covariance`` with the sandwich as two matrix products.
 
@@ -148,17 +180,21 @@ def fast_parameter_covariance(camera: Camera, points: np.ndarray, sigma_3d: np.n
     einsum, which is what makes thousands of leg samples affordable per candidate.
     """
     P = np.asarray(points, float)
-    n = len(P)
-    mdl = resolve_model(model, n)
-    A = mdl.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx)
-    _, J, Jx = project_batch_jacobians(*camera.batch_arrays(), P[None])
-    Jb = J[0] @ A  # (n, 2, m)
-    s3 = np.broadcast_to(np.asarray(sigma_3d, float), (n, 3))
-    blocks = (float(sigma_2d) ** 2) * np.eye(2)[None] + np.einsum("nij,nj,nkj->nik", Jx[0], s3**2, Jx[0])
-    Jm = Jb.reshape(2 * n, -1)
-    middle = Jm.T @ (blocks @ Jb).reshape(2 * n, -1)
-    JtJ_inv = np.linalg.pinv(Jm.T @ Jm)
-    return A @ (JtJ_inv @ middle @ JtJ_inv) @ A.T
+    mdl = resolve_model(model, len(P))
+    lin = _linearise(camera, P, sigma_3d, sigma_2d, P[:1], np.zeros(1, bool))
+    return _covariance(lin, mdl.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx))
+
+
+def _roi_noise(camera: Camera, lin: _Linearisation, model: str, n_samples: int) -> tuple[np.ndarray, np.ndarray]:
+    mdl = resolve_model(model, n_samples)
+    cov = _covariance(lin, mdl.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx))
+    JC = lin.J_roi @ cov  # (M, 2, 15)
+    C = np.einsum("mip,mjp->mij", JC, lin.J_roi)  # (M, 2, 2) pixel covariance
+    px = np.sqrt(np.maximum(C[:, 0, 0] + C[:, 1, 1], 0.0))
+    G = lin.ground_maps
+    Cg = G @ C[lin.on_ground] @ G.transpose(0, 2, 1)
+    cm = 100.0 * np.sqrt(np.maximum(Cg[:, 0, 0] + Cg[:, 1, 1], 0.0))
+    return px, cm
 
 
 def linearised_roi(camera: Camera, samples: np.ndarray, sigma_3d: np.ndarray, roi_points: np.ndarray, on_ground: np.ndarray,
@@ -172,15 +208,8 @@ def linearised_roi(camera: Camera, samples: np.ndarray, sigma_3d: np.ndarray, ro
     sigma_3d : (S, 3) their position std, m
     roi_points : (M, 3) ROI evaluation points, m; ``on_ground`` (M,) bool
     """
-    cov = fast_parameter_covariance(camera, samples, sigma_3d, noise.sigma_px, noise.model)
-    _, J, _ = project_batch_jacobians(*camera.batch_arrays(), roi_points[None], with_points=False)
-    J = J[0]  # (M, 2, 15)
-    C = np.einsum("mip,pq,mjq->mij", J, cov, J)  # (M, 2, 2) pixel covariance
-    px = np.sqrt(np.maximum(np.trace(C, axis1=1, axis2=2), 0.0))
-    G = _ground_maps(camera, roi_points, on_ground)
-    Cg = np.einsum("gij,gjk,glk->gil", G, C[on_ground], G)
-    cm = 100.0 * np.sqrt(np.maximum(np.trace(Cg, axis1=1, axis2=2), 0.0))
-    return px, cm
+    lin = _linearise(camera, samples, sigma_3d, noise.sigma_px, roi_points, on_ground)
+    return _roi_noise(camera, lin, noise.model, len(samples))
 
 
 def lens_draws(camera: Camera, nominal: np.ndarray, radius_needed: float, n: int = N_LENS_DRAWS, seed: int = 0) -> np.ndarray:
@@ -257,7 +286,7 @@ def extrapolation_roi(camera: Camera, samples: np.ndarray, roi_points: np.ndarra
     for name, i in {"k1": 0, "k2": 1, "p1": 2, "p2": 3, "k3": 4}.items():
         if name not in mdl.free_names():
             start.distortion[:, i] = 0.0  # the fit cannot hold it: it starts (and stays) at 0
-    fit, _, _ = levenberg_marquardt(start, S[None], pix, A, max_iterations=40, tolerance=1e-9)
+    fit, _, _ = levenberg_marquardt(start, S[None], pix, A, max_iterations=30, tolerance=1e-8)
     uv_true = project_k4(camera, draws, roi_points)
     uv_fit = project_batch(fit.intrinsics, fit.distortion, fit.R, fit.t, roi_points[None])
     diff = uv_fit - uv_true  # (D, M, 2)
@@ -290,8 +319,9 @@ def predict_roi(camera: Camera, samples: np.ndarray, samples_sigma_h_m: np.ndarr
     # with the full model allowed, both it and k1k2p1p2 are scored and the better prediction is the expected fit
     models = [cap, "k1k2p1p2"] if (noise.model == "auto" and cap == "full") else [cap]
     best = None
+    lin = _linearise(camera, samples, s3, noise.sigma_px, roi_points, on_ground)
     for model in models:
-        px_lin, cm_lin = linearised_roi(camera, samples, s3, roi_points, on_ground, replace(noise, model=model))
+        px_lin, cm_lin = _roi_noise(camera, lin, model, len(samples))
         if draws is None:
             px_ex, cm_ex = np.zeros_like(px_lin), np.zeros_like(cm_lin)
         elif extrap_cache is not None and (cache_key, model) in extrap_cache:
