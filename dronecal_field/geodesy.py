@@ -21,6 +21,11 @@ class EnuOrigin:
     lon_deg: float
     h_m: float
 
+    def __post_init__(self) -> None:
+        # numpy scalars would print as "np.float64(...)" inside the PROJ pipeline string
+        for name in ("lat_deg", "lon_deg", "h_m"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+
     def as_list(self) -> list[float]:
         return [self.lat_deg, self.lon_deg, self.h_m]
 
@@ -33,7 +38,7 @@ def _transformers(lat_deg: float, lon_deg: float, h_m: float):
         "+proj=pipeline "
         "+step +proj=unitconvert +xy_in=deg +xy_out=rad "
         "+step +proj=cart +ellps=WGS84 "
-        f"+step +proj=topocentric +ellps=WGS84 +lat_0={lat_deg!r} +lon_0={lon_deg!r} +h_0={h_m!r}"
+        f"+step +proj=topocentric +ellps=WGS84 +lat_0={float(lat_deg)!r} +lon_0={float(lon_deg)!r} +h_0={float(h_m)!r}"
     )
     forward = Transformer.from_pipeline(pipeline)
     return forward
