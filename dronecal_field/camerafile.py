@@ -36,8 +36,15 @@ def write_camera(
     import cv2
 
     path = Path(path)
+    if not path.parent.is_dir():
+        raise InputError(f"cannot write camera file {path}: folder {path.parent} does not exist; create it or choose another path")
     tmp = path.with_name(path.name + ".tmp.yaml")
-    fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
+    try:
+        fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
+    except (cv2.error, SystemError) as exc:
+        raise InputError(f"cannot write camera file {path} ({exc}): check the folder is writable") from None
+    if not fs.isOpened():
+        raise InputError(f"cannot write camera file {path}: check the folder is writable")
     try:
         if comment:
             for line in comment.splitlines():
@@ -74,7 +81,7 @@ def read_camera(path: str | os.PathLike) -> Camera:
         raise InputError(f"camera file {path} does not exist: pass the camera.yaml written by calibrate or the simulator")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
+    except (cv2.error, SystemError) as exc:  # a binary or broken file surfaces as SystemError from the binding
         raise InputError(f"camera file {path} is not OpenCV FileStorage YAML ({exc.msg.strip() if hasattr(exc, 'msg') else exc}): regenerate it") from None
     try:
         def mat(key: str, shape: tuple[int, ...] | None, required: bool = True) -> np.ndarray | None:
@@ -106,6 +113,8 @@ def read_camera(path: str | os.PathLike) -> Camera:
         fs.release()
     if not np.all(np.isfinite(K)) or not np.all(np.isfinite(R)) or not np.all(np.isfinite(position)):
         raise InputError(f"camera file {path} holds NaN or inf: regenerate it")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise InputError(f"camera file {path}: focal length fx {K[0, 0]:g}, fy {K[1, 1]:g} px must be positive: fix camera_matrix")
     return Camera(
         intrinsics=Intrinsics(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=width, height=height),
         distortion=Distortion.from_array(dist),

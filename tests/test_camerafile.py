@@ -41,3 +41,37 @@ def test_camera_without_polygon_reads_none_and_a_bad_polygon_is_refused(tmp_path
     write_camera(path, cam, validity_polygon_px=np.array([[0.0, 0.0], [1.0, 1.0]]))
     with pytest.raises(InputError, match="validity_polygon_px"):
         read_validity_polygon(path)
+
+
+@pytest.mark.parametrize("case", ["binary", "broken_yaml", "zero_focal", "negative_focal"])
+def test_a_bad_camera_file_is_one_input_error(tmp_path, case):
+    import os
+
+    from dronecal_field.camerafile import read_camera, write_camera
+    from dronecal_field.core.synthetic import paper_camera
+    from dronecal_field.errors import InputError
+
+    path = tmp_path / "camera.yaml"
+    if case == "binary":
+        path.write_bytes(os.urandom(300))
+    elif case == "broken_yaml":
+        path.write_text("%YAML:1.0\n---\nimage_width: [1, 2\ncamera_matrix: {\n")
+    else:
+        write_camera(path, paper_camera(distorted=False))
+        fx = "0." if case == "zero_focal" else "-1110."
+        text = path.read_text()
+        start = text.index("data: [", text.index("camera_matrix")) + len("data: [")
+        path.write_text(text[:start] + fx + text[text.index(",", start):])
+    with pytest.raises(InputError) as err:
+        read_camera(path)
+    assert "\n" not in str(err.value) and str(path) in str(err.value)
+
+
+def test_writing_a_camera_into_a_missing_folder_is_one_input_error(tmp_path):
+    from dronecal_field.camerafile import write_camera
+    from dronecal_field.core.synthetic import paper_camera
+    from dronecal_field.errors import InputError
+
+    with pytest.raises(InputError, match="does not exist"):
+        write_camera(tmp_path / "missing" / "camera.yaml", paper_camera(distorted=False))
+    assert not (tmp_path / "missing").exists()
