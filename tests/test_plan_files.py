@@ -430,3 +430,13 @@ def test_a_zero_is_a_real_zero_or_an_error_never_the_default(tmp_path, capsys):
     assert json.loads((out / "plan.json").read_text())["limits"]["keep_out_m"] == 0.0
     rc, _ = run_plan(tmp_path, *WIDE, "--speed", "0", name="speed0")
     assert rc == 2 and "--speed 0 m/s" in capsys.readouterr().err
+
+
+def test_help_lists_the_new_flags(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["plan", "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for flag in ("--strategy", "--sampling", "--roi", "--roi-range", "--marker-sizes", "--exposure-s", "--gnss-hz", "--endurance"):
+        assert flag in out
+    assert "75 % of it" in out

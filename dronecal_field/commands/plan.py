@@ -32,15 +32,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--site", metavar="TOML", help="site file with the same keys as the flags (examples in missions/)")
     parser.add_argument("--out", metavar="DIR", required=True, help="output folder (written atomically; a previous plan folder is replaced)")
-    parser.add_argument("--scheduler", metavar="tcp://HOST:8786", help="score the candidates on this Dask scheduler's workers (default: in this process)")
+    parser.add_argument("--scheduler", metavar="tcp://HOST:8786", help="score the paper strategies' Monte-Carlo candidates on this Dask scheduler's workers (default: in this process; image layouts are scored here)")
     groups: dict[str, argparse._ArgumentGroup] = {}
     for spec in OPTIONS:
         group = groups.setdefault(spec.group, parser.add_argument_group(spec.group))
         default_text = "" if spec.default in (None, False) else f" (default {spec.default})"
+        text = (spec.help + default_text).replace("%", "%%")  # argparse formats help strings with %
         if spec.flag_only:
-            group.add_argument(spec.flag, dest=spec.key, action="store_true", default=None, help=spec.help)
+            group.add_argument(spec.flag, dest=spec.key, action="store_true", default=None, help=text)
         else:
-            group.add_argument(spec.flag, dest=spec.key, metavar=spec.metavar, default=None, help=spec.help + default_text)
+            group.add_argument(spec.flag, dest=spec.key, metavar=spec.metavar, default=None, help=text)
     parser.set_defaults(func=run)
 
 
