@@ -338,7 +338,8 @@ class Chosen:
     hold_s: np.ndarray
     leg: np.ndarray
     ordered: bool
-    leg_speed_m_s: float | None
+    leg_speed_m_s: float | None  # pass-through legs (``through``)
+    cruise_m_s: float | None  # every leg (``mixed``: fixes between holds need the leg speed); None = --speed
     samples_site: np.ndarray
     samples_sigma_h_m: np.ndarray
     samples_rtk_factor: np.ndarray
@@ -355,7 +356,8 @@ class Chosen:
         d = c.design
         return cls(name=c.name, text=d.params.describe(), strategy="image", marker_size_m=d.params.marker_size_m,
                    marker_site=d.marker_site, vehicle_site=d.vehicle_site, marker_px=d.marker_px, hold_s=d.hold_s, leg=d.leg,
-                   ordered=True, leg_speed_m_s=None if d.params.sampling == "hover" else d.speed_m_s,
+                   ordered=True, leg_speed_m_s=d.speed_m_s if d.params.sampling == "through" else None,
+                   cruise_m_s=d.speed_m_s if d.params.sampling == "mixed" else None,
                    samples_site=d.samples_site, samples_sigma_h_m=d.samples_sigma_h_m, samples_rtk_factor=d.samples_rtk_factor, image=c)
 
     @classmethod
@@ -364,7 +366,7 @@ class Chosen:
         n = len(pts)
         return cls(name=s.strategy.name, text=s.strategy.describe(), strategy="paper", marker_size_m=marker_size_m,
                    marker_site=pts, vehicle_site=s.screen.vehicle_points, marker_px=s.screen.marker_px[s.screen.keep],
-                   hold_s=np.full(n, float(hover_s)), leg=np.arange(n), ordered=False, leg_speed_m_s=None,
+                   hold_s=np.full(n, float(hover_s)), leg=np.arange(n), ordered=False, leg_speed_m_s=None, cruise_m_s=None,
                    samples_site=pts, samples_sigma_h_m=np.zeros(n), samples_rtk_factor=np.ones(n), heights_m=s.screen.heights_m, paper=s)
 
 
@@ -568,6 +570,8 @@ def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
         chosen, candidates, rows = _choose_paper(req, cam_site, client, warnings)
     prediction = predict_points_on_roi(cam_site, chosen.samples_site, roi, noise, draws, chosen.samples_sigma_h_m, chosen.samples_rtk_factor)
     limits = replace(req.limits, marker_size_m=chosen.marker_size_m)
+    if chosen.cruise_m_s is not None:
+        req = replace(req, flight=replace(req.flight, speed_m_s=min(req.flight.speed_m_s, chosen.cruise_m_s)))
     routes, flight_of = _flights(req, chosen, limits)
     if len(routes) > 1:
         warnings.append(f"the plan takes {sum(r.flight_time_s for r in routes) / 60:.1f} min: split into {len(routes)} flights "

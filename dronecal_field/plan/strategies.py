@@ -317,8 +317,10 @@ def score_image_candidates(
         ft = None
         if d.n_points:
             try:
-                route = plan_route(d.vehicle_site, d.marker_site, lim, flight, takeoff_site=takeoff_site, end=end, hold_s=d.hold_s,
-                                   ordered=True, leg_speed_m_s=None if p.sampling == "hover" else d.speed_m_s)
+                # mixed: the fixes between holds are only sharp if every leg is flown at the leg speed
+                fl = replace(flight, speed_m_s=min(flight.speed_m_s, d.speed_m_s)) if p.sampling == "mixed" else flight
+                route = plan_route(d.vehicle_site, d.marker_site, lim, fl, takeoff_site=takeoff_site, end=end, hold_s=d.hold_s,
+                                   ordered=True, leg_speed_m_s=d.speed_m_s if p.sampling == "through" else None)
                 ft = route.flight_time_s
             except PlanError as exc:
                 problem = problem or str(exc)
