@@ -617,32 +617,58 @@ def _solve(points: list[WaypointPoint], md, options: CalibrateOptions, previous=
     return result, "--model given"
 
 
+@dataclass(frozen=True, eq=False)
+class PairingInputs:
+    """What every re-pairing uses unchanged: the windows, the legs, the detections and the options."""
+
+    windows: list[HoverWindow]
+    legs: list[Leg]
+    dets: Detections
+    offset_frd_m: np.ndarray  # (3,)
+    marker_size_m: float | None
+    md: object  # runfile.RunMetadata
+    options: CalibrateOptions
+
+
+def _pair_and_solve(inp: PairingInputs, track: Track, attitude: tuple, centres: np.ndarray, timing: Timing, previous=None):
+    """Stages 5 and 6 once: (points, CalibrationResult, model reason)."""
+    points = _points(track, attitude, inp.offset_frd_m, inp.windows, inp.legs, inp.dets, centres, timing, inp.marker_size_m, inp.options)
+    return (points, *_solve(points, inp.md, inp.options, previous))
+
+
+def _level_towards(track: Track, offset_frd_m: np.ndarray, camera_position: np.ndarray) -> tuple[Track, tuple]:
+    """Without attitude: the marker track for level flight with the nose at the camera (what DO_SET_ROI does)."""
+    ant = track.antenna_enu_m
+    yaw = np.arctan2(camera_position[0] - ant[:, 0], camera_position[1] - ant[:, 1])
+    rpy = np.c_[np.zeros(len(yaw)), np.zeros(len(yaw)), yaw]
+    marker = ant + lever_arm_enu(offset_frd_m, rpy)
+    return replace(track, marker_enu_m=marker, velocity_enu_mps=track_velocity(track.t_ns, marker)), (track.t_ns, rpy)
+
+
+def _measured_noise(points: list[WaypointPoint], track: Track, dets: Detections, centres: np.ndarray, timing: Timing, result, options) -> FixNoise | None:
+    """The per-fix noise from the residuals through the final camera, scaled for the parameters the fit spent on them."""
+    noise = estimate_fix_noise(_fix_residuals(points, track, dets, centres, timing, result.camera, options.points.pair_max_gap_s))
+    if noise is None:
+        return None
+    n_eq = 2 * len([p for p in points if p.used])
+    scale = float(np.sqrt(n_eq / max(n_eq - result.model.n_free, 1)))
+    return replace(noise, sigma_white_m=noise.sigma_white_m * scale, sigma_corr_m=noise.sigma_corr_m * scale)
+
+
 def _points_and_solve(read: TrackRead, windows, legs, dets: Detections, offset: TimeOffset, md, options: CalibrateOptions) -> Solved:
     """Stages 5-6 with their refinements: points -> solve; without attitude the lever arm facing the
     camera; centres again under the distortion; on legs the offset and rolling shutter refined
-    through the camera; points -> solve again."""
+    through the camera (twice); the noise measured on the residuals sets the points' sigmas."""
+    inp = PairingInputs(windows, legs, dets, read.offset_frd_m, md.marker.size_m if md.marker.kind == "aruco" else None, md, options)
     warnings: list[str] = []
     track, attitude, attitude_source = read.track, read.attitude, read.attitude_source
-    marker_size_m = md.marker.size_m if md.marker.kind == "aruco" else None
     timing = Timing(offset.offset_s, offset.std_s, 0.0, None, 0.0, "not estimated", n_points=offset.n_points)
     centres = dets.uv_px
-
-    def run(tr: Track, tm: Timing, c: np.ndarray, previous=None):
-        pts = _points(tr, attitude, read.offset_frd_m, windows, legs, dets, c, tm, marker_size_m, options)
-        return (pts, *_solve(pts, md, options, previous))
-
-    points, result, reason = run(track, timing, centres)
+    points, result, reason = _pair_and_solve(inp, track, attitude, centres, timing)
     if attitude[0] is None and np.linalg.norm(read.offset_frd_m) > 0:
-        # No attitude: assume level flight with the nose at the camera (the
-        # mission's DO_SET_ROI), which the first calibration has located.
-        centre = result.camera.pose.position_world
-        ant = track.antenna_enu_m
-        yaw = np.arctan2(centre[0] - ant[:, 0], centre[1] - ant[:, 1])
-        rpy = np.c_[np.zeros(len(yaw)), np.zeros(len(yaw)), yaw]
-        marker = ant + lever_arm_enu(read.offset_frd_m, rpy)
-        track = replace(track, marker_enu_m=marker, velocity_enu_mps=track_velocity(track.t_ns, marker))
-        attitude = (track.t_ns, rpy)
-        points, result, reason = run(track, timing, centres)
+        # The first calibration located the camera the nose pointed at.
+        track, attitude = _level_towards(track, read.offset_frd_m, result.camera.pose.position_world)
+        points, result, reason = _pair_and_solve(inp, track, attitude, centres, timing)
         attitude_source = "none in the run: assumed level with the nose towards the calibrated camera"
         warnings.append("no attitude in the run: the marker lever arm assumes level flight facing the camera")
     method = "diagonals' crossing" if md.marker.kind == "aruco" else "blob centroid"
@@ -653,9 +679,9 @@ def _points_and_solve(read: TrackRead, windows, legs, dets: Detections, offset: 
         centres = centres_under_distortion(np.array(corners), np.array([i.fx, i.fy, i.cx, i.cy]), result.camera.distortion.as_array())
         method = "diagonals' crossing under the first calibration's distortion"
         if not legs:
-            points, result, reason = run(track, timing, centres)
+            points, result, reason = _pair_and_solve(inp, track, attitude, centres, timing)
     if legs:
-        speed = max((float(np.nanmax(np.linalg.norm(track.velocity_enu_mps, axis=1))) if len(track.t_ns) else 0.0), 0.0)
+        speed = float(np.nanmax(np.linalg.norm(track.velocity_enu_mps, axis=1), initial=0.0)) if len(track.t_ns) else 0.0
         for final in (False, True):  # the camera absorbed part of the timing error: refine, solve, once more
             timing = refine_timing(
                 result.camera.project, dets.t_ns, centres, track.t_ns, track.marker_enu_m, timing.offset_s, md.height,
@@ -663,21 +689,16 @@ def _points_and_solve(read: TrackRead, windows, legs, dets: Detections, offset: 
             )
             if timing.offset_std_s is None:
                 timing = replace(timing, offset_std_s=offset.std_s)
-            points, result, reason = run(track, timing, centres, None if final else (result, reason))
+            points, result, reason = _pair_and_solve(inp, track, attitude, centres, timing, None if final else (result, reason))
         if timing.rolling_shutter != "estimated" and timing.bound_m is not None and options.max_readout_s > 0:
             warnings.append(
                 f"rolling shutter not observable from these legs: a readout up to {options.max_readout_s * 1000:.0f} ms would move "
                 f"the marker by up to {100 * timing.bound_m:.1f} cm between the top and bottom rows; fly legs at several image rows "
                 "in both directions to estimate it"
             )
-    # The noise as it really is (white and correlated parts, from the residuals): the points' sigmas follow it.
-    noise = estimate_fix_noise(_fix_residuals(points, track, dets, centres, timing, result.camera, options.points.pair_max_gap_s))
-    if noise is not None:
-        # Residuals are smaller than the noise by the parameters the fit spent on them.
-        n_eq = 2 * len([p for p in points if p.used])
-        scale = float(np.sqrt(n_eq / max(n_eq - result.model.n_free, 1)))
-        noise = replace(noise, sigma_white_m=noise.sigma_white_m * scale, sigma_corr_m=noise.sigma_corr_m * scale)
-        points = _points(track, attitude, read.offset_frd_m, windows, legs, dets, centres, timing, marker_size_m, options, noise)
+    noise = _measured_noise(points, track, dets, centres, timing, result, options)
+    if noise is not None:  # same points, honest sigmas: no new solve
+        points = _points(track, attitude, read.offset_frd_m, windows, legs, dets, centres, timing, inp.marker_size_m, options, noise)
     return Solved(
         points=points, result=result, model_reason=reason, track=track, attitude_source=attitude_source,
         centres=method, timing=timing, warnings=warnings, noise=noise,
