@@ -163,3 +163,51 @@ def test_gnss_rate_counts_new_fixes_and_warns_below_8_hz():
 def test_preflight_video_without_frames_fails():
     results = evaluate_preflight(GOOD, MISSION, VideoStatus(url="rtsp://cam/1", frames=0))
     assert [r.detail for r in results if not r.ok] == ["rtsp://cam/1 opened but sent no frame; check the camera stream"]
+
+
+def test_fly_records_leg_events_and_fixes_at_their_own_time(tmp_path, capsys):
+    # A mission whose middle waypoints are flown through (hold 0): fly writes a "leg" event from
+    # each waypoint reached to the next, and one /gnss/fix per new GPS_RAW_INT.time_usec stamped
+    # at that time on the run clock.
+    from dronecal_field.cli import main
+    from test_mavlink_support import plan_document
+
+    doc = plan_document([(-3.0, 5.0, 2.0), (3.0, 5.0, 2.0), (3.0, 8.0, 3.0), (-3.0, 8.0, 3.0)], hold_s=0.0, speed_mps=2.0)
+    navs = [item for item in doc["mission"]["items"] if item["command"] == 16]
+    navs[0]["params"][0] = 2.0  # hold at the first and the last waypoint only
+    navs[-1]["params"][0] = 2.0
+    plan = tmp_path / "legs.plan"
+    plan.write_text(json.dumps(doc))
+    sim = start_sim(speedup=5.0, boot_s=0.5)
+    camera = MjpegServer(fps=15)
+    out = tmp_path / "legs.mcap"
+    try:
+        rc = main(["fly", "--connect", sim.addresses()[0], "--mission", str(plan), "--video", camera.url, "--out", str(out), "--marker-size", "0.3", "--start"])
+    finally:
+        camera.close()
+        sim.stop()
+    assert rc == 0, capsys.readouterr().out[-2000:]
+    with open_run(out) as run:
+        events = [e for e in run.iter_events() if e.type == "leg"]
+        hovers = [e for e in run.iter_events() if e.type == "hover"]
+        raw = [(t, f["time_usec"]) for _n, t, f in run.iter_mavlink({"GPS_RAW_INT"}) if f["fix_type"] >= 2]
+        fixes = list(run.iter_fixes())
+    seqs = [(int(e.metadata["seq_from"]), int(e.metadata["seq_to"])) for e in events]
+    first = int(navs[0]["doJumpId"])  # mission seq: the QGC items (numbered from 1) follow home (seq 0)
+    assert seqs == [(first, first + 1), (first + 1, first + 2), (first + 2, first + 3)]
+    assert len(hovers) == 2
+    # Legs of 6, 3.2 and 6 m at 2 m/s (vehicle time) at a 5x speedup, end to end in time.
+    rate = float(events[0].metadata["vehicle_clock_rate"])
+    assert rate == pytest.approx(5.0, rel=0.1)
+    durations = [e.duration_ns / 1e9 * rate for e in events]
+    assert durations[1] == pytest.approx(3.2 / 2.0, rel=0.35) and all(2.0 < d < 6.0 for d in (durations[0], durations[2]))
+    assert all(b.timestamp_ns == pytest.approx(a.end_ns, abs=5e7) for a, b in zip(events, events[1:]))
+    assert events[-1].end_ns <= hovers[-1].timestamp_ns + 5e7  # the leg ends where the last hold begins
+    # One fix per time_usec, each stamped no later than the message that brought it.
+    usec = np.array([u for _t, u in raw])
+    assert len(fixes) == len(np.unique(usec))
+    first_arrival = {}
+    for t, u in raw:
+        first_arrival.setdefault(u, t)
+    lags = np.array([first_arrival[u] - f.timestamp_ns for u, f in zip(sorted(first_arrival), fixes)])
+    assert np.all(lags >= 0) and np.median(lags) < 50e6
