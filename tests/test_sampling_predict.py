@@ -95,3 +95,18 @@ def test_combined_is_the_root_sum_square_and_the_paper_grid_scores_worse_on_the_
     paper = screen_grid(recommended_strategy(cam), cam, lim).points
     pp = predict_roi(cam, paper, np.zeros(len(paper)), P, G, NoiseModel(), draws)
     assert pp.combined_rms_px > 1.3 * pred.combined_rms_px
+
+
+def test_fast_covariance_is_the_engine_formula():
+    """The noise term's sandwich (two BLAS products) equals core.uncertainty.parameter_covariance."""
+    from dronecal_field.core.uncertainty import parameter_covariance
+    from dronecal_field.sampling.predict import fast_parameter_covariance
+
+    cam = paper_camera()
+    roi = build_roi(cam, RoiSpec())
+    d = design_sampling(cam, roi, DesignParams(sampling="through"), Limits(max_search_height_m=5.0))
+    s3 = np.abs(np.random.default_rng(0).normal(0.01, 0.003, (len(d.samples_site), 3)))
+    for model in ("default", "full"):
+        ref = parameter_covariance(cam, d.samples_site, s3, 2.0, model)
+        fast = fast_parameter_covariance(cam, d.samples_site, s3, 2.0, model)
+        assert np.allclose(fast, ref, rtol=1e-5, atol=1e-6 * np.abs(ref).max())

@@ -33,7 +33,7 @@ from dronecal_field.core.camera import Camera, project_batch, project_batch_jaco
 from dronecal_field.sampling.lattice import PLAN_FOLD_MIN_SLOPE, fold_radius
 
 N_LENS_DRAWS = 16
-MAX_FIT_POINTS = 200  # samples used by the extrapolation fits (noise-free: more add nothing)
+MAX_FIT_POINTS = 150  # samples used by the extrapolation fits (noise-free: more add nothing)
 
 
 @dataclass(frozen=True)
@@ -141,34 +141,44 @@ def _ground_maps(camera: Camera, roi_points: np.ndarray, on_ground: np.ndarray) 
 
 @dataclass(frozen=True, eq=False)
 class _Linearisation:
-    """What the noise term needs and no model changes: sample and ROI Jacobians, image noise blocks, ground maps."""
+    """What the noise term needs and no model changes, in the full 15-parameter space.
 
-    J_samples: np.ndarray  # (S, 2, 15)
-    blocks: np.ndarray  # (S, 2, 2) each sample's image noise covariance, px^2
-    J_roi: np.ndarray  # (M, 2, 15)
-    ground_maps: np.ndarray  # (G, 2, 2)
+    ``JtJ`` = J^T J and ``JtSJ`` = J^T Sigma J (15, 15) over the samples (Sigma:
+    each sample's image noise, its pixel noise plus its 3D noise pushed through
+    the projection); a model's free parameters ``A`` (15, m) then only need
+    A^T JtJ A and A^T JtSJ A. ``J_roi`` (M, 2, 15), ``ground_maps`` (G, 2, 2).
+    """
+
+    JtJ: np.ndarray
+    JtSJ: np.ndarray
+    J_roi: np.ndarray
+    ground_maps: np.ndarray
     on_ground: np.ndarray  # (M,) bool
 
 
-def _linearise(camera: Camera, samples: np.ndarray, sigma_3d: np.ndarray, sigma_2d: float, roi_points: np.ndarray,
-               on_ground: np.ndarray) -> _Linearisation:
+def _jacobians(camera: Camera, samples: np.ndarray, roi_points: np.ndarray, on_ground: np.ndarray) -> tuple:
+    """Noise-independent pieces: sample Jacobians (u rows, v rows (S, 15), points (S, 2, 3)), J^T J, ROI Jacobians, ground maps."""
     P = np.asarray(samples, float)
     _, J, Jx = project_batch_jacobians(*camera.batch_arrays(), P[None])
-    s3 = np.broadcast_to(np.asarray(sigma_3d, float), (len(P), 3))
-    blocks = (float(sigma_2d) ** 2) * np.eye(2)[None] + np.einsum("nij,nj,nkj->nik", Jx[0], s3**2, Jx[0])
+    Ju, Jv = np.ascontiguousarray(J[0, :, 0]), np.ascontiguousarray(J[0, :, 1])  # (S, 15): the u and v rows
     _, Jr, _ = project_batch_jacobians(*camera.batch_arrays(), np.asarray(roi_points, float)[None], with_points=False)
-    return _Linearisation(J_samples=J[0], blocks=blocks, J_roi=Jr[0], ground_maps=_ground_maps(camera, roi_points, on_ground),
-                          on_ground=np.asarray(on_ground, bool))
+    return Ju, Jv, Jx[0], Ju.T @ Ju + Jv.T @ Jv, Jr[0], _ground_maps(camera, roi_points, on_ground)
+
+
+def _linearise(camera: Camera, samples: np.ndarray, sigma_3d: np.ndarray, sigma_2d: float, roi_points: np.ndarray,
+               on_ground: np.ndarray, jac: tuple | None = None) -> _Linearisation:
+    Ju, Jv, Jx, JtJ, Jr, G = _jacobians(camera, samples, roi_points, on_ground) if jac is None else jac
+    s3 = np.broadcast_to(np.asarray(sigma_3d, float), (len(Ju), 3))
+    B = (float(sigma_2d) ** 2) * np.eye(2)[None] + np.einsum("nij,nj,nkj->nik", Jx, s3**2, Jx)
+    # sum_i J_i^T B_i J_i with the 2x2 blocks' entries: two BLAS products
+    JtSJ = Ju.T @ (B[:, 0, 0, None] * Ju + B[:, 0, 1, None] * Jv) + Jv.T @ (B[:, 1, 0, None] * Ju + B[:, 1, 1, None] * Jv)
+    return _Linearisation(JtJ=JtJ, JtSJ=JtSJ, J_roi=Jr, ground_maps=G, on_ground=np.asarray(on_ground, bool))
 
 
 def _covariance(lin: _Linearisation, A: np.ndarray) -> np.ndarray:
     """(15, 15) (J^T J)^-1 J^T Sigma J (J^T J)^-1 over the free parameters ``A`` (15, m), mapped back."""
-    Jb = lin.J_samples @ A  # (S, 2, m)
-    n = len(Jb)
-    Jm = Jb.reshape(2 * n, -1)
-    middle = Jm.T @ (lin.blocks @ Jb).reshape(2 * n, -1)
-    JtJ_inv = np.linalg.pinv(Jm.T @ Jm)
-    return A @ (JtJ_inv @ middle @ JtJ_inv) @ A.T
+    JtJ_inv = np.linalg.pinv(A.T @ lin.JtJ @ A)
+    return A @ (JtJ_inv @ (A.T @ lin.JtSJ @ A) @ JtJ_inv) @ A.T
 
 
 def fast_parameter_covariance(camera: Camera, points: np.ndarray, sigma_3d: np.ndarray, sigma_2d: float, model: str) -> np.ndarray:
@@ -319,7 +329,12 @@ def predict_roi(camera: Camera, samples: np.ndarray, samples_sigma_h_m: np.ndarr
     # with the full model allowed, both it and k1k2p1p2 are scored and the better prediction is the expected fit
     models = [cap, "k1k2p1p2"] if (noise.model == "auto" and cap == "full") else [cap]
     best = None
-    lin = _linearise(camera, samples, s3, noise.sigma_px, roi_points, on_ground)
+    jac = None
+    if extrap_cache is not None:  # candidates with the same samples (through / mixed) share the Jacobians
+        jac = extrap_cache.get((cache_key, "jacobians"))
+        if jac is None:
+            jac = extrap_cache[(cache_key, "jacobians")] = _jacobians(camera, samples, roi_points, on_ground)
+    lin = _linearise(camera, samples, s3, noise.sigma_px, roi_points, on_ground, jac)
     for model in models:
         px_lin, cm_lin = _roi_noise(camera, lin, model, len(samples))
         if draws is None:
