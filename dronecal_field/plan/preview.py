@@ -93,7 +93,7 @@ def render_preview(result, path: str | os.PathLike) -> None:
     ax.set_xlabel("east of the pole (m)")
     ax.set_ylabel("north of the pole (m)")
     ax.set_title("top view (north up), zoomed on the flight")
-    ax.legend(loc="best", fontsize=7)
+    ax.legend(loc="best", fontsize=7, framealpha=0.5)
 
     # --- predicted image: ROI outline, markers, legs
     cam = result.camera_site
