@@ -517,6 +517,7 @@ class RunSpec:
     with_leg_events: bool = True  # a "leg" event per waypoint-to-waypoint segment of Flight.legs
     gnss_latency_s: float = 0.0  # fixes stamped this late (arrival); declared as gnss.latency_s when > 0
     quantise_fixes: bool = False  # lat/lon to 1e-7 deg and height to mm, as MAVLink GPS_RAW_INT carries them
+    with_gps_raw: bool = False  # /mavlink/GPS_RAW_INT beside each /gnss/fix, same stamp, time_usec = the fix's own time
 
 
 def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook, spec: RunSpec) -> dict:
@@ -565,11 +566,12 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
     geo = enu_to_geodetic(pos + noise, ORIGIN)
     if spec.quantise_fixes:
         geo = np.c_[np.round(geo[:, :2] * 1e7) / 1e7, np.round(geo[:, 2] * 1e3) / 1e3]
+    fix_usec = (fix_t - t_start) // 1000 + 10_000_000  # boot time of each fix (10 s after boot at the start)
     if spec.repeat_fixes > 1:
         period = int(round(1e9 / spec.gnss_hz / spec.repeat_fixes))
         idx = np.repeat(np.arange(len(fix_t)), spec.repeat_fixes)
         fix_t = fix_t[idx] + np.tile(np.arange(spec.repeat_fixes) * period, len(geo))
-        geo, sigma, fix_type = geo[idx], sigma[idx], fix_type[idx]
+        geo, sigma, fix_type, fix_usec = geo[idx], sigma[idx], fix_type[idx], fix_usec[idx]
     fix_t = fix_t + int(round(spec.gnss_latency_s * 1e9))
     for k, t in enumerate(fix_t):
         msg = LocationFix()
@@ -581,6 +583,12 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
         kv = msg.metadata.add()
         kv.key, kv.value = "fix_type", str(fix_type[k])
         records.append((int(t), "/gnss/fix", msg.SerializeToString()))
+        if spec.with_gps_raw:
+            raw = {
+                "time_usec": int(fix_usec[k]), "fix_type": 6, "lat": int(round(geo[k, 0] * 1e7)), "lon": int(round(geo[k, 1] * 1e7)),
+                "alt": int(round(geo[k, 2] * 1000)), "alt_ellipsoid": int(round(geo[k, 2] * 1000)), "_time_unix_ns": int(t),
+            }
+            records.append((int(t), "/mavlink/GPS_RAW_INT", json.dumps(raw).encode()))
 
     # Frames: captured at capture_t, stamped latency later.
     n_frames = int((t_end - t_start) * 1e-9 * spec.fps)
@@ -680,7 +688,7 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
         }
         if spec.with_events:
             channels["/events"] = writer.register_channel("/events", "protobuf", schema_ids["foxglove.Event"])
-        for name in ("MISSION_ITEM_REACHED", "ATTITUDE"):
+        for name in ("MISSION_ITEM_REACHED", "ATTITUDE", "GPS_RAW_INT"):
             topic = f"/mavlink/{name}"
             if any(r[1] == topic for r in records):
                 sid = writer.register_schema(f"mavlink.{name}", "jsonschema", b'{"type": "object"}')

@@ -226,3 +226,23 @@ def test_recorder_writes_one_fix_per_fix_time_stamped_at_the_fix(tmp_path):
     lla = np.array([[f.lat_deg, f.lon_deg, f.alt_m] for f in fixes])
     kept = distinct_fixes(np.array([f.timestamp_ns for f in fixes], np.int64), lla)
     assert kept.rule == "fix time" and int(kept.keep.sum()) == n_new and kept.n_equal_position_kept >= n_new // 2
+
+
+def test_arrival_stamped_fixes_are_told_apart_by_the_raw_time_usec(tmp_path):
+    # An older writer: each GPS_RAW_INT of a 10 Hz stream from a 5 Hz receiver becomes a /gnss/fix
+    # stamped at its arrival, with the raw message beside it. Repeats (same time_usec) are left out;
+    # new fixes at the position before them (a still hover, MAVLink quantisation) are kept.
+    camera = pole_camera()
+    flight = make_flight(camera, grid_waypoints(**WIDE_GRID), drift_m=0.003, seed=5)
+    spec = RunSpec(site_origin=ORIGIN, gnss_sigma_m=(0.0, 0.0, 0.0), quantise_fixes=True, repeat_fixes=2, with_gps_raw=True)
+    path = tmp_path / "raw.mcap"
+    write_run(path, camera, flight, MarkerLook(), spec)
+    plain = tmp_path / "plain.mcap"
+    write_run(plain, camera, flight, MarkerLook(), RunSpec(**{**spec.__dict__, "repeat_fixes": 1, "with_gps_raw": False}))
+    report = calibrate_run(path, CalibrateOptions(trials=0))
+    reference = calibrate_run(plain, CalibrateOptions(trials=0))
+    assert report.fix_identity.rule == "position and GPS_RAW_INT.time_usec"
+    assert report.fix_identity.n_repeats == len(reference.track.t_ns)  # every fix sent twice, once too many
+    assert report.fix_identity.n_equal_position_kept == reference.fix_identity.n_equal_position_kept > 50
+    assert len(report.track.t_ns) == len(reference.track.t_ns)
+    assert [p.n_fixes for p in report.hover_points] == [p.n_fixes for p in reference.hover_points]

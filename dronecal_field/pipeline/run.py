@@ -263,7 +263,10 @@ def _read_fixes(run) -> tuple[np.ndarray, np.ndarray, np.ndarray, list, Distinct
     types = [types[i] for i in order]
     t_ns = t_ns[order]
     stamping, latency = run.gnss_stamping
-    identity = distinct_fixes(t_ns, lla_a, _raw_fix_times(run, t_ns), arrival_stamped=stamping == "arrival")
+    # The raw messages only matter where a position repeats (reading them can mean a pass over every frame chunk).
+    repeats = len(t_ns) > 1 and bool(np.any(np.all(np.diff(lla_a, axis=0) == 0.0, axis=1) & (np.diff(t_ns) > 0)))
+    raw = _raw_fix_times(run, t_ns) if repeats else None
+    identity = distinct_fixes(t_ns, lla_a, raw, arrival_stamped=stamping == "arrival")
     if stamping == "arrival" and latency is not None:
         t_ns = t_ns - int(round(latency * 1e9))  # the fix is older than its arrival
     return t_ns, lla_a, sig_a, types, identity, (latency if stamping == "arrival" else None)
