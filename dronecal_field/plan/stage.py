@@ -607,7 +607,8 @@ def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
 
 def _choose_image(req: PlanRequest, cam_site: Camera, roi: Roi, noise: NoiseModel, draws: np.ndarray,
                   warnings: list[str]) -> tuple[Chosen, tuple, list[dict]]:
-    """Score the image-space candidates and pick: smallest marker that covers, then lowest ROI error within the battery."""
+    """Score the image-space candidates and pick: the smallest marker that covers the ROI; among the layouts that
+    cover it, the lowest ROI error within one battery, or, when none fits, within the fewest flights."""
     samplings = SAMPLINGS if req.sampling == "auto" else (req.sampling,)
     params = image_candidate_params(req.marker_sizes_m, samplings)
     cands = score_image_candidates(cam_site, roi, params, req.limits, req.flight, req.timing, noise, draws,
@@ -618,13 +619,14 @@ def _choose_image(req: PlanRequest, cam_site: Camera, roi: Roi, noise: NoiseMode
     best_cov = {m: max((c.design.coverage for c in usable if c.design.params.marker_size_m == m), default=-1.0) for m in req.marker_sizes_m}
     top = max(best_cov.values())
     size = min(m for m, v in best_cov.items() if v >= top - COVERAGE_SLACK)
-    pool = [c for c in usable if c.design.params.marker_size_m == size]
+    # only layouts that cover the ROI (within COVERAGE_SLACK of the best): one battery if one of them fits, else flights
+    pool = [c for c in usable if c.design.params.marker_size_m == size and c.design.coverage >= best_cov[size] - COVERAGE_SLACK]
     budget = req.choice_budget_s
     fit = [c for c in pool if c.flight_time_s is not None and c.flight_time_s <= budget]
-    if not fit:  # nothing fits one battery: the candidates needing the fewest flights (or one more)
+    if not fit:  # nothing that covers the ROI fits one battery: the layouts needing the fewest flights
         n_flights = {id(c): math.ceil((c.flight_time_s or math.inf) / budget) for c in pool}
         fewest = min(n_flights.values())
-        fit = [c for c in pool if n_flights[id(c)] <= fewest + 1]
+        fit = [c for c in pool if n_flights[id(c)] <= fewest]
     # the lowest predicted ROI error; within EQUIVALENT_ERROR of it, the shortest flight
     best = min(c.objective for c in fit)
     chosen = min((c for c in fit if c.objective <= EQUIVALENT_ERROR * best), key=lambda c: (c.flight_time_s, c.objective))
