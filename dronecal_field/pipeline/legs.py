@@ -264,7 +264,7 @@ def leg_points(
         inside = np.flatnonzero((fix_t >= leg.start_ns + trim) & (fix_t <= leg.end_ns - trim))
         if len(inside) == 0:
             continue
-        near = (tc >= leg.start_ns - 1_000_000_000) & (tc <= leg.end_ns + 1_000_000_000)
+        near = (tc >= leg.start_ns) & (tc <= leg.end_ns)  # the cubic must not reach round the corner into the next leg
         at, rate, valid = cubic_track_at(fix_t[inside], tc[near], uv[near], options.max_frame_gap_s)
         good = np.array([valid[j] and fix_rank(fix_types[i]) >= fix_rank(min_fix) for j, i in enumerate(inside)], bool)
         t_leg = fix_t[inside[good]] * 1e-9

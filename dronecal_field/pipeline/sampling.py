@@ -39,7 +39,7 @@ class SamplingOptions:
     dense_s: float = 2.0  # decode every frame this long into each transition
     dense_period_s: float = 1.0 / 15.0  # but no faster than this (15 Hz resolves a 1 s offset to ms)
     max_transitions: int = 10
-    leg_period_s: float = 0.15  # frames on a leg at most this often (every other frame at 10 fps: 4 bracket each 5 Hz fix)
+    leg_period_s: float = 0.25  # frames on a leg at most this often (every third frame at 10 fps: a smooth path, a cubic through 4)
 
 
 @dataclass
