@@ -4,9 +4,10 @@ Modules, in the order the stage uses them:
 
 - ``site``: the inputs (site file keys = CLI flags), the intrinsics guess from
   whatever the datasheet gives, the guessed :class:`~dronecal_field.core.camera.Camera`.
-- ``strategies``: the paper's sampling strategies as pure functions
-  (``paper_strategies``, ``sample_grid``, ``evaluate_strategy``), shared with
-  the survey.
+- ``strategies``: scoring of the candidates: the image-space layouts of
+  ``dronecal_field.sampling`` (region of interest, targets over its image
+  area, predicted ROI error) and the paper's strategies (re-exported from
+  ``sampling.lattice``, the one home that ``survey`` uses too).
 - ``route``: point order, keep-out detours, the flight-time model.
 - ``mission``: mission items and the files (QGC ``.plan``, ``QGC WPL 110``,
   GeoJSON) plus the JSON schema of the ``.plan`` subset we emit.

@@ -30,7 +30,7 @@ import numpy as np
 from dronecal_field.errors import PlanError
 
 if TYPE_CHECKING:  # strategies imports this module
-    from dronecal_field.plan.strategies import Limits
+    from dronecal_field.sampling.lattice import Limits
 
 
 @dataclass(frozen=True)
@@ -291,7 +291,7 @@ def plan_route(
     ----------
     vehicle : (N, 3) drone positions of the points, site frame, m
     marker : (N, 3) marker centres (only for grouping into levels), m
-    limits : ``plan.strategies.Limits`` (keep-out, range, geofence)
+    limits : ``sampling.lattice.Limits`` (keep-out, range, geofence)
     flight : timing model
     takeoff_site : (3,) take-off point on the ground, site frame; default beside the points
     end : 'land' (fly above the take-off point, NAV_LAND) or 'rtl'
