@@ -62,6 +62,11 @@ CAMERAS = {
 }
 
 
+# The 4K camera renders and encodes a frame in 30+ ms on one core (more while other jobs run): at 1x the
+# sim camera keeps 10 frames per vehicle second; 1080p keeps 20 fps wall, i.e. 10 per vehicle second at 2x.
+DEFAULT_SPEEDUP = {"wide": 2.0, "4k": 1.0, "table1": 2.0}
+
+
 def truth_camera(name: str):
     """The truth Camera of one of CAMERAS, ENU at the demo site's pole foot."""
     from dronecal_field.core.camera import Distortion
@@ -125,7 +130,12 @@ def predicted_roi_px(plan: dict) -> tuple[str | None, float | None]:
 
 
 def run_one(name: str, out: Path, args: argparse.Namespace, extra: list[str], echo=print) -> dict:
-    """plan -> simulators -> fly --start -> calibrate -> compare, for one camera; returns the numbers."""
+    """plan -> simulators -> fly --start -> calibrate -> compare, for one camera; returns the numbers.
+
+    With ``args.reuse`` a step whose output is already in ``out`` (plan.json,
+    a finished run.mcap, report.json) is not run again: the comparison can be
+    re-measured without flying.
+    """
     from dronecal_field.camerafile import read_camera, write_camera
     from dronecal_field.sim.compare import compare_cameras
 
@@ -136,35 +146,45 @@ def run_one(name: str, out: Path, args: argparse.Namespace, extra: list[str], ec
     truth = truth_camera(name)
     truth_path = out / "truth.yaml"
     write_camera(truth_path, truth, comment=f"simulator ground truth (bench_wholeview {name})")
+    times: dict[str, float] = {}
 
     plan_dir = out / "plan"
-    echo(f"[{name}] plan")
-    t = time.monotonic()
-    run_step("plan", plan_argv(name, plan_dir, args.camera_fps, args.strategy, args.sampling, extra), logs / "plan.log", timeout_s=600)
-    plan_s = time.monotonic() - t
+    if not (args.reuse and (plan_dir / "plan.json").is_file()):
+        echo(f"[{name}] plan")
+        t = time.monotonic()
+        run_step("plan", plan_argv(name, plan_dir, args.camera_fps, args.strategy, args.sampling, extra), logs / "plan.log", timeout_s=600)
+        times["plan"] = time.monotonic() - t
     plan = json.loads((plan_dir / "plan.json").read_text())
-    mission = json.loads((plan_dir / "mission.plan").read_text())
+    mission_path = plan_dir / "mission.plan"
+    if not mission_path.is_file():  # split into flights: this bench flies (and calibrates) one run
+        mission_path = sorted(plan_dir.glob("mission-*.plan"))[0]
+    mission = json.loads(mission_path.read_text())
     home = tuple(mission["mission"]["plannedHomePosition"])
     marker = dict(MARKER, size_m=plan["marker"]["size_m"], offset_frd_m=tuple(plan["marker"]["offset_frd_m"]))
 
     wall_fps = args.camera_fps * args.speedup
-    echo(f"[{name}] fly: {plan.get('points')} points, {plan['flight']['flight_time_s'] / 60:.1f} min planned, "
-         f"speed-up {args.speedup:g}, camera {wall_fps:g} fps wall = {args.camera_fps:g} fps vehicle clock")
-    sims = start_simulators(truth_path, home, logs, args.speedup, wall_fps, marker)
     run_path = out / "run.mcap"
-    t = time.monotonic()
-    try:
-        sims.wait_ready(timeout_s=180)
-        run_step("fly", cli_argv("fly", "--connect", sims.vehicle_url, "--mission", plan_dir / "mission.plan", "--video",
-                                 sims.video_url, "--out", run_path, "--start", "--timeout-s", 3600),
-                 logs / "fly.log", timeout_s=4000)
-    finally:
-        sims.stop()
-    fly_wall_s = time.monotonic() - t
+    if not (args.reuse and run_path.is_file() and "recorded" in (logs / "fly.log").read_text()):
+        echo(f"[{name}] fly {mission_path.name}: {plan.get('points')} points, {plan['flight']['flight_time_s'] / 60:.1f} min planned, "
+             f"speed-up {args.speedup:g}, camera {wall_fps:g} fps wall = {args.camera_fps:g} fps vehicle clock")
+        sims = start_simulators(truth_path, home, logs, args.speedup, wall_fps, marker)
+        t = time.monotonic()
+        try:
+            sims.wait_ready(timeout_s=180)
+            run_step("fly", cli_argv("fly", "--connect", sims.vehicle_url, "--mission", mission_path, "--video",
+                                     sims.video_url, "--out", run_path, "--start", "--timeout-s", 3600),
+                     logs / "fly.log", timeout_s=4000)
+        finally:
+            sims.stop()
+        times["fly_wall"] = time.monotonic() - t
+        (out / "flight.json").write_text(json.dumps(dict(speedup=args.speedup, camera_fps=args.camera_fps)))
+    else:  # the flight's own clock rates, not this invocation's
+        flown = json.loads((out / "flight.json").read_text())
+        args = argparse.Namespace(**dict(vars(args), speedup=flown["speedup"], camera_fps=flown["camera_fps"]))
+        wall_fps = args.camera_fps * args.speedup
+    fly = fly_facts(logs / "fly.log", args.speedup)
 
-    echo(f"[{name}] calibrate")
     calib_dir = out / "calibration"
-    t = time.monotonic()
     row = dict(
         camera=name,
         strategy=args.strategy or plan.get("strategy", {}).get("candidate"),
@@ -175,25 +195,29 @@ def run_one(name: str, out: Path, args: argparse.Namespace, extra: list[str], ec
         camera_fps_wall=wall_fps,
         marker_size_m=marker["size_m"],
         plan=plan_facts(plan),
-        run=dict(fly_wall_s=fly_wall_s, flight_vehicle_s=fly_wall_s * args.speedup),
+        run=fly,
         calibration=None,
         comparison=None,
         measured_over_predicted=None,
         error=None,
+        times_s=times,
         out_dir=str(out),
     )
-    try:
-        run_step("calibrate", cli_argv("calibrate", run_path, "--out", calib_dir, "--trials", args.trials, "--min-fix", "rtk_fixed",
-                                       "--max-frames-per-window", int(24 * args.speedup),
-                                       # settle and hold are counted on the run (wall) clock: 1 vehicle second
-                                       "--settle-s", 1.0 / args.speedup),
-                 logs / "calibrate.log", timeout_s=1200)
-    except DronecalError:
-        # A refusal is a result (e.g. the points are coplanar): keep it in the table.
-        row["error"] = (logs / "calibrate.log").read_text().strip().splitlines()[-1]
-        row["times_s"] = dict(plan=plan_s, fly_wall=fly_wall_s, calibrate=time.monotonic() - t, total=time.monotonic() - t0)
-        return row
-    calibrate_s = time.monotonic() - t
+    if not (args.reuse and (calib_dir / "report.json").is_file()):
+        echo(f"[{name}] calibrate")
+        t = time.monotonic()
+        try:
+            run_step("calibrate", cli_argv("calibrate", run_path, "--out", calib_dir, "--trials", args.trials, "--min-fix", "rtk_fixed",
+                                           "--max-frames-per-window", int(24 * args.speedup),
+                                           # settle is counted on the run (wall) clock: 1 vehicle second
+                                           "--settle-s", 1.0 / args.speedup),
+                     logs / "calibrate.log", timeout_s=1200)
+        except DronecalError:
+            # A refusal is a result (e.g. the points are coplanar): keep it in the table.
+            row["error"] = (logs / "calibrate.log").read_text().strip().splitlines()[-1]
+            times["calibrate"] = time.monotonic() - t
+            return row
+        times["calibrate"] = time.monotonic() - t
     report = json.loads((calib_dir / "report.json").read_text())
     est_file = read_camera(calib_dir / "camera.yaml")
     est = in_enu_frame_of(est_file, truth.enu_origin)
@@ -203,15 +227,28 @@ def run_one(name: str, out: Path, args: argparse.Namespace, extra: list[str], ec
     roi_range = tuple(row["plan"]["roi_range_m"] or (3.0, 40.0))
     cmp_roi = compare_cameras(truth, est, None, ground_range_m=roi_range)
     roi_px = row["plan"]["predicted_roi_px"]
+    times["total"] = time.monotonic() - t0
     row.update(
-        run=dict(row["run"], **run_facts(report, calib_dir / "detections.csv")),
+        run=dict(fly, **run_facts(report, calib_dir / "detections.csv")),
         calibration=calibration_facts(report),
         comparison=asdict(cmp),
         comparison_roi_ground=dict(range_m=roi_range, px=asdict(cmp_roi.ground), cm_rms=cmp_roi.ground_error_cm_rms),
         measured_over_predicted=(cmp_roi.ground.rms_px / roi_px) if roi_px else None,
-        times_s=dict(plan=plan_s, fly_wall=fly_wall_s, calibrate=calibrate_s, total=time.monotonic() - t0),
     )
     return row
+
+
+def fly_facts(fly_log: Path, speedup: float) -> dict:
+    """Frames, fixes and duration of the recording from fly's last line; the flight in vehicle seconds."""
+    import re
+
+    text = fly_log.read_text() if fly_log.is_file() else ""
+    m = re.search(r"recorded .*?: (\d+) frames \((\d+) dropped\), (\d+) GNSS fixes.*? in ([0-9.]+) s", text)
+    if not m:
+        return dict(flight_vehicle_s=None)
+    frames, dropped, fixes, wall_s = int(m[1]), int(m[2]), int(m[3]), float(m[4])
+    return dict(frames=frames, dropped=dropped, gnss_fixes=fixes, record_wall_s=wall_s, flight_vehicle_s=wall_s * speedup,
+                camera_fps_wall_measured=frames / wall_s, camera_fps_vehicle_measured=frames / wall_s / speedup)
 
 
 def plan_facts(plan: dict) -> dict:
@@ -243,7 +280,7 @@ def run_facts(report: dict, detections_csv: Path) -> dict:
             size = [float(r["size_px"]) for r in csv.DictReader(f) if r.get("size_px")]
     return dict(
         windows=len(windows),
-        points_used=len(used),
+        points_used=report.get("calibration", {}).get("n_points", len(used)),
         detections_per_hold=spread("n_detections"),
         fixes_per_hold=spread("n_fixes"),
         marker_px_measured=[min(size), max(size)] if size else None,
@@ -274,13 +311,13 @@ def table(rows: list[dict]) -> str:
     """The markdown table of the runs."""
     head = ("camera | plan | points used/planned | flight min plan (run) | cover % | marker px plan (seen) | model | "
             "focal % | pp px | pos cm | rot deg | ground 3-30 m RMS / p95 / max px | sampled RMS px | image RMS px | "
-            "ground cm RMS / @5 / @15 / @30 | ROI px predicted / measured (ratio) | det/hold | calibrate claims")
+            "ground cm RMS / @5 / @15 / @30 | ROI px predicted / measured (ratio) | fps (vehicle) | det/hold | calibrate claims")
     lines = ["| " + head + " |", "|" + " --- |" * (head.count("|") + 1)]
     for r in rows:
         p, run = r["plan"], r["run"]
         plan_label = str(r["strategy"]) + (f"/{r['sampling']}" if r["sampling"] else "")
         first = [r["camera"], plan_label]
-        flight = f"{p['flight_time_s'] / 60:.1f} ({run['flight_vehicle_s'] / 60:.1f})"
+        flight = f"{p['flight_time_s'] / 60:.1f} ({_fmt(run['flight_vehicle_s'] and run['flight_vehicle_s'] / 60, '.1f')})"
         marker = f"{_fmt(p['marker_px'][0], '.0f')}-{_fmt(p['marker_px'][1], '.0f')}"
         if r["comparison"] is None:
             lines.append("| " + " | ".join(first + [f"-/{p['points']}", flight, _fmt(p.get("coverage_pct"), ".0f"), marker,
@@ -304,6 +341,7 @@ def table(rows: list[dict]) -> str:
             _fmt(c["sampled"]["rms_px"]) if c["sampled"] else "-", _fmt(c["image"]["rms_px"]),
             f"{_fmt(c['ground_error_cm_rms'], '.1f')} / {_fmt(at[5.0], '.1f')} / {_fmt(at[15.0], '.1f')} / {_fmt(at[30.0], '.1f')}",
             f"{_fmt(p['predicted_roi_px'])} / {_fmt(roi['px']['rms_px'])} ({_fmt(r['measured_over_predicted'])})",
+            _fmt(run.get("camera_fps_vehicle_measured"), ".1f"),
             f"{dph[0]:.0f}-{dph[2]:.0f}" if dph else "-", f"{claims}; {len(cal['warnings'] or [])} warnings",
         ]) + " |")
     return "\n".join(lines)
@@ -314,17 +352,21 @@ def main() -> None:
     parser.add_argument("--camera", nargs="+", choices=tuple(CAMERAS), default=["wide"], help="truth camera(s), run one after the other")
     parser.add_argument("--strategy", help="plan --strategy (only passed when given)")
     parser.add_argument("--sampling", help="plan --sampling hover|through|mixed (only passed when given)")
-    parser.add_argument("--speedup", type=float, default=2.0, help="vehicle seconds per wall second (default 2)")
+    parser.add_argument("--speedup", type=float,
+                        help="vehicle seconds per wall second (default 2; 1 for 4k, whose frames take 30+ ms to render)")
     parser.add_argument("--camera-fps", type=float, default=10.0,
                         help="camera frames per vehicle second, told to plan as --fps (default 10; the sim camera serves this x speed-up)")
     parser.add_argument("--trials", type=int, default=200, help="calibrate's Monte-Carlo trials (default 200)")
     parser.add_argument("--out", type=Path, default=Path("/tmp/wholeview"), help="output folder (default /tmp/wholeview)")
+    parser.add_argument("--reuse", action="store_true", help="skip the steps whose outputs are already in the run's folder")
     parser.add_argument("--label", help="sub-folder name of this run (default: the strategy/sampling)")
     args, extra = parser.parse_known_args()
     extra = [a for a in extra if a != "--"]
     label = args.label or "-".join(v for v in (args.strategy or "default", args.sampling) if v)
     rows = []
+    speedup = args.speedup
     for name in args.camera:
+        args.speedup = speedup or DEFAULT_SPEEDUP.get(name, 2.0)
         try:
             rows.append(run_one(name, args.out / f"{name}-{label}", args, extra, echo=lambda s: print(s, flush=True)))
         except DronecalError as exc:  # plan refused or the flight failed: say so, go on with the next camera
