@@ -434,17 +434,22 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
             ) from None
     detections: list[Detection] = []
     groups: list[int] = []
-    decoded = corrupt = found = 0
+    read = decoded = corrupt = found = 0
     others: set[int] = set()
     formats: set[str] = set()
     last: Detection | None = None
     before_last: Detection | None = None
     background = None  # one frame showing the marker, for the report's figure
     size_warned = False
-    counter = _Count()
-    for frame, group, image in _decoded_frames(run.iter_frames(selector.read_windows()), selector, decode_gray, counter):
+    for frame in run.iter_frames(selector.read_windows()):
+        read += 1
+        # Decisions use what was detected so far (a transition is decoded once its hold showed the marker).
+        decode, group = selector.wants(frame.timestamp_ns)
+        if not decode:
+            continue
         decoded += 1
         formats.add(frame.format)
+        image = decode_gray(frame.data)
         if image is None:
             corrupt += 1
             continue
@@ -470,7 +475,7 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
             before_last, last = last, res.detection
             background = image
     stats = FrameStats(
-        frames_read=counter.n,
+        frames_read=read,
         frames_decoded=decoded,
         frames_corrupt=corrupt,
         frames_with_marker=found,
@@ -497,35 +502,6 @@ def _predicted(last: Detection, before: Detection | None, t_ns: int) -> Detectio
         return last
     k = (t_ns - last.timestamp_ns) / (last.timestamp_ns - before.timestamp_ns)
     return replace(last, u_px=last.u_px + k * (last.u_px - before.u_px), v_px=last.v_px + k * (last.v_px - before.v_px))
-
-
-class _Count:
-    """Frames read so far (the decoding generator counts, the stage reports)."""
-
-    n = 0
-
-
-def _decoded_frames(frames, selector, decode, counter: _Count, lookahead: int = 3):
-    """(frame, group, image or None) for each frame the selector wants, decoded ``lookahead`` frames ahead
-    in a worker thread (OpenCV's decoder releases the GIL, so a 4K JPEG decodes while the previous
-    frame's marker is detected). The selector hears about detections that many frames late."""
-    import collections
-    from concurrent.futures import ThreadPoolExecutor
-
-    pending: collections.deque = collections.deque()
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="decode") as pool:
-        for frame in frames:
-            counter.n += 1
-            wanted, group = selector.wants(frame.timestamp_ns)
-            if not wanted:
-                continue
-            pending.append((frame, group, pool.submit(decode, frame.data)))
-            if len(pending) > lookahead:
-                f, g, job = pending.popleft()
-                yield f, g, job.result()
-        while pending:
-            f, g, job = pending.popleft()
-            yield f, g, job.result()
 
 
 def _align(dets: Detections, track: Track, md, options: CalibrateOptions) -> tuple[TimeOffset, list[str]]:
