@@ -122,7 +122,10 @@ def test_main_run_writes_every_output(main_run):
     assert "under the first calibration's distortion" in data["points"]["marker_centre"]  # the camera is distorted
 
     html = (out / "report.html").read_text()
-    assert html.count("data:image/png;base64,") == 5 and "<script" not in html
+    # residuals, coverage, Monte-Carlo, the two uncertainty maps, the ground plan of the region of validity
+    assert html.count("data:image/png;base64,") == 6 and "<script" not in html
+    assert "region of validity" in html and (out / "validity.geojson").is_file()
+    assert data["validity"]["polygon_px"] and 0 < data["validity"]["image_fraction"] <= 1
     assert "fit vs measured sigmas" in html and "from the fit's residuals" in html
 
     info = (out / "camera_info.yaml").read_text()

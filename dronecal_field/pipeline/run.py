@@ -202,6 +202,7 @@ class TrackRead:
     offset_frd_m: np.ndarray  # (3,)
     holds: dict[int, float] | None
     warnings: list[str]
+    plan_roi: object | None = None  # validity.PlanRoi of the plan.json attached to the run, in this ENU frame
 
 
 @dataclass(frozen=True, eq=False)
@@ -334,10 +335,26 @@ def _read_track(run, path: Path, options: CalibrateOptions) -> TrackRead:
         t_ns=fix_t, antenna_enu_m=antenna, marker_enu_m=marker, sigma_enu_m=fix_sigma, fix_types=fix_types,
         velocity_enu_mps=track_velocity(fix_t, marker),
     )
+    plan_roi = _plan_roi(run, origin, warnings)
     return TrackRead(
         track=track, identity=identity, gnss_latency_s=latency, origin=origin, origin_source=origin_source,
         attitude=attitude, attitude_source=attitude_source, offset_frd_m=offset_frd, holds=holds, warnings=warnings,
+        plan_roi=plan_roi,
     )
+
+
+def _plan_roi(run, origin: EnuOrigin, warnings: list[str]):
+    """The region of interest of the plan.json that ``fly`` attached to the run (None without one)."""
+    from dronecal_field.pipeline.validity import roi_from_plan
+
+    data = run.attachment("plan.json")
+    if not data:
+        return None
+    try:
+        return roi_from_plan(json.loads(data), origin)
+    except (ValueError, TypeError, KeyError) as exc:
+        warnings.append(f"the plan.json attached to the run has no usable region of interest ({exc}): checked against the visible ground only")
+        return None
 def _plan_info(run) -> tuple[dict[int, float] | None, tuple[float, float] | None]:
     """Hold seconds by mission seq and the camera (ROI) lat/lon from an attached QGC plan, if any."""
     data = run.attachment("mission.plan")
@@ -719,10 +736,12 @@ def _points_and_solve(read: TrackRead, windows, legs, dets: Detections, offset: 
     )
 
 
-def _uncertainty(camera, points: list[WaypointPoint], result, options: CalibrateOptions) -> Uncertainty:
-    """Stage 7: Monte-Carlo and linearised uncertainty, the maps and the ground homography."""
+def _uncertainty(camera, points: list[WaypointPoint], result, options: CalibrateOptions, origin: EnuOrigin | None = None,
+                 plan_roi=None) -> Uncertainty:
+    """Stage 7: Monte-Carlo and linearised uncertainty, the region of validity, the maps and the ground homography."""
     from dronecal_field.core.uncertainty import linearised, monte_carlo, parameter_covariance
     from dronecal_field.pipeline import maps
+    from dronecal_field.pipeline.validity import assess_validity
 
     used = [p for p in points if p.used]
     X = np.array([p.marker_enu_m for p in used])
@@ -731,9 +750,11 @@ def _uncertainty(camera, points: list[WaypointPoint], result, options: Calibrate
     mc = monte_carlo(camera, X, trials=options.trials, sigma_3d=s3, sigma_2d=s2, seed=options.seed, model=result.model) if options.trials >= 2 else None
     lin = linearised(camera, X, sigma_3d=s3, sigma_2d=s2, model=result.model)
     cov = parameter_covariance(camera, X, s3, s2, result.model)
+    region = assess_validity(result, cov, s3, s2, origin=origin, roi=plan_roi, loss_scale_px=options.loss_scale_px)
     return Uncertainty(
         monte_carlo=mc, linearised=lin, covariance=cov,
-        maps=maps.uncertainty_maps(camera, cov, seed=options.seed), homography=maps.ground_homography(camera),
+        maps=maps.uncertainty_maps(camera, cov, seed=options.seed, richer=region.richer_camera, richer_covariance=region.richer_covariance),
+        homography=maps.ground_homography(camera), validity=region,
     )
 
 
@@ -817,7 +838,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
     warnings += solved.warnings
     camera = solved.result.camera.with_(enu_origin=tuple(read.origin.as_list()))
     result = _with_camera(solved.result, camera)
-    unc = clock("uncertainty_s", _uncertainty, camera, solved.points, result, options)
+    unc = clock("uncertainty_s", _uncertainty, camera, solved.points, result, options, read.origin, read.plan_roi)
     report = CalibrationReport(
         run_path=path, truncated=truncated, run_warnings=run_warnings, metadata=md,
         origin=read.origin, origin_source=read.origin_source, altitude_datum=md.altitude_datum,
