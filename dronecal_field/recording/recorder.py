@@ -167,8 +167,9 @@ class RecordingReport:
     def summary(self) -> str:
         """One line for the operator."""
         return (
-            f"{self.frames_written} frames ({self.frames_dropped + self.frames_dropped_source} dropped), {self.fixes_written} GNSS fixes, "
-            f"{self.mavlink_messages} MAVLink messages, {self.hover_events} hover windows, {self.video_gaps} video gaps, "
+            f"{self.frames_written} frames ({self.frames_dropped + self.frames_dropped_source} dropped), {self.fixes_written} GNSS fixes"
+            + (f" ({self.fixes_repeated} repeats in the stream not written again)" if self.fixes_repeated else "")
+            + f", {self.mavlink_messages} MAVLink messages, {self.hover_events} hover windows, {self.leg_events} legs, {self.video_gaps} video gaps, "
             f"{self.link_losses} link losses in {self.duration_s:.1f} s"
             + (f" ({self.frames_discarded_at_start} frames from before the start not recorded)" if self.frames_discarded_at_start else "")
         )
