@@ -2,7 +2,8 @@
 
     .venv/bin/python benchmarks/bench_wholeview.py --camera wide
     .venv/bin/python benchmarks/bench_wholeview.py --camera wide 4k table1 --strategy image --sampling mixed
-    .venv/bin/python benchmarks/bench_wholeview.py --camera 4k --speedup 1.5 --camera-fps 10 -- --marker-size 0.6
+    .venv/bin/python benchmarks/bench_wholeview.py --camera 4k --strategy paper-far -- --max-agl 3
+    .venv/bin/python benchmarks/bench_wholeview.py --camera wide --label image --reuse    # re-measure, no flight
 
 Every command runs in its own process over real sockets, as ``make demo``
 does (dronecal_field/demo.py): the truth camera is written to truth.yaml,
@@ -26,12 +27,15 @@ The frame rate is kept honest: the simulated camera serves ``--camera-fps x
 --speedup`` frames per wall second, so it makes ``--camera-fps`` frames per
 VEHICLE second, and ``plan`` is told that rate (``--fps``). The table shows
 the frames per hold that calibrate found, and the rate the recording really
-got (frames / vehicle seconds): if the renderer cannot keep up (4K), lower
-``--speedup``.
+got (frames / vehicle seconds): if the renderer cannot keep up, lower
+``--speedup`` (default 2, and 1 for 4K: a 4K frame takes 30+ ms to render and
+encode). Settle time in calibrate is 1 vehicle second (``--settle-s`` counts
+on the run's wall clock).
 
 ``--strategy`` and ``--sampling`` go to ``plan`` only when given; anything
 after ``--`` goes to ``plan`` verbatim (options of plans to come). One table
-row per camera is printed, and everything is written to OUT/wholeview.json.
+row per camera is printed, and everything is written to
+OUT/wholeview-LABEL.json; each camera's files are in OUT/CAMERA-LABEL/.
 """
 
 from __future__ import annotations
