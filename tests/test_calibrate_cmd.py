@@ -60,3 +60,18 @@ def test_calibrate_help_is_fast_and_documents_the_outputs():
     assert proc.returncode == 0
     for word in ("camera.yaml", "--min-fix", "--model", "--annotate", "--trials"):
         assert word in proc.stdout
+
+
+@pytest.mark.parametrize("flag, value, names", [
+    ("--loss-scale-px", "0", "--loss-scale-px 0"),
+    ("--loss-scale-px", "nan", "--loss-scale-px nan"),
+    ("--settle-s", "-1", "--settle-s -1"),
+    ("--max-readout-s", "5", "--max-readout-s 5"),
+    ("--max-frames-per-window", "0", "--max-frames-per-window 0"),
+])
+def test_nonsense_options_are_refused_in_one_line(small_run, tmp_path, flag, value, names):
+    _, _, path, _ = small_run
+    proc = run_cli("calibrate", str(path), "--out", str(tmp_path / "out"), flag, value)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.count("\n") == 1 and names in proc.stderr
+    assert not (tmp_path / "out").exists()

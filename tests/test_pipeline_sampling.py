@@ -29,3 +29,12 @@ def test_a_short_hold_gets_its_frame_budget_and_a_long_one_stays_dense():
     sparse = _decoded_in(HoverWindow(index=0, start_ns=10 * S, end_ns=30 * S, source="event", seq=1),
                          options=SamplingOptions(max_period_s=10.0))
     assert np.diff(sparse).max() >= 0.9 * S
+
+
+def test_a_sped_up_one_second_hold_decodes_every_frame_it_has():
+    """A simulator at speed-up 3 turns a 3 s hold into 1 s of run time: its middle third holds ~5 frames at 15 fps."""
+    hold = HoverWindow(index=0, start_ns=10 * S, end_ns=11 * S, source="event", seq=1)
+    taken = _decoded_in(hold, fps=15.0)
+    assert len(taken) == 15  # every frame of the hold, not a 24-frame budget spread over its margins
+    # A real 3 s hold keeps its budget (frames about 0.23 s apart).
+    assert len(_decoded_in(HoverWindow(index=0, start_ns=10 * S, end_ns=13 * S, source="event", seq=1), fps=15.0)) <= 14

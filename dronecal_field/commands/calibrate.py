@@ -48,7 +48,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--hover-source", choices=("auto", "events", "reached", "track"), default="auto",
                         help="where hover windows come from (default: events, else MISSION_ITEM_REACHED, else the GNSS track)")
     parser.add_argument("--settle-s", type=float, default=1.0, help="seconds ignored at the start of each hold (default 1)")
-    parser.add_argument("--max-frames-per-window", type=int, default=24, help="frames decoded per hover window (default 24)")
+    parser.add_argument("--max-frames-per-window", type=int, default=24,
+                        help="frames decoded per hover window (default 24; a hold shorter than 2 s decodes every frame)")
+    parser.add_argument("--leg-source", choices=("auto", "events", "track", "none"), default="auto",
+                        help="fly-through legs: leg events, else straight constant-speed stretches of the GNSS track (auto, the default); none: holds only")
+    parser.add_argument("--max-readout-s", type=float, default=0.06, metavar="S",
+                        help="longest rolling-shutter readout searched, seconds (default 0.06; 0 for a global shutter)")
     parser.add_argument("--annotate", action="store_true", help="also write a copy of the run with the calibration and detections for Foxglove")
     batch = parser.add_argument_group("many runs (Dask)")
     batch.add_argument("--workers", type=int, default=None, metavar="N",
@@ -81,6 +86,8 @@ def _options(args: argparse.Namespace, out: Path | None):
         seed=args.seed,
         annotate=args.annotate,
         hover_source=args.hover_source,
+        leg_source=args.leg_source,
+        max_readout_s=args.max_readout_s,
         points=replace(PointOptions(), settle_s=args.settle_s, min_fix=args.min_fix),
         sampling=replace(SamplingOptions(), max_frames_per_window=args.max_frames_per_window),
     )
@@ -97,10 +104,14 @@ def run_single(args: argparse.Namespace, run_path: Path) -> int:
     i = cam.intrinsics
     mc = report.monte_carlo or report.linearised
     off = report.offset
-    dropped = [p for p in report.points if not p.used]
+    hover = getattr(report, "hover_points", report.points)
+    on_legs = getattr(report, "leg_points", [])
+    dropped = [p for p in hover if not p.used]
+    legs_text = (f" and {sum(1 for p in on_legs if p.used)} fix-by-fix pairs on {len(report.legs)} legs (from {report.leg_source})"
+                 if getattr(report, "legs", None) else "")
     lines = [
-        f"calibrated {run_path.name}: {len(report.used_points)} of {len(report.windows)} waypoints "
-        f"(windows from {report.window_source}), model {report.result.model.name}",
+        f"calibrated {run_path.name}: {sum(1 for p in hover if p.used)} of {len(report.windows)} waypoints "
+        f"(windows from {report.window_source}){legs_text}, model {report.result.model.name}",
         f"  fx {i.fx:.2f}  fy {i.fy:.2f}  cx {i.cx:.2f}  cy {i.cy:.2f} px;  distortion "
         + " ".join(f"{v:.4g}" for v in cam.distortion.as_array()),
         "  camera at ENU " + " ".join(f"{v:.3f}" for v in cam.pose.position_world) + " m",

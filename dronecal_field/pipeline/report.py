@@ -62,6 +62,34 @@ def _clean(value):
 # report.json
 
 
+def _legs_section(report) -> dict:
+    """The fly-through legs: where they came from, and the fix-by-fix pairs each one gave."""
+    legs = list(getattr(report, "legs", None) or [])
+    points = list(getattr(report, "leg_points", []))
+    by_leg: dict[int, list] = {}
+    first = len(report.windows)
+    for p in points:
+        by_leg.setdefault(p.window.index - first, []).append(p)
+    rows = []
+    for leg in legs:
+        pts = by_leg.get(leg.index, [])
+        rows.append({
+            "index": leg.index, "source": leg.source, "start_ns": leg.start_ns, "end_ns": leg.end_ns,
+            "duration_s": round(leg.duration_s, 3), "speed_m_s": leg.speed_mps,
+            "pairs": len(pts), "pairs_used": sum(1 for p in pts if p.used),
+        })
+    return {
+        "source": getattr(report, "leg_source", None),
+        "count": len(legs),
+        "pairs": len(points),
+        "pairs_used": sum(1 for p in points if p.used),
+        "pairing": "one pair per GNSS fix on a leg: the marker's ENU position with its pixel interpolated along the leg's "
+                   "image track at the fix instant (after the camera-GNSS offset and the rolling shutter); each pair's sigma "
+                   "includes its timing uncertainty",
+        "legs": rows,
+    }
+
+
 def report_dict(report) -> dict:
     """Every number of the report, JSON-ready (the content of report.json)."""
     from dronecal_field import __version__
@@ -73,8 +101,9 @@ def report_dict(report) -> dict:
     used = report.used_points
     residual_by_window = {p.window.index: res.residuals_px[i] for i, p in enumerate(used)}
     outlier_windows = {used[i].window.index for i in res.outliers}
+    hover = getattr(report, "hover_points", report.points)
     windows = []
-    for p in report.points:
+    for p in hover:
         w = p.window
         entry = {
             "index": w.index,
@@ -147,6 +176,7 @@ def report_dict(report) -> dict:
             "attitude": report.attitude_source,
             "fix_rate_hz": _fix_rate_hz(report),
             "repeated_fixes_left_out": report.fixes_repeated,
+            "fix_times": report.offset.gnss_times,
         },
         "points": {
             "pairing": (
@@ -159,10 +189,11 @@ def report_dict(report) -> dict:
         "hover_windows": {
             "source": report.window_source,
             "count": len(report.windows),
-            "used": len(used),
-            "dropped": [{"index": p.window.index, "seq": p.window.seq, "reason": p.dropped} for p in report.points if not p.used],
+            "used": sum(1 for p in hover if p.used),
+            "dropped": [{"index": p.window.index, "seq": p.window.seq, "reason": p.dropped} for p in hover if not p.used],
             "windows": windows,
         },
+        "legs": _legs_section(report),
         "frames": report.frames.to_dict(),
         "time_offset": report.offset.to_dict(),
         "calibration": {
@@ -355,7 +386,9 @@ def report_html(report, data: dict) -> str:
     summary = _table([
         ("run", f"{report.run_path.name}{' (cut off)' if report.truncated else ''}"),
         ("model", f"{cal['model']} ({cal['model_reason']})"),
-        ("points used / windows", f"{len(report.used_points)} / {len(report.windows)} (from {report.window_source})"),
+        ("hover points used / windows", f"{data['hover_windows']['used']} / {len(report.windows)} (from {report.window_source})"),
+        ("leg pairs used / legs", f"{data['legs']['pairs_used']} fix-by-fix pairs on {data['legs']['count']} legs"
+                                  + (f" (from {data['legs']['source']})" if data['legs']['count'] else "")),
         ("RMS reprojection", _fmt(cal["rms_px"], ".3f", " px")),
         ("fx, fy", f"{cam.intrinsics.fx:.2f}, {cam.intrinsics.fy:.2f} px"),
         ("cx, cy", f"{cam.intrinsics.cx:.2f}, {cam.intrinsics.cy:.2f} px"),
@@ -376,7 +409,7 @@ def report_html(report, data: dict) -> str:
     mc_rows = [(k, f"{v:.4g}") for k, v in mc_std.items() if v is not None]
     dropped = "".join(
         f"<tr><td>{p.window.index}</td><td>{'' if p.window.seq is None else p.window.seq}</td><td>{html.escape(p.dropped)}</td></tr>"
-        for p in report.points if not p.used
+        for p in getattr(report, "hover_points", report.points) if not p.used
     ) or "<tr><td colspan=3>none</td></tr>"
     warning_list = data["warnings"]
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in warning_list) or "<li>none</li>"

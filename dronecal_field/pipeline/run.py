@@ -16,6 +16,7 @@ only the detections are kept.
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -87,6 +88,16 @@ class CalibrateOptions:
             raise InputError(f"--leg-source {self.leg_source!r}: use one of {', '.join(LEG_SOURCES)}")
         if self.trials < 0 or self.trials == 1:
             raise InputError(f"--trials {self.trials}: use 0 to skip the Monte-Carlo, or at least 2 (the paper uses 500)")
+        if not (math.isfinite(self.loss_scale_px) and self.loss_scale_px > 0):
+            raise InputError(f"--loss-scale-px {self.loss_scale_px:g}: give the robust loss scale in pixels, e.g. 2")
+        if not (math.isfinite(self.max_readout_s) and 0 <= self.max_readout_s <= 0.2):
+            raise InputError(f"--max-readout-s {self.max_readout_s:g}: give a rolling-shutter readout of 0-0.2 s (0 for a global shutter)")
+        if not (math.isfinite(self.points.settle_s) and self.points.settle_s >= 0):
+            raise InputError(f"--settle-s {self.points.settle_s:g}: give the seconds left out at the start of each hold, 0 or more")
+        if self.sampling.max_frames_per_window < 1:
+            raise InputError(f"--max-frames-per-window {self.sampling.max_frames_per_window}: give at least 1 (24 is the default)")
+
+
 @dataclass(frozen=True, eq=False)
 class FrameStats:
     """What the detection pass saw."""

@@ -8,7 +8,8 @@ decodes:
   camera offset (the offset is not known yet), which give the points: up to
   ``max_frames_per_window``, but never further apart than ``max_period_s``
   (each GNSS fix is paired with the image track between frames, which must
-  bracket it closely; a long hold costs more frames); and
+  bracket it closely; a long hold costs more frames), and every frame inside
+  a hold shorter than ``short_hold_s``; and
 - every frame around a dozen transitions between consecutive windows, where
   the marker moves and the time alignment finds its signal. A transition is
   taken only once the window before it has shown the marker, so the frames
@@ -35,6 +36,7 @@ class SamplingOptions:
 
     max_frames_per_window: int = 24
     max_period_s: float = 0.4  # ... but frames in a window at most this far apart
+    short_hold_s: float = 2.0  # every frame inside a hold shorter than this (a sped-up simulator's 1 s hold)
     margin_s: float = 1.2  # each side of a window: covers a camera offset up to 1 s
     dense_s: float = 2.0  # decode every frame this long into each transition
     dense_period_s: float = 1.0 / 15.0  # but no faster than this (15 Hz resolves a 1 s offset to ms)
@@ -50,6 +52,11 @@ class _Zone:
     group: int
     dense: bool
     last_ns: int | None = None
+    every_from_ns: int | None = None  # every frame in [every_from_ns, every_to_ns] (a short hold)
+    every_to_ns: int | None = None
+
+    def covers_every(self, t_ns: int) -> bool:
+        return self.every_from_ns is not None and self.every_from_ns <= t_ns <= self.every_to_ns  # type: ignore[operator]
 
 
 class FrameSelector:
@@ -74,7 +81,13 @@ class FrameSelector:
         for k, w in enumerate(self.windows):
             a, b = w.start_ns - m, w.end_ns + m
             period = min(max(1, (b - a) // max(1, options.max_frames_per_window)), int(options.max_period_s * 1e9))
-            self._zones.append(_Zone(a, b, int(period), group=k, dense=False))
+            zone = _Zone(a, b, int(period), group=k, dense=False)
+            if w.end_ns - w.start_ns < options.short_hold_s * 1e9:
+                # The budget follows the frames the window has: a short hold's settled part holds a handful of
+                # frames, and skipping any leaves it without the three detections a point needs.
+                # The camera offset is not known yet (up to margin_s): the whole widened window.
+                zone.every_from_ns, zone.every_to_ns = a, b
+            self._zones.append(zone)
         leg_period = max(1, int(options.leg_period_s * 1e9))
         for k, (a, b) in enumerate(self.legs):
             self._zones.append(_Zone(a - m, b + m, leg_period, group=len(self.windows) + k, dense=True))
@@ -132,15 +145,17 @@ class FrameSelector:
         # Frames come in time order: zones that ended are done.
         self._zones = [z for z in self._zones if z.end_ns >= t_ns]
         best: _Zone | None = None
+        every = False  # inside a short hold (with its margin): every frame, whichever zone claims it
         for z in self._zones:
             if z.start_ns <= t_ns <= z.end_ns:
+                every = every or z.covers_every(t_ns)
                 if z.dense:
                     best = z
                     break
                 best = best or z
         if best is None:
             return False, None
-        if best.last_ns is not None and t_ns - best.last_ns < best.period_ns:
+        if not every and best.last_ns is not None and t_ns - best.last_ns < best.period_ns:
             return False, best.group
         best.last_ns = t_ns
         self.n_decoded += 1
