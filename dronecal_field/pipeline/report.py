@@ -67,9 +67,8 @@ def _legs_section(report) -> dict:
     legs = list(getattr(report, "legs", None) or [])
     points = list(getattr(report, "leg_points", []))
     by_leg: dict[int, list] = {}
-    first = len(report.windows)
     for p in points:
-        by_leg.setdefault(p.window.index - first, []).append(p)
+        by_leg.setdefault(p.window.seq, []).append(p)  # a leg pair's window is its fix; seq is its leg
     rows = []
     for leg in legs:
         pts = by_leg.get(leg.index, [])
