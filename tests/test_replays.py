@@ -171,3 +171,19 @@ def test_a_late_cut_still_calibrates(tmp_path):
     pp_sigma = float(np.hypot(std["cx"], std["cy"]))
     assert pp_sigma < 6.0
     assert pp_px < max(6.0, 3.0 * pp_sigma)
+
+
+def test_a_damaged_chunk_is_reported_in_the_cli_and_report_json(tmp_path):
+    """64 bytes flipped in the middle of the nominal replay: the calibration still runs and says what it skipped."""
+    src = (REPLAYS / MANIFEST["nominal"]["file"]).read_bytes()
+    damaged = bytearray(src)
+    middle = len(damaged) // 2
+    damaged[middle:middle + 64] = bytes(b ^ 0xFF for b in damaged[middle:middle + 64])
+    run = tmp_path / "damaged.mcap"
+    run.write_bytes(bytes(damaged))
+    proc = _calibrate(run, tmp_path / "out")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count("warning: run file: damaged chunk at byte") == 1
+    data = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert any(w.startswith("run file: damaged chunk at byte") for w in data["warnings"])
+    assert len(data["run"]["reader_warnings"]) == 1

@@ -823,8 +823,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
 
     clock = _Clock()
     with open_run(path) as run:
-        md, run_warnings = run.metadata, list(run.warnings)
-        warnings = [f"the run is cut off at byte {run.truncated_at}: using the complete part"] if run.truncated else []
+        md = run.metadata
         read = clock("read_track_s", _read_track, run, path, options)
         windows, window_source, notes = clock("hover_windows_s", _hover_windows, run, read.track.t_ns, read.track.antenna_enu_m, options, read.holds)
         legs, leg_source = clock("legs_s", _find_legs, run, read.track, windows, options)
@@ -835,8 +834,10 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
                 "nor flies straight for long): fly holds of a few seconds at each waypoint, or legs at constant speed"
             )
         dets = clock("detection_s", _detect_frames, run, windows, legs, md, options.sampling)
-        truncated = bool(run.truncated)
-    warnings += read.warnings + notes
+        # Damage is found while reading (a skipped chunk, a cut): take the reader's word after the frames, not at open.
+        truncated, run_warnings = bool(run.truncated), list(dict.fromkeys(run.warnings))  # each pass over a bad chunk says so again
+        warnings = [f"the run is cut off at byte {run.truncated_at}: using the complete part"] if truncated else []
+    warnings += [f"run file: {w}" for w in run_warnings] + read.warnings + notes
     if dets.size_mismatch:
         warnings.append(f"frames are not {md.width}x{md.height} as camera.width/height say")
     if dets.stats.frames_corrupt:
