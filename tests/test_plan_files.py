@@ -440,3 +440,21 @@ def test_help_lists_the_new_flags(capsys):
     for flag in ("--strategy", "--sampling", "--roi", "--roi-range", "--marker-sizes", "--exposure-s", "--gnss-hz", "--endurance"):
         assert flag in out
     assert "75 % of it" in out
+
+
+def test_planning_again_into_a_plan_folder_keeps_the_users_files(tmp_path):
+    """plan replaces only its own files: field notes and photos the surveyor put in the folder survive a re-plan."""
+    site = ["--site", str(MISSIONS / "paper-distorted.toml"), "--strategy", "paper-far"]
+    rc, out = run_plan(tmp_path, *site)
+    assert rc == 0
+    (out / "field-notes.txt").write_text("pole foot measured with the rover\n")
+    (out / "photos").mkdir()
+    (out / "photos" / "pole.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
+    (out / "mission-2.plan").write_text("{}")  # a stale flight of an earlier split plan: plan's own, replaced
+    rc, _ = run_plan(tmp_path, *site, "--hover", "4")
+    assert rc == 0
+    assert (out / "field-notes.txt").read_text() == "pole foot measured with the rover\n"
+    assert (out / "photos" / "pole.jpg").read_bytes() == b"\xff\xd8 not really a jpeg"
+    assert not (out / "mission-2.plan").exists()
+    wps = [it for it in json.loads((out / "mission.plan").read_text())["mission"]["items"] if it["command"] == 16]
+    assert max(it["params"][0] for it in wps) == 4.0  # the new plan (4 s holds) is in place

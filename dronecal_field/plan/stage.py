@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import tempfile
 from dataclasses import dataclass, field, replace
@@ -985,6 +986,20 @@ def mission_geojson(result: PlanResult) -> dict:
                               f"properties.alt_m are mission altitudes: {result.mission.alt_frame_text}")
 
 
+_PLAN_OUTPUT = re.compile(r"^mission(-\d+)?\.(plan|waypoints)$|^(mission\.geojson|plan\.json|camera_guess\.yaml|preview\.png)$")
+
+
+def _keep_user_files(old_plan: Path, new_plan: Path) -> None:
+    """Copy what the user put in an earlier plan folder (field notes, photos) into the new one: plan replaces only its own files."""
+    for entry in old_plan.iterdir():
+        if _PLAN_OUTPUT.match(entry.name) or (new_plan / entry.name).exists():
+            continue
+        if entry.is_dir():
+            shutil.copytree(entry, new_plan / entry.name, symlinks=True)
+        else:
+            shutil.copy2(entry, new_plan / entry.name, follow_symlinks=False)
+
+
 def write_plan(result: PlanResult, out_dir: str | os.PathLike) -> list[Path]:
     """Write the plan folder atomically; returns the written paths.
 
@@ -1022,6 +1037,7 @@ def write_plan(result: PlanResult, out_dir: str | os.PathLike) -> list[Path]:
                      comment=f"dronecal-field plan: GUESSED camera (not calibrated): {req.lens.focal_source}, distortion {req.lens.distortion_level}")
         render_preview(result, tmp / "preview.png")
         if out.exists():
+            _keep_user_files(out, tmp)
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
             os.rename(out, old / out.name)
             os.rename(tmp, out)
