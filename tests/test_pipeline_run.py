@@ -312,3 +312,21 @@ def test_no_usable_fix(tmp_path):
     path, _ = _small(tmp_path, "nofix", fix_type="no_fix")
     with pytest.raises(InputError, match="no usable GNSS fix"):
         calibrate_run(path, CalibrateOptions(trials=0))
+
+
+def test_outputs_replace_an_earlier_calibration_as_a_set_and_keep_the_users_files(tmp_path):
+    """calibrate --out into an earlier calibration folder: every output is new, a user's notes stay, no temporary folder is left."""
+    from dronecal_field.pipeline.report import write_outputs
+
+    out = tmp_path / "calibration"
+    out.mkdir()
+    (out / "notes.txt").write_text("camera 7, north gate\n")
+    (out / "report.html").write_text("an earlier run's report")
+    (out / "camera.yaml").write_text("an earlier run's camera")
+    report = calibrate_run(Path(__file__).resolve().parents[1] / "replays" / "nominal.mcap", CalibrateOptions(trials=0))
+    outputs = write_outputs(report, out)
+    assert (out / "notes.txt").read_text() == "camera 7, north gate\n"
+    assert (out / "report.html").read_text().startswith("<!DOCTYPE html>")
+    assert read_camera(out / "camera.yaml").width == report.metadata.width
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration"]  # no .calibration.tmp-/old- left behind
+    assert all(Path(v).parent == out for v in outputs.values())

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from dronecal_field.core.camera import PARAM_NAMES
+from dronecal_field.errors import InputError
 
 CAMERA_FILE = "camera.yaml"
 CAMERA_INFO_FILE = "camera_info.yaml"
@@ -488,10 +489,55 @@ def _verdict(validity, warnings: list[str]) -> str:
 
 
 def write_outputs(report, out_dir: Path) -> dict[str, str]:
-    """Write every output file into ``out_dir`` (created); returns {kind: path}."""
+    """Write every output file into ``out_dir`` as one set; returns {kind: path}.
+
+    The files are written into a temporary sibling folder that replaces
+    ``out_dir`` at the end, so an interruption never leaves a new camera.yaml
+    beside an old report; files in ``out_dir`` that calibrate did not write
+    (the user's) are moved into the new folder.
+    """
+    import shutil
+    import tempfile
+
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out {out_dir} is a file: give a folder for the calibration outputs")
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
+    try:
+        outputs = _write_outputs_into(report, tmp, out_dir)
+        _swap_in(tmp, out_dir, {Path(v).name for v in outputs.values()})
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return outputs
+
+
+def _swap_in(new: Path, out_dir: Path, ours: set[str]) -> None:
+    """Put the folder ``new`` in place of ``out_dir``; entries of the old folder not named in ``ours`` move across."""
+    import os
+    import shutil
+    import tempfile
+
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(new, 0o777 & ~umask)  # mkdtemp makes it private; the output folder is an ordinary one
+    if not out_dir.exists():
+        os.rename(new, out_dir)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old-", dir=out_dir.parent))
+    os.rename(out_dir, old / out_dir.name)
+    os.rename(new, out_dir)
+    for entry in (old / out_dir.name).iterdir():
+        if entry.name not in ours and not (out_dir / entry.name).exists():
+            os.rename(entry, out_dir / entry.name)  # the user's file: same file system, a rename
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _write_outputs_into(report, tmp: Path, out_dir: Path) -> dict[str, str]:
+    """Every output file into ``tmp``; the returned paths (and those inside report.json) name ``out_dir``."""
     from dronecal_field.camerafile import write_camera
 
-    out_dir.mkdir(parents=True, exist_ok=True)
     outputs = {
         "camera": str(out_dir / CAMERA_FILE),
         "camera_info": str(out_dir / CAMERA_INFO_FILE),
@@ -503,7 +549,7 @@ def write_outputs(report, out_dir: Path) -> dict[str, str]:
     validity = getattr(report, "validity", None)
     o = report.origin
     write_camera(
-        out_dir / CAMERA_FILE,
+        tmp / CAMERA_FILE,
         report.camera.with_(covariance=report.covariance_measured),
         comment=(
             f"dronecal-field calibrate {report.run_path.name}: model {report.result.model.name}, "
@@ -515,23 +561,23 @@ def write_outputs(report, out_dir: Path) -> dict[str, str]:
         ),
         validity_polygon_px=None if validity is None else validity.polygon_px,
     )
-    _atomic_write(out_dir / CAMERA_INFO_FILE, camera_info_yaml(report.camera))
-    _atomic_write(out_dir / HOMOGRAPHY_FILE, homography_yaml(report))
-    _atomic_write(out_dir / DETECTIONS_CSV, detections_csv(report))
+    _atomic_write(tmp / CAMERA_INFO_FILE, camera_info_yaml(report.camera))
+    _atomic_write(tmp / HOMOGRAPHY_FILE, homography_yaml(report))
+    _atomic_write(tmp / DETECTIONS_CSV, detections_csv(report))
     geojson = None if validity is None else validity.geojson()
     if geojson is not None:
         outputs["validity_geojson"] = str(out_dir / VALIDITY_GEOJSON)
-        _atomic_write(out_dir / VALIDITY_GEOJSON, json.dumps(_clean(geojson), indent=1, allow_nan=False))
+        _atomic_write(tmp / VALIDITY_GEOJSON, json.dumps(_clean(geojson), indent=1, allow_nan=False))
     if report.options.annotate:
         from dronecal_field.pipeline.annotate import write_annotated_copy
 
         annotated = out_dir / (report.run_path.stem + ANNOTATED_SUFFIX)
-        write_annotated_copy(report.run_path, annotated, report)
+        write_annotated_copy(report.run_path, tmp / annotated.name, report)
         outputs["annotated_run"] = str(annotated)
     report.outputs.update(outputs)
     data = report_dict(report)
-    _atomic_write(out_dir / REPORT_JSON, json.dumps(data, indent=1, allow_nan=False))
-    _atomic_write(out_dir / REPORT_HTML, report_html(report, data))
+    _atomic_write(tmp / REPORT_JSON, json.dumps(data, indent=1, allow_nan=False))
+    _atomic_write(tmp / REPORT_HTML, report_html(report, data))
     return outputs
 
 
