@@ -110,6 +110,19 @@ def enu_from_frd(rpy_rad: np.ndarray) -> np.ndarray:
     return enu_from_ned @ ned_from_frd
 
 
+def _facing_attitude(camera: Camera, pos: np.ndarray, rng: np.random.Generator, rate_hz: float, tilt_rad: float) -> np.ndarray:
+    """(N, 3) roll, pitch, yaw (rad) along positions (N, 3) sampled at ``rate_hz``: the nose towards the camera, smoothed,
+    with ``tilt_rad`` of random roll and pitch."""
+    cam = camera.pose.position_world
+    yaw = np.arctan2(cam[0] - pos[:, 0], cam[1] - pos[:, 1])  # bearing to the camera, from north
+    yaw = cv2.GaussianBlur(np.unwrap(yaw)[:, None], (1, 0), sigmaX=0, sigmaY=rate_hz * 0.2).ravel()
+    roll = cv2.GaussianBlur(rng.normal(0, 1, (len(pos), 1)), (1, 0), sigmaX=0, sigmaY=rate_hz * 0.5).ravel()
+    pitch = cv2.GaussianBlur(rng.normal(0, 1, (len(pos), 1)), (1, 0), sigmaX=0, sigmaY=rate_hz * 0.5).ravel()
+    roll *= tilt_rad / max(roll.std(), 1e-12)
+    pitch *= tilt_rad / max(pitch.std(), 1e-12)
+    return np.stack([roll, pitch, (yaw + np.pi) % (2 * np.pi) - np.pi], -1)
+
+
 def make_flight(
     camera: Camera,
     waypoints_enu: np.ndarray,
@@ -166,14 +179,7 @@ def make_flight(
     segments_p.append(prev + (0.5 - 0.5 * np.cos(np.pi * np.arange(n) / n))[:, None] * (start - prev))
     tt = np.concatenate(segments_t)
     pos = np.concatenate(segments_p)
-    cam = camera.pose.position_world
-    yaw = np.arctan2(cam[0] - pos[:, 0], cam[1] - pos[:, 1])  # bearing to the camera, from north
-    yaw = cv2.GaussianBlur(np.unwrap(yaw)[:, None], (1, 0), sigmaX=0, sigmaY=rate_hz * 0.2).ravel()
-    roll = cv2.GaussianBlur(rng.normal(0, 1, (len(tt), 1)), (1, 0), sigmaX=0, sigmaY=rate_hz * 0.5).ravel()
-    pitch = cv2.GaussianBlur(rng.normal(0, 1, (len(tt), 1)), (1, 0), sigmaX=0, sigmaY=rate_hz * 0.5).ravel()
-    roll *= tilt_rad / max(roll.std(), 1e-12)
-    pitch *= tilt_rad / max(pitch.std(), 1e-12)
-    rpy = np.stack([roll, pitch, (yaw + np.pi) % (2 * np.pi) - np.pi], -1)
+    rpy = _facing_attitude(camera, pos, rng, rate_hz, tilt_rad)
     return Flight(
         t_ns=T0_NS + np.round(tt * 1e9).astype(np.int64),
         antenna_enu=pos,
@@ -280,14 +286,7 @@ def make_leg_flight(
     pos = np.concatenate(seg_p)
     keep = np.r_[True, np.diff(tt) > 1e-9]
     tt, pos = tt[keep], pos[keep]
-    cam = camera.pose.position_world
-    yaw = np.arctan2(cam[0] - pos[:, 0], cam[1] - pos[:, 1])
-    yaw = cv2.GaussianBlur(np.unwrap(yaw)[:, None], (1, 0), sigmaX=0, sigmaY=rate_hz * 0.2).ravel()
-    roll = cv2.GaussianBlur(rng.normal(0, 1, (len(tt), 1)), (1, 0), sigmaX=0, sigmaY=rate_hz * 0.5).ravel()
-    pitch = cv2.GaussianBlur(rng.normal(0, 1, (len(tt), 1)), (1, 0), sigmaX=0, sigmaY=rate_hz * 0.5).ravel()
-    roll *= tilt_rad / max(roll.std(), 1e-12)
-    pitch *= tilt_rad / max(pitch.std(), 1e-12)
-    rpy = np.stack([roll, pitch, (yaw + np.pi) % (2 * np.pi) - np.pi], -1)
+    rpy = _facing_attitude(camera, pos, rng, rate_hz, tilt_rad)
     return Flight(
         t_ns=T0_NS + np.round(tt * 1e9).astype(np.int64),
         antenna_enu=pos,
