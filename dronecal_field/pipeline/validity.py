@@ -756,12 +756,9 @@ def assess_validity(
     footprint = ground_footprint(camera, polygon, ground_z)
     wgs84 = None
     if footprint is not None and origin is not None:
-        from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic
+        from dronecal_field.geodesy import enu_to_geodetic
 
-        # Plain floats: geodesy builds a PROJ string from repr(), and numpy
-        # 2's repr of a float64 ("np.float64(46.5)") is not a number to PROJ.
-        plain = EnuOrigin(lat_deg=float(origin.lat_deg), lon_deg=float(origin.lon_deg), h_m=float(origin.h_m))
-        wgs84 = enu_to_geodetic(footprint, plain)
+        wgs84 = enu_to_geodetic(footprint, origin)  # an EnuOrigin holds plain floats (the PROJ string needs them)
 
     g, g_uv = visible_ground(camera, ground_z=ground_z)
     stats: dict[str, float | None] = dict.fromkeys(
