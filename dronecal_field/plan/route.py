@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dronecal_field.errors import PlanError
+from dronecal_field.sampling.design import through_speed_m_s  # noqa: F401  (the leg speed rule lives with the design)
 
 if TYPE_CHECKING:  # strategies imports this module
     from dronecal_field.sampling.lattice import Limits
@@ -398,53 +399,6 @@ def plan_route(
         speed_m_s=speeds,
         through=through,
     )
-
-
-def through_speed_m_s(
-    focal_px: float,
-    min_depth_m: float,
-    fps: float,
-    exposure_s: float,
-    gnss_hz: float,
-    blur_px: float = 1.0,
-    max_speed_m_s: float = 3.0,
-    max_fix_spacing_m: float = 0.3,
-    marker_size_m: float = 0.3,
-) -> float:
-    """The constant speed (m/s) of fly-through legs: the smallest of four limits.
-
-    - Motion blur: a marker at depth ``min_depth_m`` moving across the view at
-      v smears ``v * exposure_s * focal_px / min_depth_m`` pixels in one
-      exposure; kept under ``blur_px``. E.g. f 900 px, 5 m, 1/250 s:
-      1 px at 1.39 m/s; f 2600 px, 5 m, 1/500 s: 0.96 m/s.
-    - GNSS: a fix at least every ``max_fix_spacing_m`` along the leg, so the
-      track between fixes stays short enough to interpolate: 10 Hz x 0.3 m =
-      3 m/s, 5 Hz = 1.5 m/s.
-    - Frames: the marker moves at most one marker width (``marker_size_m``)
-      per frame, so consecutive detections overlap (25 fps x 0.3 m = 7.5 m/s).
-    - ``max_speed_m_s``: what a calibration flight near a pole should fly at most.
-
-    Parameters
-    ----------
-    focal_px : focal length, px
-    min_depth_m : depth of the nearest sample along the camera axis, m
-    fps : camera frame rate, 1/s
-    exposure_s : exposure time (a guess: 1/250 s in daylight), s
-    gnss_hz : rate of new GNSS fixes, 1/s
-    blur_px : largest motion blur, px
-    max_speed_m_s : upper bound, m/s
-    max_fix_spacing_m : largest distance between two fixes along a leg, m
-    marker_size_m : marker side, m
-    """
-    values = dict(focal_px=focal_px, min_depth_m=min_depth_m, fps=fps, exposure_s=exposure_s, gnss_hz=gnss_hz,
-                  blur_px=blur_px, max_speed_m_s=max_speed_m_s, max_fix_spacing_m=max_fix_spacing_m, marker_size_m=marker_size_m)
-    bad = [k for k, v in values.items() if not (math.isfinite(v) and v > 0)]
-    if bad:
-        raise PlanError(f"through_speed_m_s needs positive values; {', '.join(f'{k}={values[k]!r}' for k in bad)}: give the camera's focal, frame rate, exposure and the GNSS rate")
-    blur = blur_px * min_depth_m / (exposure_s * focal_px)
-    fixes = max_fix_spacing_m * gnss_hz
-    frames = marker_size_m * fps
-    return float(min(blur, fixes, frames, max_speed_m_s))
 
 
 def leg_units(hold_s: np.ndarray) -> list[tuple[int, int]]:

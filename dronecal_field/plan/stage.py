@@ -23,7 +23,7 @@ from dronecal_field.core.camera import Camera, pixel_rays_batch
 from dronecal_field.errors import InputError, PlanError
 from dronecal_field.geodesy import enu_to_geodetic
 from dronecal_field.plan import mission as msn
-from dronecal_field.plan.route import FlightModel, Route, plan_route, through_speed_m_s
+from dronecal_field.plan.route import FlightModel, Route, plan_route
 from dronecal_field.plan.site import CameraSite, LensGuess, Marker, guess_camera, latlon_to_site, resolve_focal_px
 from dronecal_field.plan.strategies import (
     PLAN_FOLD_MIN_SLOPE,
@@ -257,7 +257,7 @@ def request_from_options(opts: dict[str, Any]) -> PlanRequest:
         evaluation=evaluation, takeoff_site=takeoff_site, geofence_latlon=opts.get("geofence"),
         alt_frame=alt_frame, end=_opt(opts, "end"), yaw_mode=_opt(opts, "yaw_mode"),
         endurance_s=endurance_min * 60.0, name=opts.get("name"), notes=tuple(notes), strategy=strategy, sampling=sampling,
-        marker_sizes_m=sizes, roi=roi, timing=LegTiming(fps=fps, exposure_s=exposure_s, gnss_hz=gnss_hz, speed_rule=through_speed_m_s),
+        marker_sizes_m=sizes, roi=roi, timing=LegTiming(fps=fps, exposure_s=exposure_s, gnss_hz=gnss_hz),
     )
 
 

@@ -26,12 +26,12 @@ origin at the pole's foot); the camera is the guessed one, in that frame.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from dronecal_field.core.camera import Camera, pixel_rays_batch
+from dronecal_field.errors import PlanError
 from dronecal_field.sampling.lattice import Limits, screen_points
 from dronecal_field.sampling.roi import Roi
 
@@ -88,19 +88,13 @@ class DesignParams:
 
 @dataclass(frozen=True)
 class LegTiming:
-    """What sets the leg speed: frame rate, exposure, GNSS rate (s, Hz) and the blur allowed (px).
-
-    ``speed_rule``: a function with ``plan.route.through_speed_m_s``'s signature;
-    ``plan`` passes that one (sampling must not import plan), None uses the
-    fallback of :func:`through_speed`.
-    """
+    """What sets the leg speed (:func:`through_speed_m_s`): frame rate, exposure, GNSS rate (s, Hz) and the blur allowed (px)."""
 
     fps: float = 25.0
     exposure_s: float = 0.004
     gnss_hz: float = 10.0
     blur_px: float = 1.0
     max_speed_m_s: float = 3.0
-    speed_rule: Callable[..., float] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -152,16 +146,57 @@ class Design:
         return int((~self.samples_is_hold).sum())
 
 
-def through_speed(focal_px: float, min_depth_m: float, timing: LegTiming, marker_size_m: float = 0.3, max_fix_spacing_m: float = 0.3) -> float:
-    """Leg speed, m/s: ``timing.speed_rule`` when given (``plan`` passes ``plan.route.through_speed_m_s``,
-    the route's own rule), else the same limits here: blur = speed x exposure x focal / depth under
-    ``timing.blur_px`` at the nearest point, a fix every ``max_fix_spacing_m``, and the cap."""
-    if timing.speed_rule is not None:
-        return float(timing.speed_rule(focal_px, min_depth_m, timing.fps, timing.exposure_s, timing.gnss_hz,
-                                       blur_px=timing.blur_px, max_speed_m_s=timing.max_speed_m_s, marker_size_m=marker_size_m))
-    blur = timing.blur_px * min_depth_m / max(focal_px * timing.exposure_s, 1e-12)
-    fixes = max_fix_spacing_m * timing.gnss_hz
-    return float(max(0.1, min(blur, fixes, timing.max_speed_m_s)))
+def through_speed_m_s(
+    focal_px: float,
+    min_depth_m: float,
+    fps: float,
+    exposure_s: float,
+    gnss_hz: float,
+    blur_px: float = 1.0,
+    max_speed_m_s: float = 3.0,
+    max_fix_spacing_m: float = 0.3,
+    marker_size_m: float = 0.3,
+) -> float:
+    """The constant speed (m/s) of fly-through legs: the smallest of four limits.
+
+    - Motion blur: a marker at depth ``min_depth_m`` moving across the view at
+      v smears ``v * exposure_s * focal_px / min_depth_m`` pixels in one
+      exposure; kept under ``blur_px``. E.g. f 900 px, 5 m, 1/250 s:
+      1 px at 1.39 m/s; f 2600 px, 5 m, 1/500 s: 0.96 m/s.
+    - GNSS: a fix at least every ``max_fix_spacing_m`` along the leg, so the
+      track between fixes stays short enough to interpolate: 10 Hz x 0.3 m =
+      3 m/s, 5 Hz = 1.5 m/s.
+    - Frames: the marker moves at most one marker width (``marker_size_m``)
+      per frame, so consecutive detections overlap (25 fps x 0.3 m = 7.5 m/s).
+    - ``max_speed_m_s``: what a calibration flight near a pole should fly at most.
+
+    Parameters
+    ----------
+    focal_px : focal length, px
+    min_depth_m : depth of the nearest sample along the camera axis, m
+    fps : camera frame rate, 1/s
+    exposure_s : exposure time (a guess: 1/250 s in daylight), s
+    gnss_hz : rate of new GNSS fixes, 1/s
+    blur_px : largest motion blur, px
+    max_speed_m_s : upper bound, m/s
+    max_fix_spacing_m : largest distance between two fixes along a leg, m
+    marker_size_m : marker side, m
+    """
+    values = dict(focal_px=focal_px, min_depth_m=min_depth_m, fps=fps, exposure_s=exposure_s, gnss_hz=gnss_hz,
+                  blur_px=blur_px, max_speed_m_s=max_speed_m_s, max_fix_spacing_m=max_fix_spacing_m, marker_size_m=marker_size_m)
+    bad = [k for k, v in values.items() if not (math.isfinite(v) and v > 0)]
+    if bad:
+        raise PlanError(f"through_speed_m_s needs positive values; {', '.join(f'{k}={values[k]!r}' for k in bad)}: give the camera's focal, frame rate, exposure and the GNSS rate")
+    blur = blur_px * min_depth_m / (exposure_s * focal_px)
+    fixes = max_fix_spacing_m * gnss_hz
+    frames = marker_size_m * fps
+    return float(min(blur, fixes, frames, max_speed_m_s))
+
+
+def through_speed(focal_px: float, min_depth_m: float, timing: LegTiming, marker_size_m: float = 0.3) -> float:
+    """Leg speed, m/s, of :func:`through_speed_m_s` for these timings."""
+    return through_speed_m_s(focal_px, min_depth_m, timing.fps, timing.exposure_s, timing.gnss_hz,
+                             blur_px=timing.blur_px, max_speed_m_s=timing.max_speed_m_s, marker_size_m=marker_size_m)
 
 
 def target_lattice(roi: Roi, n_u: int, n_v: int) -> np.ndarray:
