@@ -29,6 +29,11 @@ MISSION_ITEM_REACHED: ArduCopter reports at the end of a hold), ``leg`` (from
 one waypoint reached to the next when the drone flies through at least one of
 them: hold 0), ``video_gap``,
 ``link_lost`` (with its duration) and ``link_restored``.
+
+An optional ``observer`` (:class:`RecordingObserver`, e.g. the live
+calibration's tap) sees every frame as it arrives and every fix and event as
+it is written; its calls must return at once (it queues, never waits), and
+an observer that raises is switched off rather than stopping the recording.
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 from dronecal_field.errors import VideoError
 from dronecal_field.mavlink import ardupilot as ap
@@ -55,6 +60,16 @@ from dronecal_field.recording.status import (
     remaining_s,
 )
 from dronecal_field.runfile.records import Frame, RunEvent
+
+
+class RecordingObserver(Protocol):
+    """What the recorder tells a live consumer; every call must return at once (queue, never wait)."""
+
+    def on_frame(self, frame: Frame) -> None:
+        """A frame arrived (video thread), before it is queued for the disk."""
+
+    def on_record(self, record: Any) -> None:
+        """A GnssFix, Attitude or RunEvent was written (writer thread)."""
 
 
 class FixClock:
@@ -210,6 +225,8 @@ class Recorder:
         UTC ns when recording starts (what the run's metadata says); frames of
         a live source that arrived before it are not recorded. Default: the
         moment :meth:`start` is called.
+    observer : RecordingObserver or None
+        Told of every frame, fix, attitude and event (the live calibration).
     """
 
     def __init__(
@@ -228,8 +245,11 @@ class Recorder:
         video_timeout_s: float = 2.0,
         clock: VehicleClock | None = None,
         start_ns: int | None = None,
+        observer: RecordingObserver | None = None,
     ) -> None:
         self.link = link
+        self.observer = observer
+        self.observer_errors = 0
         self.video = video
         self.writer = writer
         self.tlog = tlog
@@ -409,6 +429,7 @@ class Recorder:
         kind = item[0]
         if kind == "event":
             self.writer.write_event(item[1])
+            self._observe(item[1])
             return
         _kind, stamp_ns, msg = item
         mtype = msg.get_type()
@@ -424,17 +445,21 @@ class Recorder:
         if mtype == "GPS_RAW_INT":
             self._write_fix(msg, stamp_ns)
         elif mtype == "ATTITUDE":
-            self.writer.write_attitude(attitude_from_mavlink(msg, stamp_ns))
+            attitude = attitude_from_mavlink(msg, stamp_ns)
+            self.writer.write_attitude(attitude)
             self.attitudes += 1
+            self._observe(attitude)
         elif mtype == "MISSION_ITEM_REACHED":
             event = hover_event(self.mission, int(msg.seq), stamp_ns, self.clock.rate)
             if event is not None:
                 self.writer.write_event(event)
                 self.hover_events += 1
+                self._observe(event)
             leg = self._leg_event(int(msg.seq), stamp_ns)
             if leg is not None:
                 self.writer.write_event(leg)
                 self.leg_events += 1
+                self._observe(leg)
 
     def _write_fix(self, msg: Any, arrival_ns: int) -> None:
         """One ``/gnss/fix`` per new fix (time_usec), stamped at the fix's own time on the run clock."""
@@ -449,6 +474,17 @@ class Recorder:
         self._last_fix_usec = usec if usec > 0 else None
         self.writer.write_fix(fix)
         self.fixes_written += 1
+        self._observe(fix)
+
+    def _observe(self, record: Any) -> None:
+        """Hand a written record to the observer; one that fails is switched off (the recording goes on)."""
+        if self.observer is None:
+            return
+        try:
+            self.observer.on_record(record)
+        except Exception:  # noqa: BLE001 - a live view must never cost the recording
+            self.observer_errors += 1
+            self.observer = None
 
     def _leg_event(self, seq: int, reached_ns: int) -> RunEvent | None:
         """The leg that ends at NAV_WAYPOINT ``seq``: from the previous NAV_WAYPOINT reached, when the
@@ -528,6 +564,13 @@ class Recorder:
             self._frame_times.append(now)
             self._latest_frame = frame
             self._offer_frame(frame)
+            observer = self.observer
+            if observer is not None:
+                try:
+                    observer.on_frame(frame)
+                except Exception:  # noqa: BLE001 - a live view must never cost the recording
+                    self.observer_errors += 1
+                    self.observer = None
 
     # ----- monitor thread -----
     def _monitor_loop(self) -> None:
