@@ -30,6 +30,20 @@ def _floats(text: str, n: int, flag: str) -> tuple[float, ...]:
     return values
 
 
+def _seqs(text: str | None) -> frozenset[int]:
+    from dronecal_field.errors import InputError
+
+    if not text:
+        return frozenset()
+    try:
+        seqs = frozenset(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        seqs = frozenset({-1})
+    if not seqs or min(seqs) < 1:
+        raise InputError(f"--hide-marker-at {text!r}: give mission seqs (whole numbers from 1), e.g. --hide-marker-at 3,7,12")
+    return seqs
+
+
 def register(sims: argparse._SubParsersAction) -> None:
     parser = sims.add_parser(
         "camera",
@@ -54,6 +68,9 @@ def register(sims: argparse._SubParsersAction) -> None:
                         help="auto: turn GLOBAL_POSITION_INT's MSL heights into ellipsoidal ones with GPS_RAW_INT.alt_ellipsoid when the vehicle "
                              "reports it; as-reported: use them as they are. The truth camera's enu_origin height must be in the resulting datum.")
     parser.add_argument("--vehicle-sysid", type=int, help="follow this MAVLink system id (default: the first that reports a position)")
+    parser.add_argument("--hide-marker-at", metavar="SEQ,SEQ,...",
+                        help="cover the marker while the vehicle flies to and holds at these mission seqs (MISSION_CURRENT; "
+                             "the numbers fly's verdict and calibrate's report use), to rehearse missed waypoints")
     parser.add_argument("--duration-s", type=float, help="stop after this many seconds (default: run until Ctrl-C)")
     site = parser.add_argument_group("truth camera from a site (with --write-truth, when --camera is absent)")
     site.add_argument("--site-lat", type=float, help="pole foot latitude, WGS84 degrees")
@@ -106,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
     from dronecal_field.sim.scene import MarkerSpec
 
     camera = _truth_camera(args)
+    hide = _seqs(args.hide_marker_at)
     marker = MarkerSpec(
         dictionary=args.marker_dictionary,
         marker_id=args.marker_id,
@@ -124,6 +142,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         use_ellipsoid=args.altitude_datum == "auto",
         vehicle_sysid=args.vehicle_sysid,
+        hide_marker_at=hide,
     )
     with sim:
         print(f"sim camera: serving {sim.url} ({camera.width}x{camera.height} @ {args.fps:g} fps), following {args.connect}", flush=True)
@@ -137,5 +156,6 @@ def run(args: argparse.Namespace) -> int:
                     raise LinkError(f"sim camera stopped: {sim.error}")
         except KeyboardInterrupt:
             pass
-        print(f"sim camera: {sim.frames_rendered} frames, {sim.messages_received} MAVLink messages", file=sys.stderr, flush=True)
+        hidden = f", marker covered in {sim.frames_hidden} (seqs {','.join(map(str, sorted(hide)))})" if hide else ""
+        print(f"sim camera: {sim.frames_rendered} frames{hidden}, {sim.messages_received} MAVLink messages", file=sys.stderr, flush=True)
     return 0

@@ -212,6 +212,8 @@ class SimCamera:
     use_ellipsoid : convert GLOBAL_POSITION_INT's MSL heights to ellipsoidal ones with
         GPS_RAW_INT.alt_ellipsoid when the vehicle reports it (else use them as they are).
     vehicle_sysid : follow this MAVLink system; None follows the first that reports a position.
+    hide_marker_at : mission seqs (MISSION_CURRENT.seq) during which the marker is covered: from the moment
+        the vehicle heads for that waypoint until it leaves it (the hold included), to rehearse missed waypoints.
 
     Use as a context manager, or ``start()`` / ``stop()``.
     """
@@ -229,6 +231,7 @@ class SimCamera:
         seed: int = 0,
         use_ellipsoid: bool = True,
         vehicle_sysid: int | None = None,
+        hide_marker_at: frozenset[int] | set[int] | tuple[int, ...] = frozenset(),
     ) -> None:
         if camera.enu_origin is None:
             raise InputError("the truth camera has no enu_origin: the simulator needs it to place the vehicle (write it with make_truth_camera)")
@@ -243,6 +246,9 @@ class SimCamera:
         self.latency_ns = int(round(latency_s * 1e9))
         self.jpeg_quality = int(jpeg_quality)
         self.vehicle_sysid = vehicle_sysid
+        self.hide_marker_at = frozenset(int(s) for s in hide_marker_at)
+        self.mission_seq: int | None = None  # the vehicle's MISSION_CURRENT.seq
+        self.frames_hidden = 0
         self.origin = EnuOrigin(*camera.enu_origin)
         self.track = PoseTrack(horizon_s=max(30.0, 4.0 * latency_s), use_ellipsoid=use_ellipsoid)
         self.renderer = FrameRenderer(camera, marker, noise_sigma_dn=noise_sigma_dn, seed=seed)
@@ -325,7 +331,7 @@ class SimCamera:
     # -- threads
 
     def _listen(self) -> None:
-        types = ["GLOBAL_POSITION_INT", "ATTITUDE", "GPS_RAW_INT"]
+        types = ["GLOBAL_POSITION_INT", "ATTITUDE", "GPS_RAW_INT", "MISSION_CURRENT"]
         mav = self._mav
         try:
             while not self._stop.is_set():
@@ -346,6 +352,8 @@ class SimCamera:
                     self.track.add_position(now_ns, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
                 elif kind == "ATTITUDE":
                     self.track.add_attitude(now_ns, msg.roll, msg.pitch, msg.yaw)
+                elif kind == "MISSION_CURRENT":
+                    self.mission_seq = int(msg.seq)
                 else:
                     alt_ell = getattr(msg, "alt_ellipsoid", 0)  # a MAVLink 2 extension: 0 when absent
                     if msg.fix_type >= 3:
@@ -370,7 +378,9 @@ class SimCamera:
                     break
                 pose_time = tick - self.latency_ns
                 pose = self.vehicle_pose(pose_time)
-                img = self.renderer.render(pose[0] if pose else None)
+                hidden = self.mission_seq is not None and self.mission_seq in self.hide_marker_at
+                img = self.renderer.render(pose[0] if pose else None, show_marker=not hidden)
+                self.frames_hidden += int(hidden)
                 ok, buf = cv2.imencode(".jpg", img, params)
                 if not ok:
                     raise RuntimeError("JPEG encoding failed")

@@ -429,13 +429,19 @@ class FrameRenderer:
         self.noise_sigma_dn = float(noise_sigma_dn)
         self.supersample = int(supersample)
         self.board = marker_board_image(marker)
+        # The board with its marker covered (plain white): the drone is still drawn, no marker can be found.
+        self.covered_board = np.full_like(self.board, 255)
         self.rays = rays if rays is not None else make_ray_map(camera)
         self.background = make_background(camera, seed, self.rays)
         self.noise_field = make_noise_field(camera.width, camera.height, noise_sigma_dn, seed + 1) if noise_sigma_dn > 0 else None
         self.rng = np.random.default_rng(seed + 2)
 
-    def render(self, vehicle: VehiclePose | None) -> np.ndarray:
-        """(H, W, 3) uint8 BGR frame with the drone at ``vehicle`` (None: empty scene)."""
+    def render(self, vehicle: VehiclePose | None, show_marker: bool = True) -> np.ndarray:
+        """(H, W, 3) uint8 BGR frame with the drone at ``vehicle`` (None: empty scene).
+
+        ``show_marker=False`` draws the drone with its board covered (plain
+        white): what a camera sees when the marker faces away or is occluded.
+        """
         return render_frame(
             self.camera,
             self.background,
@@ -443,7 +449,7 @@ class FrameRenderer:
             self.marker,
             self.noise_sigma_dn,
             self.rng,
-            marker_image=self.board,
+            marker_image=self.board if show_marker else self.covered_board,
             rays=self.rays,
             noise_field=self.noise_field,
             supersample=self.supersample,
