@@ -38,7 +38,15 @@ class CopterParams:
     wp_speed_mps : float
         Horizontal waypoint speed [WPNAV_SPEED]; DO_CHANGE_SPEED overrides it.
     wp_accel_mps2 : float
-        Acceleration and braking on legs [WPNAV_ACCEL].
+        Effective acceleration and braking on legs. ArduCopter's S-curve is
+        jerk-limited [WPNAV_JERK 1 m/s^3, WPNAV_ACCEL 2.5 m/s^2], so short legs
+        never reach WPNAV_ACCEL: fitted to the recorded ArduCopter 4.7 flight
+        (shared/replays/arducopter-sitl: a 1 m leg peaks at 0.57 m/s, a 5 m leg
+        at 1.36 m/s), the same value as ``plan.route.FlightModel.accel_m_s2``.
+    wp_settle_s : float
+        Time from the leg's end to the start of the hold timer (the vehicle
+        lags the S-curve target; 0.5 s makes a 1 m leg + 3 s hold cycle 7.0 s,
+        recorded 6.9-7.2 s).
     wp_radius_m : float
         Largest distance of a rounded corner's apex from a pass-through
         waypoint [WPNAV_RADIUS, 4.7: WP_RADIUS_M].
@@ -73,7 +81,8 @@ class CopterParams:
     """
 
     wp_speed_mps: float = 5.0
-    wp_accel_mps2: float = 1.0
+    wp_accel_mps2: float = 0.33
+    wp_settle_s: float = 0.5
     wp_radius_m: float = 2.0
     corner_accel_mps2: float | None = None
     descent_mps: float = 1.5
@@ -726,10 +735,8 @@ class CopterModel:
             return  # a short leg can end before the braking of the one before it: wait for it
         self.pos = leg.dest.copy()
         self.vel[:] = 0.0
-        nav.phase = "hold"  # ArduCopter: the hold timer starts when the target reaches the point
-        nav.timer_s = 0.0
-        if nav.hold_s <= 0.0:
-            self._nav_complete()
+        nav.phase = "hold"  # ArduCopter: the hold timer starts when the target reaches the point, the vehicle settling behind it
+        nav.timer_s = -p.wp_settle_s
 
     def _vertical(self, target_alt: float, rate: float, dt: float) -> bool:
         dz = target_alt - self.pos[2]
@@ -767,9 +774,7 @@ class CopterModel:
                     nav.target = np.array([self.pos[0], self.pos[1], 0.0])
                 elif nav.kind == "waypoint":
                     nav.phase = "hold"  # ArduCopter: the hold timer starts when the target reaches the point
-                    nav.timer_s = 0.0
-                    if nav.hold_s <= 0.0:
-                        self._nav_complete()
+                    nav.timer_s = -p.wp_settle_s
                 else:
                     self._hover_here()
             return
