@@ -32,8 +32,15 @@ FAST_PARAMS = CopterParams(rtl_alt_m=4.0, rtl_loiter_s=1.0)
 
 
 def start_sim(speedup: float = 20.0, boot_s: float = 2.0, params: CopterParams = FAST_PARAMS, **kw) -> SimVehicle:
-    """A simulated vehicle in a thread, listening on an ephemeral UDP port."""
+    """A simulated vehicle in a thread, listening on an ephemeral UDP port.
+
+    Its GPS makes 10 fixes a second (GPS_RATE_MS 100, the field setting
+    docs/fly.md asks for) unless ``gps_rate_ms`` says otherwise; like
+    ArduPilot 4.7 it streams nothing but HEARTBEAT until a client asks
+    (:func:`ask_telemetry`).
+    """
     listen = kw.pop("listen", None) or ["udp:127.0.0.1:0"]
+    kw.setdefault("gps_rate_ms", 100.0)
     config = VehicleConfig(home_lat_deg=HOME[0], home_lon_deg=HOME[1], home_alt_m=HOME[2], speedup=speedup, boot_s=boot_s, params=params, **kw)
     return SimVehicle(config, listen=listen).start()
 
@@ -47,8 +54,29 @@ def wait_until(predicate, timeout_s: float, poll_s: float = 0.01) -> bool:
     return bool(predicate())
 
 
+def ask_telemetry(link, rates_hz=None) -> None:
+    """Ask for telemetry on this link as a GCS does (SET_MESSAGE_INTERVAL; fly's set by default)."""
+    from dronecal_field.mavlink.control import TELEMETRY_RATES_HZ, request_telemetry
+
+    link.wait_heartbeat(5)
+    results = request_telemetry(link, rates_hz or TELEMETRY_RATES_HZ)
+    assert all(r == 0 for r in results.values()), results
+
+
+def ask_like_recorded_gcs(link) -> None:
+    """Ask for the streams the recording GCS asked for (calib-grid-rtk.tlog): REQUEST_DATA_STREAM ALL
+    at 2 Hz, then SET_MESSAGE_INTERVAL for each of its messages."""
+    from dronecal_field.sim.vehicle import RECORDED_GCS_RATES_HZ
+
+    link.wait_heartbeat(5)
+    link.send(link.dialect.MAVLink_request_data_stream_message(link.target_system, link.target_component, 0, 2, 1))
+    ask_telemetry(link, RECORDED_GCS_RATES_HZ)
+
+
 def wait_ready(link, timeout_s: float = 20.0) -> None:
-    """Until SYS_STATUS says the vehicle is ready to arm."""
+    """Until SYS_STATUS says the vehicle is ready to arm (asks for the telemetry first, as a GCS does)."""
+    if link.latest("SYS_STATUS") is None:
+        ask_telemetry(link)
 
     def ready():
         status = link.latest("SYS_STATUS")
@@ -282,7 +310,7 @@ def test_relay_drops_the_requested_fraction_of_mission_messages():
     relay = UdpRelay(sim.addresses()[0], drop_fraction=0.3, drop_ids={0, 30}, seed=3)  # HEARTBEAT, ATTITUDE
     link = open_link(relay.url)
     try:
-        link.wait_heartbeat(5)
+        ask_telemetry(link)  # ATTITUDE is streamed only when asked for
         assert wait_until(lambda: relay.candidates["down"] >= 300, 10)
         fraction = relay.dropped["down"] / relay.candidates["down"]
         assert 0.2 < fraction < 0.4

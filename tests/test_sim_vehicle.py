@@ -17,7 +17,7 @@ from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink.link import open_link
 from dronecal_field.mavlink.mission import download_mission, send_mission, upload_and_verify
 from dronecal_field.mavlink.missionfile import MissionItem, parse_qgc_plan
-from test_mavlink_support import HOME, MessageLog, plan_document, start_sim, wait_until, wait_ready
+from test_mavlink_support import HOME, MessageLog, ask_telemetry, plan_document, start_sim, wait_until, wait_ready
 
 ORIGIN = EnuOrigin(*HOME)
 WAYPOINTS = [(-2.0, 4.0, 1.5), (0.0, 4.0, 1.5), (2.0, 4.0, 2.5)]
@@ -45,7 +45,7 @@ def flight():
     link = open_link(sim.addresses()[0])
     rec = MessageLog(link)
     try:
-        link.wait_heartbeat(5)
+        ask_telemetry(link)
         wait_ready(link)
         mission = _mission()
         upload_and_verify(link, mission.items, timeout_s=0.5)
@@ -81,7 +81,7 @@ def test_upload_requests_are_mission_request_never_int():
     sim = start_sim(boot_s=0.5)
     link = open_link(sim.addresses()[0])
     try:
-        link.wait_heartbeat(5)
+        ask_telemetry(link)
         wait_ready(link)
         items = _mission().items
         with link.subscribe({"MISSION_REQUEST", "MISSION_REQUEST_INT"}) as sub:
@@ -99,7 +99,7 @@ def test_upload_right_after_boot_is_refused_with_no_space_then_accepted_when_rea
     sim = start_sim(speedup=20.0, boot_s=30.0)  # 1.5 s of wall time before it is ready
     link = open_link(sim.addresses()[0])
     try:
-        link.wait_heartbeat(5)
+        ask_telemetry(link)
         d = link.dialect
         with link.subscribe({"MISSION_ACK"}) as sub:
             link.send(d.MAVLink_mission_count_message(link.target_system, link.target_component, 5, 0))
@@ -120,7 +120,7 @@ def test_readback_frames_and_home_follow_arducopter():
     sim = start_sim(boot_s=0.5)
     link = open_link(sim.addresses()[0])
     try:
-        link.wait_heartbeat(5)
+        ask_telemetry(link)
         wait_ready(link)
         items = list(_mission().items)
         # a home 1 km away: the vehicle must answer seq 0 with its own home
@@ -148,7 +148,7 @@ def test_arming_in_auto_is_refused_with_a_statustext():
     link = open_link(sim.addresses()[0])
     rec = MessageLog(link)
     try:
-        link.wait_heartbeat(5)
+        ask_telemetry(link)
         wait_ready(link)
         upload_and_verify(link, _mission().items, timeout_s=0.5)
         assert link.set_mode("AUTO") == ap.MAV_RESULT_ACCEPTED
@@ -167,7 +167,7 @@ def test_guided_arm_then_auto_stays_on_the_ground_and_disarms_after_10_s():
     link = open_link(sim.addresses()[0])
     rec = MessageLog(link)
     try:
-        link.wait_heartbeat(5)
+        ask_telemetry(link)
         wait_ready(link)
         upload_and_verify(link, _mission().items, timeout_s=0.5)
         assert link.set_mode("GUIDED") == ap.MAV_RESULT_ACCEPTED
@@ -275,7 +275,7 @@ def test_after_the_last_item_it_hovers_in_auto_until_the_mode_changes():
     link = open_link(sim.addresses()[0])
     rec = MessageLog(link)
     try:
-        link.wait_heartbeat(5)
+        ask_telemetry(link)
         wait_ready(link)
         mission = parse_qgc_plan(__import__("json").dumps(plan_document([(0.0, 3.0, 2.0)], hold_s=1.0, end="none")))
         upload_and_verify(link, mission.items, timeout_s=0.5)
@@ -309,7 +309,7 @@ def test_guided_takeoff_then_land_mode_lands_and_disarms_in_land():
     link = open_link(sim.addresses()[0])
     rec = MessageLog(link)
     try:
-        link.wait_heartbeat(5)
+        ask_telemetry(link)
         wait_ready(link)
         assert link.set_mode("GUIDED") == ap.MAV_RESULT_ACCEPTED
         assert link.command_long(ap.CMD_COMPONENT_ARM_DISARM, (1,)) == ap.MAV_RESULT_ACCEPTED

@@ -21,7 +21,8 @@ def test_sim_vehicle_command_listens_sends_out_and_stops():
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.Popen(
         [sys.executable, "-m", "dronecal_field", "sim", "vehicle", "--listen", "udp:127.0.0.1:0", "--out", f"udp:127.0.0.1:{out_sock.getsockname()[1]}",
-         "--home", "-35.363261,149.165230,584", "--speedup", "10", "--boot-s", "2", "--duration", "3"],
+         "--home", "-35.363261,149.165230,584", "--speedup", "10", "--boot-s", "2", "--duration", "3",
+         "--param", "MAV2_EXTRA1=10"],  # the --out link (link 2) streams ATTITUDE unasked, as a defaults file would set it
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
     )
     try:
@@ -30,6 +31,9 @@ def test_sim_vehicle_command_listens_sends_out_and_stops():
         link = open_link(listen)
         try:
             hb = link.wait_heartbeat(5)
+            # the listen link (link 1, no MAV1_* set) streams nothing until asked, as ArduPilot 4.7
+            assert link.wait_message({"GLOBAL_POSITION_INT", "ATTITUDE"}, timeout_s=1.0) is None
+            assert link.command_long(ap.CMD_SET_MESSAGE_INTERVAL, (link.dialect.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 1e5)) == ap.MAV_RESULT_ACCEPTED
             assert link.set_mode("GUIDED") == ap.MAV_RESULT_ACCEPTED
             gpi = link.wait_message({"GLOBAL_POSITION_INT"}, lambda m: m.lat != 0, timeout_s=5)
         finally:

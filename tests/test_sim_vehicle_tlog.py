@@ -11,7 +11,7 @@ import pytest
 from dronecal_field.mavlink.link import mavutil_module, open_link
 from dronecal_field.mavlink.mission import upload_and_verify
 from dronecal_field.mavlink.missionfile import MissionItem, read_mission
-from test_mavlink_support import REPLAYS, start_sim, wait_until, wait_ready
+from test_mavlink_support import REPLAYS, ask_like_recorded_gcs, start_sim, wait_until, wait_ready
 
 TLOG = REPLAYS / "calib-grid-rtk.tlog"
 PROTOCOL = {"MISSION_COUNT", "MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_ACK", "MISSION_REQUEST_LIST"}
@@ -49,7 +49,8 @@ def recorded():
 
 @pytest.fixture(scope="module")
 def simulated():
-    """The same mission uploaded to the simulator by our client, every message logged both ways."""
+    """The same mission uploaded to the simulator by our client, every message logged both ways,
+    after asking for the streams the recording GCS asked for (the vehicle sends none unasked)."""
     sim = start_sim(speedup=20.0, boot_s=1.0)
     link = open_link(sim.addresses()[0])
     log: list[tuple[str, float, object]] = []
@@ -62,7 +63,7 @@ def simulated():
 
     link.add_listener(listen)
     try:
-        link.wait_heartbeat(5)
+        ask_like_recorded_gcs(link)
         wait_ready(link)
         start = len(log)
         report = upload_and_verify(link, read_mission(REPLAYS / "calib-grid.waypoints").items, timeout_s=1.0)

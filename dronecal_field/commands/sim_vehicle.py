@@ -2,7 +2,9 @@
 
 It behaves like ArduCopter 4.7 SITL as recorded in shared/replays/arducopter-sitl
 (mission protocol, modes, arming rules, takeoff, holds, ROI yaw, RTL), with
-RTK-fixed GNSS noise and a centimetre of hover wander. Vehicle time runs
+RTK-fixed GNSS noise and a centimetre of hover wander. Like ArduPilot 4.7, every
+link streams only HEARTBEAT until its client asks for telemetry (or --param
+MAVn_* sets the link's rates); GPS fixes come at 5 Hz (--gps-rate-ms). Vehicle time runs
 --speedup times faster than the wall clock. Ctrl-C stops it.
 
 Example:
@@ -33,8 +35,13 @@ def register(sims: argparse._SubParsersAction) -> None:
     parser.add_argument("--heading", type=float, default=353.0, metavar="DEG", help="initial heading on the ground (default 353, as SITL's CMAC)")
     parser.add_argument("--wp-speed", type=float, default=5.0, metavar="M/S", help="waypoint speed before any DO_CHANGE_SPEED (default 5)")
     parser.add_argument("--rtl-alt", type=float, default=15.0, metavar="M", help="RTL climb height above home (RTL_ALT, default 15)")
-    parser.add_argument("--gps-rate-ms", type=float, default=100.0, metavar="MS",
-                        help="the receiver's fix interval, as ArduPilot's GPS_RATE_MS: GPS_RAW_INT never comes faster (default 100; ArduPilot's own default is 200)")
+    parser.add_argument("--gps-rate-ms", type=float, default=200.0, metavar="MS",
+                        help="the receiver's fix interval, as ArduPilot's GPS_RATE_MS (default 200 = 5 Hz, ArduPilot's default; "
+                        "a faster GPS_RAW_INT stream repeats the last fix). docs/fly.md sets 100 for a 10 Hz RTK receiver")
+    parser.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                        help="a stream-rate parameter at boot, as a defaults file: MAVn_POSITION, MAVn_EXTRA1, MAVn_EXT_STAT, MAVn_EXTRA3... "
+                        "in Hz, n = link number + 1 (MAV1_* the first --listen). Without any, every link streams only HEARTBEAT "
+                        "until a client asks (SET_MESSAGE_INTERVAL / REQUEST_DATA_STREAM), as ArduPilot 4.7; repeatable")
     parser.add_argument("--max-items", type=int, default=700, metavar="N", help="mission capacity including home (default 700)")
     parser.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     parser.add_argument("--signing-key", metavar="KEY", help="MAVLink 2 signing: 64 hex characters or a passphrase; unsigned messages are then ignored")
@@ -56,6 +63,15 @@ def run(args: argparse.Namespace) -> int:
     if not args.listen and not args.out:
         raise InputError("give at least one --listen or --out, e.g. --listen udp:127.0.0.1:14550")
     lat, lon, alt = parse_home(args.home)
+    stream_params = []
+    for text in args.param:
+        name, sep, value = text.partition("=")
+        try:
+            stream_params.append((name.strip(), float(value)))
+        except ValueError:
+            sep = ""
+        if not sep:
+            raise InputError(f"--param {text!r} is not NAME=VALUE; e.g. --param MAV2_POSITION=10")
     config = VehicleConfig(
         home_lat_deg=lat,
         home_lon_deg=lon,
@@ -67,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
         max_items=args.max_items,
         heading_deg=args.heading,
         gps_rate_ms=args.gps_rate_ms,
+        stream_params=tuple(stream_params),
         signing_key=signing_key_bytes(args.signing_key) if args.signing_key else None,
         params=CopterParams(wp_speed_mps=args.wp_speed, rtl_alt_m=args.rtl_alt),
     )

@@ -3,10 +3,21 @@
 The flight logic is :mod:`dronecal_field.sim.vehicle_flight` and the mission
 protocol :mod:`dronecal_field.sim.vehicle_mission`; this module is the shell:
 sockets, the vehicle clock (``speedup`` x wall time), the boot sequence and the
-telemetry streams at the rates the recorded ArduCopter SITL used (per vehicle
-second): ATTITUDE and GLOBAL_POSITION_INT 10 Hz, GPS_RAW_INT 5 Hz, SYS_STATUS,
-EKF_STATUS_REPORT, BATTERY_STATUS, MISSION_CURRENT 2 Hz, HEARTBEAT and
-SYSTEM_TIME 1 Hz, HOME_POSITION 0.5 Hz.
+telemetry streams.
+
+Streams behave per link as ArduPilot 4.7 does (shared/replays/arducopter-sitl
+README, "A second link"): every link, the first included, gets only
+HEARTBEAT (1 Hz), TIMESYNC (every 10 s), GPS_GLOBAL_ORIGIN and HOME_POSITION
+(once, when the origin is set), STATUSTEXT and MISSION_ITEM_REACHED until a
+client asks on that link: SET_MESSAGE_INTERVAL for one message,
+REQUEST_DATA_STREAM for a stream group, or the link's stream-rate parameters
+``MAVn_*`` (n = link number + 1: ``MAV1_*`` for the first ``--listen``,
+``MAV2_*`` for the second...; the older ``SRn_*`` names do nothing in 4.7).
+What one client asks changes its own link only. GPS fixes come every
+``gps_rate_ms`` (GPS_RATE_MS, ArduPilot's default 200), each about 104 ms old
+when it goes out, with h_acc = v_acc = 300 mm whatever the scatter; a faster
+GPS_RAW_INT stream repeats the last fix (same ``time_usec``). SIMSTATE (in
+the EXTRA1 group, as SITL) carries the true position.
 
 Links (explicit schemes, like SITL's ``--out``):
 
@@ -46,19 +57,42 @@ from dronecal_field.mavlink.missionfile import MissionItem
 from dronecal_field.sim.vehicle_flight import CopterModel, CopterParams
 from dronecal_field.sim.vehicle_mission import MissionServer
 
-# Default streams: message name -> rate in Hz of vehicle time (the recording's requested rates).
-DEFAULT_RATES_HZ: tuple[tuple[str, float], ...] = (
-    ("HEARTBEAT", 1.0),
-    ("SYS_STATUS", 2.0),
+# ArduPilot's stream groups: MAVn_* parameter suffix -> (MAV_DATA_STREAM id, the messages of the
+# group this simulator builds), as in ArduCopter's GCS_Mavlink.cpp.
+STREAM_GROUPS: dict[str, tuple[int, tuple[str, ...]]] = {
+    "RAW_SENS": (1, ()),
+    "EXT_STAT": (2, ("SYS_STATUS", "MISSION_CURRENT", "GPS_RAW_INT")),
+    "RC_CHAN": (3, ()),
+    "RAW_CTRL": (4, ()),
+    "POSITION": (6, ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED")),
+    "EXTRA1": (10, ("ATTITUDE", "SIMSTATE")),
+    "EXTRA2": (11, ()),
+    "EXTRA3": (12, ("SYSTEM_TIME", "EKF_STATUS_REPORT", "BATTERY_STATUS")),
+    "PARAMS": (7, ()),
+    "ADSB": (13, ()),
+}
+_GROUP_OF = {name: group for group, (_sid, names) in STREAM_GROUPS.items() for name in names}
+_GROUP_BY_ID = {sid: group for group, (sid, _names) in STREAM_GROUPS.items()}
+MAV_DATA_STREAM_ALL = 0
+
+# The rates the recorded GCS asked for (calib-grid-rtk.tlog: REQUEST_DATA_STREAM ALL 2 Hz, then
+# SET_MESSAGE_INTERVAL): what a GCS-like client of the simulator typically asks.
+RECORDED_GCS_RATES_HZ: tuple[tuple[str, float], ...] = (
     ("GPS_RAW_INT", 5.0),
     ("GLOBAL_POSITION_INT", 10.0),
     ("ATTITUDE", 10.0),
-    ("SYSTEM_TIME", 1.0),
-    ("EKF_STATUS_REPORT", 2.0),
-    ("BATTERY_STATUS", 2.0),
-    ("HOME_POSITION", 0.5),
+    ("SIMSTATE", 10.0),
+    ("LOCAL_POSITION_NED", 5.0),
     ("MISSION_CURRENT", 2.0),
+    ("EKF_STATUS_REPORT", 2.0),
+    ("SYS_STATUS", 2.0),
+    ("SYSTEM_TIME", 1.0),
+    ("HOME_POSITION", 0.5),
 )
+
+TIMESYNC_PERIOD_S = 10.0  # ArduPilot asks every link for a TIMESYNC about every 10 s (2 in 25 s recorded)
+GPS_LAG_S = 0.104  # a fix's time_usec is this much older than the tick that first carries it (recorded)
+GPS_REPORTED_ACC_MM = 300  # h_acc = v_acc on every RTK-fixed fix, whatever the scatter (recorded)
 
 # SYS_STATUS sensor words seen in the recording (before and after the pre-arm checks pass).
 _SENSORS_PRESENT = 1399979023 | ap.MAV_SYS_STATUS_PREARM_CHECK
@@ -99,13 +133,18 @@ class VehicleConfig:
         32-byte MAVLink 2 signing key; unsigned messages are then rejected.
     params : CopterParams
         Flight parameters.
-    rates_hz : tuple of (str, float)
-        Default telemetry streams.
+    stream_params : tuple of (str, float)
+        Stream-rate parameters set at boot, as a defaults file would:
+        ``(("MAV2_POSITION", 10.0), ...)`` in Hz (ArduPilot 4.7 names,
+        ``MAVn_<group>``, n = link number + 1; groups in :data:`STREAM_GROUPS`).
+        Empty (the default): every link silent until asked, as recorded.
     gps_rate_ms : float
-        The receiver's fix interval (ArduPilot's GPS_RATE_MS): GPS_RAW_INT
-        carries only new fixes, so it never comes faster than this however
-        fast it is asked for. ArduPilot's default is 200; 100 here, the
-        setting docs/fly.md asks for on a 10 Hz RTK receiver.
+        The receiver's fix interval (ArduPilot's GPS_RATE_MS, default 200 =
+        5 Hz): a GPS_RAW_INT stream asked for faster repeats the last fix.
+        docs/fly.md asks for 100 on a 10 Hz RTK receiver.
+    gps_reported_acc_mm : int
+        GPS_RAW_INT.h_acc and v_acc on an RTK-fixed fix (ArduPilot's u-blox
+        driver reported 300 whatever the scatter).
     """
 
     home_lat_deg: float
@@ -124,8 +163,9 @@ class VehicleConfig:
     heading_deg: float = 353.0
     signing_key: bytes | None = field(default=None, repr=False)
     params: CopterParams = CopterParams()
-    rates_hz: tuple[tuple[str, float], ...] = DEFAULT_RATES_HZ
-    gps_rate_ms: float = 100.0
+    stream_params: tuple[tuple[str, float], ...] = ()
+    gps_rate_ms: float = 200.0
+    gps_reported_acc_mm: int = GPS_REPORTED_ACC_MM
 
 
 def parse_home(text: str) -> tuple[float, float, float]:
@@ -201,6 +241,57 @@ def _open_links(listen: list[str], out: list[str], config: VehicleConfig) -> lis
     return links
 
 
+def parse_stream_param(name: str) -> tuple[int, str] | None:
+    """``MAV2_POSITION`` -> (link index 1, group ``POSITION``); None for any other name (``SR1_*`` included)."""
+    head, sep, group = name.upper().partition("_")
+    if not sep or not head.startswith("MAV") or not head[3:].isdigit() or group not in STREAM_GROUPS:
+        return None
+    n = int(head[3:])
+    return (n - 1, group) if n >= 1 else None
+
+
+class LinkStreams:
+    """What one link streams, as ArduPilot keeps it per MAVLink channel.
+
+    A message's period is its SET_MESSAGE_INTERVAL if one was asked on this
+    link, else its group's rate (``MAVn_<group>``, or REQUEST_DATA_STREAM on
+    this link); 0 Hz = not sent.
+
+    Attributes
+    ----------
+    group_hz : dict
+        Stream group -> rate, Hz of vehicle time.
+    interval_s : dict
+        Message name -> period asked with SET_MESSAGE_INTERVAL, seconds
+        (``None`` = asked off with -1).
+    next_due_s : dict
+        Message name -> vehicle time it is next due.
+    """
+
+    def __init__(self) -> None:
+        self.group_hz: dict[str, float] = {group: 0.0 for group in STREAM_GROUPS}
+        self.interval_s: dict[str, float | None] = {}
+        self.next_due_s: dict[str, float] = {}
+
+    def period_s(self, name: str) -> float | None:
+        """Period of ``name`` on this link, seconds, or None when it is not streamed."""
+        if name in self.interval_s:
+            return self.interval_s[name]
+        group = _GROUP_OF.get(name)
+        hz = self.group_hz.get(group, 0.0) if group else 0.0
+        return 1.0 / hz if hz > 0 else None
+
+    def streamed(self) -> list[tuple[str, float]]:
+        """(name, period s) of every message this link streams."""
+        names = set(_GROUP_OF) | set(self.interval_s)
+        out = []
+        for name in sorted(names):
+            period = self.period_s(name)
+            if period is not None:
+                out.append((name, period))
+        return out
+
+
 class SimVehicle:
     """The simulated vehicle: links, clock and telemetry around a :class:`CopterModel`.
 
@@ -235,8 +326,20 @@ class SimVehicle:
             self.model.say,
             config.max_items,
         )
-        self.periods_s = {name: self._stream_period(name, 1.0 / hz) for name, hz in config.rates_hz if hz > 0}
-        self._next_due = {name: 0.0 for name in self.periods_s}
+        self.streams: dict[int, LinkStreams] = {id(conn): LinkStreams() for conn in self.links}
+        self.params: dict[str, float] = {"GPS_RATE_MS": float(config.gps_rate_ms)}
+        for index in range(len(self.links)):
+            for group in STREAM_GROUPS:
+                self.params[f"MAV{index + 1}_{group}"] = 0.0
+        for name, value in config.stream_params:
+            if self._set_param(name, float(value)) is None:
+                raise InputError(f"stream parameter {name!r} unknown; ArduPilot 4.7 names them MAVn_<group> (n = link number + 1), e.g. MAV2_POSITION")
+        self._last_fix: tuple[float, np.ndarray] | None = None  # the fix GPS_RAW_INT carries now
+        self._next_fix_s = 0.0
+        self._history: list[tuple[float, np.ndarray]] = []  # (time s, true ENU) of the last ticks
+        self._next_timesync_s = 0.0
+        self._next_heartbeat_s = 0.0
+        self._announced_origin = False
         self.home_set = False
         self.fix_type = 0
         self.ekf_flags = ap.EKF_UNINITIALIZED
@@ -359,6 +462,19 @@ class SimVehicle:
             e, n, _u = geodetic_to_enu(msg.lat_int * 1e-7, msg.lon_int * 1e-7, self.origin.h_m, self.origin)[0]
             up = float(msg.alt) if msg.coordinate_frame in (3, 6, 10, 11) else float(msg.alt) - self.config.home_alt_m
             self.model.guided_goto(np.array([e, n, up]))
+        elif mtype == "REQUEST_DATA_STREAM":
+            self._request_data_stream(link, int(msg.req_stream_id), int(msg.req_message_rate) if msg.start_stop else 0)
+        elif mtype == "PARAM_SET":
+            name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else msg.param_id.decode().rstrip("\x00")
+            if self._set_param(name, float(msg.param_value)) is not None:
+                self._broadcast(self._param_value(name))  # ArduPilot announces a change on every link
+        elif mtype == "PARAM_REQUEST_READ":
+            name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else msg.param_id.decode().rstrip("\x00")
+            if name in self.params:
+                self._send_to(link, self._param_value(name))
+        elif mtype == "PARAM_REQUEST_LIST":
+            for name in self.params:
+                self._send_to(link, self._param_value(name))
 
     def _command(self, link: Any, msg: Any) -> int:
         cmd = int(msg.command)
@@ -378,7 +494,7 @@ class SimVehicle:
         if cmd == ap.CMD_NAV_LAND:
             return m.set_mode(ap.MODE_LAND)
         if cmd == ap.CMD_SET_MESSAGE_INTERVAL:
-            return self._set_interval(int(msg.param1), float(msg.param2))
+            return self._set_interval(link, int(msg.param1), float(msg.param2))
         if cmd == ap.CMD_REQUEST_MESSAGE:
             name = self._message_name(int(msg.param1))
             if name is None:
@@ -394,24 +510,57 @@ class SimVehicle:
         cls = self.dialect.mavlink_map.get(msgid)
         return None if cls is None else cls.msgname
 
-    def _set_interval(self, msgid: int, interval_us: float) -> int:
+    def _set_interval(self, link: Any, msgid: int, interval_us: float) -> int:
+        """SET_MESSAGE_INTERVAL: for the link it came on only (ArduPilot keeps intervals per channel)."""
         name = self._message_name(msgid)
         if name is None:
             return ap.MAV_RESULT_UNSUPPORTED
+        streams = self.streams[id(link)]
         if interval_us < 0:
-            self.periods_s.pop(name, None)
+            streams.interval_s[name] = None
         elif interval_us == 0:
-            default = dict(self.config.rates_hz).get(name)
-            if default:
-                self.periods_s[name] = self._stream_period(name, 1.0 / default)
+            streams.interval_s.pop(name, None)  # back to the group's rate
         else:
-            self.periods_s[name] = self._stream_period(name, interval_us * 1e-6)
-        self._next_due.setdefault(name, self.model.time_s)
+            streams.interval_s[name] = interval_us * 1e-6
+        streams.next_due_s[name] = self._on_grid(streams.period_s(name))
         return ap.MAV_RESULT_ACCEPTED
 
-    def _stream_period(self, name: str, period_s: float) -> float:
-        """The period a stream really runs at: GPS_RAW_INT carries no fix newer than the receiver's."""
-        return max(period_s, self.config.gps_rate_ms * 1e-3) if name == "GPS_RAW_INT" else period_s
+    def _request_data_stream(self, link: Any, stream_id: int, rate_hz: int) -> None:
+        """REQUEST_DATA_STREAM: a group's (or with id 0 every group's) rate on this link, as its MAVn_* parameter."""
+        index = self.links.index(link)
+        groups = list(STREAM_GROUPS) if stream_id == MAV_DATA_STREAM_ALL else [_GROUP_BY_ID.get(stream_id)]
+        for group in groups:
+            if group is not None:
+                self._set_param(f"MAV{index + 1}_{group}", float(rate_hz))
+
+    def _set_param(self, name: str, value: float) -> float | None:
+        """Set a parameter this simulator knows (MAVn_*, GPS_RATE_MS); None for any other name (ignored, as ArduPilot)."""
+        name = name.upper()
+        if name == "GPS_RATE_MS":
+            self.params[name] = max(50.0, value)
+            return self.params[name]
+        parsed = parse_stream_param(name)
+        if parsed is None or name not in self.params:
+            return None
+        index, group = parsed
+        self.params[name] = max(0.0, value)
+        streams = self.streams[id(self.links[index])]
+        streams.group_hz[group] = self.params[name]
+        for message in STREAM_GROUPS[group][1]:
+            streams.next_due_s.setdefault(message, self._on_grid(streams.period_s(message)))
+        return self.params[name]
+
+    def _on_grid(self, period_s: float | None) -> float:
+        """The next multiple of ``period_s`` of vehicle time: streams and GPS fixes share one grid, as on
+        SITL, so a fix goes out GPS_LAG_S after its time (not a tick later)."""
+        now = self.model.time_s
+        if not period_s:
+            return now
+        return math.ceil(now / period_s - 1e-6) * period_s
+
+    def _param_value(self, name: str) -> Any:
+        names = list(self.params)
+        return self.enc.param_value_encode(name.encode("ascii"), float(self.params[name]), 9, len(names), names.index(name))
 
     # ----- sending -----
     def _send_to(self, link: Any, msg: Any) -> None:
@@ -482,14 +631,58 @@ class SimVehicle:
         for severity, text in m.texts:
             self._broadcast(self.enc.statustext_encode(severity, text.encode("utf-8")[:50], 0, 0))
         m.texts.clear()
-        for name, period in list(self.periods_s.items()):
-            due = self._next_due.get(name, now)
-            if now + 1e-9 >= due:
-                msg = self._build(name)
-                if msg is not None:
-                    self._broadcast(msg)
-                # keep the schedule on the grid, but never fire a backlog
-                self._next_due[name] = max(due + period, now + period * 0.5)
+        self._gps_step(now)
+        # every link: HEARTBEAT at 1 Hz, a TIMESYNC now and then, origin and home once
+        built: dict[str, Any] = {}
+        if now + 1e-9 >= self._next_heartbeat_s:
+            self._next_heartbeat_s = max(self._next_heartbeat_s + 1.0, now + 0.5)
+            self._broadcast(self._build_once("HEARTBEAT", built))
+        if now + 1e-9 >= self._next_timesync_s:
+            self._next_timesync_s = now + TIMESYNC_PERIOD_S
+            self._broadcast(self.enc.timesync_encode(0, int(now * 1e9)))
+        if self.home_set and not self._announced_origin:
+            self._announced_origin = True
+            self._broadcast(self._build_once("GPS_GLOBAL_ORIGIN", built))
+            self._broadcast(self._build_once("HOME_POSITION", built))
+        # then what each link asked for, built once per tick so every link carries the same values
+        for conn in self.links:
+            streams = self.streams[id(conn)]
+            for name, period in streams.streamed():
+                if name == "HEARTBEAT":
+                    continue
+                due = streams.next_due_s.get(name, now)
+                if now + 1e-9 >= due:
+                    msg = self._build_once(name, built)
+                    if msg is not None:
+                        self._send_to(conn, msg)
+                    # keep the schedule on the grid, but never fire a backlog
+                    streams.next_due_s[name] = max(due + period, now + period * 0.5)
+
+    def _build_once(self, name: str, built: dict[str, Any]) -> Any | None:
+        if name not in built:
+            built[name] = self._build(name)
+        return built[name]
+
+    def _gps_step(self, now: float) -> None:
+        """The receiver: every GPS_RATE_MS a new fix, measured GPS_LAG_S before the tick that publishes it."""
+        self._history.append((now, self.model.position.copy()))
+        del self._history[:-20]
+        if now + 1e-9 < self._next_fix_s:
+            return
+        period = self.params["GPS_RATE_MS"] * 1e-3
+        self._next_fix_s = math.ceil(now / period + 0.5) * period
+        t_fix = now - GPS_LAG_S
+        c = self.config
+        noise = self.rng.standard_normal(3) * np.array([c.gnss_sigma_h_m, c.gnss_sigma_h_m, c.gnss_sigma_v_m])
+        self._last_fix = (t_fix, self._position_at(t_fix) + noise)
+
+    def _position_at(self, t_s: float) -> np.ndarray:
+        """True ENU position at vehicle time ``t_s`` (linear between the remembered ticks)."""
+        times = np.array([t for t, _p in self._history])
+        if len(times) == 0:
+            return self.model.position.copy()
+        positions = np.array([p for _t, p in self._history])
+        return np.array([np.interp(t_s, times, positions[:, k]) for k in range(3)])
 
     # ----- message builders -----
     def _geodetic(self) -> tuple[float, float, float, float]:
@@ -524,6 +717,17 @@ class SimVehicle:
             base |= ap.MAV_MODE_FLAG_SAFETY_ARMED
         return base
 
+    def _roll_pitch_rad(self) -> tuple[float, float]:
+        """Roll and pitch of a copter accelerating as the model does (level on the ground), radians."""
+        m = self.model
+        if m.landed:
+            return 0.0, 0.0
+        a = m.accel
+        h = math.radians(m.heading_deg)
+        fwd = a[0] * math.sin(h) + a[1] * math.cos(h)
+        right = a[0] * math.cos(h) - a[1] * math.sin(h)
+        return math.atan2(right, 9.80665), -math.atan2(fwd, 9.80665)
+
     def _build(self, name: str) -> Any | None:
         m = self.model
         c = self.config
@@ -539,30 +743,45 @@ class SimVehicle:
                 _SENSORS_PRESENT, _SENSORS_ENABLED, health, 0, 12600, current_ca, int(self.battery_pct), 0, 0, 0, 0, 0, 0, 0, 0, 0
             )
         if name == "GPS_RAW_INT":
-            if self.fix_type < 2:
+            fix = self._last_fix
+            if self.fix_type < 2 or fix is None:
                 return enc.gps_raw_int_encode(int(m.time_s * 1e6), self.fix_type, 0, 0, 0, 65535, 65535, 0, 0, 0, 0, 0, 0, 0, 0, 0)
-            pos = m.position
-            noise = self.rng.standard_normal(3) * np.array([c.gnss_sigma_h_m, c.gnss_sigma_h_m, c.gnss_sigma_v_m])
-            lat, lon, h = enu_to_geodetic(pos + noise, self.origin)[0]
+            t_fix, pos = fix
+            lat, lon, h = enu_to_geodetic(pos, self.origin)[0]
             speed = float(np.hypot(m.vel[0], m.vel[1]))
             cog = int(round(math.degrees(math.atan2(m.vel[0], m.vel[1])) % 360.0 * 100)) if speed > 0.05 else 0
+            acc = int(c.gps_reported_acc_mm)
+            # ArduCopter 4.7 SITL (u-blox, RTK fixed): eph 121, epv 200, 10 satellites, h_acc = v_acc = 300 mm
             return enc.gps_raw_int_encode(
-                int(m.time_s * 1e6),
+                int(round(t_fix * 1e6)),
                 self.fix_type,
                 int(round(lat * 1e7)),
                 int(round(lon * 1e7)),
                 int(round((h - c.geoid_sep_m) * 1000)),
-                70,
-                120,
+                121,
+                200,
                 int(round(speed * 100)),
                 cog,
-                18,
+                10,
                 int(round(h * 1000)),
-                int(round(c.gnss_sigma_h_m * 1000 * math.sqrt(2))),
-                int(round(c.gnss_sigma_v_m * 1000)),
-                50,
+                acc,
+                acc,
                 0,
                 0,
+                0,
+            )
+        if name == "SIMSTATE":
+            # SITL's truth: the simulated body's own position and attitude (here the reported
+            # position is the truth too; a client that renders the vehicle should prefer this)
+            if not self.home_set:
+                return None
+            lat, lon, _h, _up = self._geodetic()
+            roll, pitch = self._roll_pitch_rad()
+            yaw = math.remainder(math.radians(m.heading_deg), 2.0 * math.pi)
+            return enc.simstate_encode(roll, pitch, yaw, 0.0, 0.0, -9.80665, 0.0, 0.0, 0.0, int(round(lat * 1e7)), int(round(lon * 1e7)))
+        if name == "GPS_GLOBAL_ORIGIN":
+            return enc.gps_global_origin_encode(
+                int(round(c.home_lat_deg * 1e7)), int(round(c.home_lon_deg * 1e7)), int(round(c.home_alt_m * 1000)), int(m.time_s * 1e6)
             )
         if name == "GLOBAL_POSITION_INT":
             hdg = int(round(m.heading_deg * 100)) % 36000
@@ -582,12 +801,8 @@ class SimVehicle:
                 hdg,
             )
         if name == "ATTITUDE":
-            a = m.accel
             h = math.radians(m.heading_deg)
-            fwd = a[0] * math.sin(h) + a[1] * math.cos(h)
-            right = a[0] * math.cos(h) - a[1] * math.sin(h)
-            pitch = -math.atan2(fwd, 9.80665) if not m.landed else 0.0
-            roll = math.atan2(right, 9.80665) if not m.landed else 0.0
+            roll, pitch = self._roll_pitch_rad()
             yaw_noise = math.radians(0.05) * float(self.rng.standard_normal()) if not m.landed else 0.0
             yaw = math.remainder(h + yaw_noise, 2.0 * math.pi)
             return enc.attitude_encode(boot_ms, roll, pitch, yaw, 0.0, 0.0, 0.0)
