@@ -11,6 +11,7 @@ model must predict the flight.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -43,7 +44,9 @@ HOLDS = np.array([2.0, 0.0, 0.0, 0.0, 2.0])
 TURN_DEG = {1: 0.0, 2: 90.0, 3: 90.0}
 LEG_SPEED = 1.5
 TRANSIT_SPEED = 2.0
-PARAMS = FAST_PARAMS
+# a snappy copter (1 m/s^2, no settle) so the 6 m legs reach the leg speed: this file checks the blend's geometry and
+# the timing model's form, test_sim_flight_timing the ArduCopter-fitted defaults
+PARAMS = dataclasses.replace(FAST_PARAMS, wp_accel_mps2=1.0, wp_settle_s=0.0)
 # the plan's timing model with the simulated vehicle's parameters
 SIM_FLIGHT = FlightModel(speed_m_s=TRANSIT_SPEED, accel_m_s2=PARAMS.wp_accel_mps2, leg_overhead_s=0.0, hover_s=2.0,
                          spool_up_s=PARAMS.spool_up_s, takeoff_climb_m_s=PARAMS.takeoff_climb_mps, land_speed_m_s=PARAMS.land_speed_mps,
@@ -212,7 +215,7 @@ def test_a_long_straight_run_of_pass_through_points_flies_at_constant_speed():
     """Ten pass-through points 5 m apart on a line: one acceleration, cruise, one braking (pure model, no sockets)."""
     from dronecal_field.sim.vehicle_flight import CopterModel
 
-    params = CopterParams(wp_speed_mps=LEG_SPEED)
+    params = CopterParams(wp_speed_mps=LEG_SPEED, wp_accel_mps2=PARAMS.wp_accel_mps2)
 
     def to_enu(item):
         return np.array([item.x * 1e-3, item.y * 1e-3, item.z])
@@ -251,7 +254,7 @@ def test_the_time_model_and_the_simulated_vehicle_agree_on_any_route(points, spe
     holds = np.array([p[3] for p in points])
     holds[-1] = 1.0
     params = CopterParams(wp_radius_m=radius)
-    fm = FlightModel(speed_m_s=speed, accel_m_s2=params.wp_accel_mps2, leg_overhead_s=0.0, spool_up_s=params.spool_up_s - 0.3,
+    fm = FlightModel(speed_m_s=speed, accel_m_s2=params.wp_accel_mps2, leg_overhead_s=params.wp_settle_s, spool_up_s=params.spool_up_s - 0.3,
                      wp_radius_m=radius, climb_m_s=params.climb_mps, descent_m_s=params.descent_mps)
     alt = 2.0
 

@@ -736,7 +736,7 @@ class CopterModel:
         self.pos = leg.dest.copy()
         self.vel[:] = 0.0
         nav.phase = "hold"  # ArduCopter: the hold timer starts when the target reaches the point, the vehicle settling behind it
-        nav.timer_s = -p.wp_settle_s
+        nav.timer_s = -p.wp_settle_s if leg.length_m > 1e-6 else 0.0
 
     def _vertical(self, target_alt: float, rate: float, dt: float) -> bool:
         dz = target_alt - self.pos[2]
