@@ -84,6 +84,44 @@ def decode_gray(data: bytes) -> np.ndarray | None:
     return image
 
 
+class FrameDecoder:
+    """Grey images of a run's frames, JPEG/PNG or H.264/H.265 access units alike.
+
+    Push every frame the reader returns, in order; ask :meth:`gray` only for
+    the frames to detect in. Images decode on their own; an access unit needs
+    the ones since its keyframe, which are kept (not decoded) until a picture
+    is asked for (dronecal_field.videopackets.VideoFrameDecoder), so frames no
+    one asks for after the last wanted one of a GOP cost nothing.
+    """
+
+    def __init__(self) -> None:
+        self._video = None
+        self._last = None
+
+    def push(self, frame) -> None:
+        """The next frame of the stream (``Frame``)."""
+        if frame.format in ("h264", "h265"):
+            if self._video is None or self._video.format != frame.format:
+                from dronecal_field.videopackets import VideoFrameDecoder
+
+                self._video = VideoFrameDecoder(frame.format)
+            self._video.push(frame)
+        self._last = frame
+
+    def gray(self) -> np.ndarray | None:
+        """(H, W) uint8 grey image of the frame pushed last; None when corrupt or undecodable."""
+        if self._last is None:
+            return None
+        if self._last.format in ("h264", "h265"):
+            return self._video.gray()
+        return decode_gray(self._last.data)
+
+    @property
+    def video_stats(self) -> tuple[int, int] | None:
+        """(access units decoded, access units never decoded) of a video run; None for images."""
+        return None if self._video is None else (self._video.decoded, self._video.skipped)
+
+
 def diagonal_intersection(corners_px: np.ndarray) -> np.ndarray:
     """(2,) crossing of the diagonals 0-2 and 1-3 of a quadrilateral ``corners_px`` (4, 2) pixels.
 

@@ -447,7 +447,7 @@ def _find_legs(run, track: Track, windows: list[HoverWindow], options: Calibrate
 
 def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, sampling: SamplingOptions) -> Detections:
     """Stage 3: one pass over the frames of the windows and the legs: the marker's detections."""
-    from dronecal_field.pipeline.detect import decode_gray, detect_aruco, detect_led, make_aruco_detector, roi_around
+    from dronecal_field.pipeline.detect import FrameDecoder, detect_aruco, detect_led, make_aruco_detector, roi_around
     from dronecal_field.pipeline.sampling import FrameSelector
 
     marker = md.marker
@@ -469,15 +469,17 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
     before_last: Detection | None = None
     background = None  # one frame showing the marker, for the report's figure
     size_warned = False
+    decoder = FrameDecoder()  # /camera/video: access units kept from the keyframe on, decoded only up to a wanted frame
     for frame in run.iter_frames(selector.read_windows()):
         read += 1
+        decoder.push(frame)
         # Decisions use what was detected so far (a transition is decoded once its hold showed the marker).
         decode, group = selector.wants(frame.timestamp_ns)
         if not decode:
             continue
         decoded += 1
         formats.add(frame.format)
-        image = decode_gray(frame.data)
+        image = decoder.gray()
         if image is None:
             corrupt += 1
             continue

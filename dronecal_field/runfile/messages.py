@@ -16,12 +16,14 @@ import numpy as np
 from dronecal_field.runfile.records import Attitude, Frame, GnssFix, RunEvent
 
 IMAGE_TOPIC = "/camera/image"
+VIDEO_TOPIC = "/camera/video"
 FIX_TOPIC = "/gnss/fix"
 ATTITUDE_TOPIC = "/vehicle/attitude"
 EVENTS_TOPIC = "/events"
 MAVLINK_TOPIC_PREFIX = "/mavlink/"
 
 IMAGE_SCHEMA = "foxglove.CompressedImage"
+VIDEO_SCHEMA = "foxglove.CompressedVideo"
 FIX_SCHEMA = "foxglove.LocationFix"
 ATTITUDE_SCHEMA = "foxglove.PoseInFrame"
 EVENT_SCHEMA = "foxglove.Event"
@@ -67,6 +69,24 @@ def frame_from_bytes(data: bytes, log_time_ns: int) -> Frame:
     msg = CompressedImage.FromString(data)
     ts = _ns(msg.timestamp) if msg.HasField("timestamp") else int(log_time_ns)
     return Frame(timestamp_ns=ts, format=msg.format or "jpeg", data=msg.data)
+
+
+def video_frame_to_proto(frame: Frame):
+    """foxglove.CompressedVideo of one access unit (``format`` h264 / h265, Annex B; frame_id ``camera``)."""
+    from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
+
+    return CompressedVideo(
+        timestamp=_timestamp(frame.timestamp_ns), frame_id="camera", data=frame.data, format=frame.format
+    )
+
+
+def frame_from_video_bytes(data: bytes, log_time_ns: int) -> Frame:
+    """Frame of a serialized foxglove.CompressedVideo (``format`` h264 / h265); no timestamp takes log_time."""
+    from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
+
+    msg = CompressedVideo.FromString(data)
+    ts = _ns(msg.timestamp) if msg.HasField("timestamp") else int(log_time_ns)
+    return Frame(timestamp_ns=ts, format=(msg.format or "h264").lower(), data=msg.data)
 
 
 # --- GNSS -----------------------------------------------------------------

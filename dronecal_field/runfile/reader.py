@@ -45,12 +45,19 @@ _OP_ATTACHMENT, _OP_METADATA, _OP_DATA_END = 0x09, 0x0C, 0x0F
 
 # The contract's required topics and their schema names.
 REQUIRED_TOPICS = {pm.IMAGE_TOPIC: pm.IMAGE_SCHEMA, pm.FIX_TOPIC: pm.FIX_SCHEMA}
+# ... where /camera/video (the camera's H.264/H.265 stream) may stand in for /camera/image.
+CAMERA_TOPICS = {pm.IMAGE_TOPIC: pm.IMAGE_SCHEMA, pm.VIDEO_TOPIC: pm.VIDEO_SCHEMA}
 OPTIONAL_TOPICS = {pm.ATTITUDE_TOPIC: pm.ATTITUDE_SCHEMA, pm.EVENTS_TOPIC: pm.EVENT_SCHEMA}
 
 # Frames are selected by MCAP log time first (cheap, per chunk), then by the
 # message's own timestamp. A writer whose log time lags capture by more than
 # this would lose frames at window edges.
 LOG_TIME_SLACK_NS = 1_000_000_000
+
+# A /camera/video frame decodes from the keyframe before it: a window is read
+# from this long before its start. Cameras send a keyframe every 1-4 s; a GOP
+# longer than this leaves the first frames of a window undecodable (counted).
+KEYFRAME_LOOKBACK_NS = 10_000_000_000
 
 
 @dataclass(frozen=True)
@@ -200,23 +207,35 @@ class Run:
         for _, data, log_time in self._iter_topic({pm.FIX_TOPIC}):
             yield pm.fix_from_bytes(data, log_time)
 
+    @property
+    def video(self) -> bool:
+        """True when the frames are the camera's H.264/H.265 stream (``/camera/video``), not images."""
+        return self.camera_topic == pm.VIDEO_TOPIC
+
     def iter_frames(self, windows: list[tuple[int, int]] | None = None) -> Iterator[Frame]:
-        """Video frames of ``/camera/image`` in log-time order.
+        """Video frames of ``/camera/image`` (or the access units of ``/camera/video``) in log-time order.
 
         Parameters
         ----------
         windows : optional [start_ns, end_ns] ranges (inclusive, UTC ns); only
             frames whose timestamp lies in one of them are returned, and only
-            chunks overlapping them (with LOG_TIME_SLACK_NS) are read.
+            chunks overlapping them (with LOG_TIME_SLACK_NS) are read. For
+            ``/camera/video`` each window also returns the access units from
+            the keyframe before its start (within KEYFRAME_LOOKBACK_NS), which
+            a decoder needs first; their frames are ``VideoFrame`` with
+            ``keyframe`` set (dronecal_field.videopackets).
         """
+        topic = self.camera_topic
+        decode = pm.frame_from_video_bytes if self.video else pm.frame_from_bytes
         if windows is None:
-            for _, data, log_time in self._iter_topic({pm.IMAGE_TOPIC}):
-                yield pm.frame_from_bytes(data, log_time)
+            for _, data, log_time in self._iter_topic({topic}):
+                yield decode(data, log_time)
             return
         merged = _merge_windows(windows)
         if not merged:
             return
-        wide = _merge_windows([(a - LOG_TIME_SLACK_NS, b + LOG_TIME_SLACK_NS) for a, b in merged])
+        lookback = KEYFRAME_LOOKBACK_NS if self.video else 0
+        wide = _merge_windows([(a - LOG_TIME_SLACK_NS - lookback, b + LOG_TIME_SLACK_NS) for a, b in merged])
         starts = [a for a, _ in merged]
         import bisect
 
@@ -224,10 +243,27 @@ class Run:
             i = bisect.bisect_right(starts, t) - 1
             return i >= 0 and t <= merged[i][1]
 
-        for _, data, log_time in self._iter_topic({pm.IMAGE_TOPIC}, wide):
-            frame = pm.frame_from_bytes(data, log_time)
+        if not self.video:
+            for _, data, log_time in self._iter_topic({topic}, wide):
+                frame = decode(data, log_time)
+                if inside(frame.timestamp_ns):
+                    yield frame
+            return
+        from dronecal_field.videopackets import video_frame_of
+
+        # Outside the windows, only the access units since the last keyframe are kept: the
+        # run-up a decoder needs to reach a window's first frame.
+        run_up: list[Frame] = []
+        for _, data, log_time in self._iter_topic({topic}, wide):
+            frame = video_frame_of(decode(data, log_time))
             if inside(frame.timestamp_ns):
+                yield from run_up
+                run_up = []
                 yield frame
+            elif frame.keyframe:
+                run_up = [frame]
+            elif run_up:
+                run_up.append(frame)
 
     def iter_events(self) -> Iterator[RunEvent]:
         """Events of ``/events`` (hover windows and other marks) in log-time order."""
@@ -443,14 +479,23 @@ class Run:
                 "format_version, camera.width/height and marker.* (shared/contracts/run-format.md)"
             )
         metadata = RunMetadata.from_mcap_metadata(run_md, self._metadata.get(SITE_METADATA_NAME), source=self._name)
-        if not self._has_topic(pm.IMAGE_TOPIC) or not self._has_topic(pm.FIX_TOPIC):
-            self._discover_channels(set(REQUIRED_TOPICS))
-        for topic, schema in REQUIRED_TOPICS.items():
+        if not self._has_camera() or not self._has_topic(pm.FIX_TOPIC):
+            self._discover_channels()
+        if self._has_topic(pm.IMAGE_TOPIC) and self._has_topic(pm.VIDEO_TOPIC):
+            raise ContractError(
+                f"{self._name}: both '{pm.IMAGE_TOPIC}' and '{pm.VIDEO_TOPIC}'; a run has one camera topic: "
+                "write the frames to one of them"
+            )
+        camera = pm.VIDEO_TOPIC if self._has_topic(pm.VIDEO_TOPIC) else pm.IMAGE_TOPIC
+        self.camera_topic = camera
+        for topic in (camera, pm.FIX_TOPIC):
+            schema = CAMERA_TOPICS.get(topic) or REQUIRED_TOPICS[topic]
             channels = [c for c in self._channels.values() if c.topic == topic]
             if not channels:
                 what = "video frames" if topic == pm.IMAGE_TOPIC else "GNSS fixes"
+                name = f"'{topic}' ({schema}) or '{pm.VIDEO_TOPIC}' ({pm.VIDEO_SCHEMA})" if topic == pm.IMAGE_TOPIC else f"'{topic}' ({schema})"
                 raise ContractError(
-                    f"{self._name}: no topic '{topic}' ({schema}){cut}: the run has no {what}; "
+                    f"{self._name}: no topic {name}{cut}: the run has no {what}; "
                     "record them, or build a run from a flight log with `dronecal-field import`"
                 )
             for c in channels:
@@ -467,18 +512,21 @@ class Run:
                     )
         return metadata
 
-    def _discover_channels(self, topics: set[str]) -> None:
-        """Decompress units in file order until channels of all these topics are known."""
+    def _discover_channels(self) -> None:
+        """Decompress units in file order until the channels of GNSS fixes and a camera topic are known."""
         for unit in sorted(self._units, key=lambda u: u.offset):
             self._read_unit(unit)
-            if all(self._has_topic(t) for t in topics):
+            if self._has_topic(pm.FIX_TOPIC) and self._has_camera():
                 return
+
+    def _has_camera(self) -> bool:
+        return self._has_topic(pm.IMAGE_TOPIC) or self._has_topic(pm.VIDEO_TOPIC)
 
     def _has_topic(self, topic: str) -> bool:
         return any(c.topic == topic for c in self._channels.values())
 
     def _good_channel(self, c: _Channel) -> bool:
-        schema = REQUIRED_TOPICS.get(c.topic) or OPTIONAL_TOPICS.get(c.topic)
+        schema = REQUIRED_TOPICS.get(c.topic) or CAMERA_TOPICS.get(c.topic) or OPTIONAL_TOPICS.get(c.topic)
         return schema is None or (c.schema_name == schema and c.message_encoding == "protobuf")
 
     # -- unit reading --------------------------------------------------------

@@ -37,6 +37,8 @@ from dronecal_field.runfile.records import (
 )
 
 IMAGE_FORMATS = ("jpeg", "png")
+VIDEO_FORMATS = ("h264", "h265")
+CAMERA_TOPICS = ("image", "video")
 COMPRESSIONS = ("zstd", "lz4", "none")
 
 
@@ -88,6 +90,9 @@ class RunWriter:
         first message, so a killed process loses at most about this much.
     background_flush : run a flusher thread that closes an old chunk even when
         no further write arrives.
+    camera : ``"image"`` (``/camera/image``, JPEG/PNG frames, the default) or
+        ``"video"`` (``/camera/video``, H.264/H.265 access units passed through):
+        a run has one of them, registered at open.
 
     Examples
     --------
@@ -103,12 +108,16 @@ class RunWriter:
         chunk_size: int = 1 << 20,
         max_chunk_age_s: float = 1.0,
         background_flush: bool = True,
+        camera: str = "image",
     ) -> None:
         from mcap.writer import CompressionType, Writer
         from mcap.well_known import MessageEncoding
 
         if compression not in COMPRESSIONS:
             raise InputError(f"compression {compression!r} unknown; use one of {', '.join(COMPRESSIONS)}")
+        if camera not in CAMERA_TOPICS:
+            raise InputError(f"camera {camera!r} unknown; use image (/camera/image) or video (/camera/video)")
+        self.camera = camera
         if max_chunk_age_s <= 0:
             raise InputError(f"max_chunk_age_s = {max_chunk_age_s} must be positive")
         self.path = Path(path)
@@ -140,9 +149,13 @@ class RunWriter:
             self._mcap.add_metadata(SITE_METADATA_NAME, site)
         # Registered now so the first chunk written carries them, whatever comes first.
         from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+        from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
         from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 
-        self._proto_channel(pm.IMAGE_TOPIC, CompressedImage)
+        if camera == "video":
+            self._proto_channel(pm.VIDEO_TOPIC, CompressedVideo)
+        else:
+            self._proto_channel(pm.IMAGE_TOPIC, CompressedImage)
         self._proto_channel(pm.FIX_TOPIC, LocationFix)
         self._sync_locked()
         self._fsync()
@@ -163,9 +176,22 @@ class RunWriter:
     # -- writing -----------------------------------------------------------
 
     def write_frame(self, frame: Frame) -> None:
-        """Write one video frame on ``/camera/image`` (log time = the frame's timestamp)."""
+        """Write one video frame (log time = the frame's timestamp).
+
+        A JPEG/PNG frame goes to ``/camera/image``; an H.264/H.265 access unit
+        (Annex B) to ``/camera/video``, whichever the writer was opened for.
+        """
+        if self.camera == "video":
+            if frame.format not in VIDEO_FORMATS:
+                raise InputError(
+                    f"frame format {frame.format!r} in a /camera/video run; give h264 or h265 access units, or open the writer with camera='image'"
+                )
+            self._write_proto(pm.VIDEO_TOPIC, pm.video_frame_to_proto(frame), frame.timestamp_ns)
+            return
         if frame.format not in IMAGE_FORMATS:
-            raise InputError(f"frame format {frame.format!r} is not in the contract; encode as jpeg or png")
+            raise InputError(
+                f"frame format {frame.format!r} is not an image format; encode as jpeg or png, or open the writer with camera='video' for h264/h265"
+            )
         self._write_proto(pm.IMAGE_TOPIC, pm.frame_to_proto(frame), frame.timestamp_ns)
 
     def write_fix(self, fix: GnssFix) -> None:

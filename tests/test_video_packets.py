@@ -1,0 +1,189 @@
+"""H.264 / H.265 pass-through: Annex B access units, /camera/video runs, lazy decoding, the stream monitor.
+
+Real parts: clips encoded here by PyAV's libx264 / libx265 into real MP4 and
+MKV files, read back as packets by PacketSource, written to and read from
+real MCAP files, decoded by FFmpeg.
+"""
+
+from __future__ import annotations
+
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from dronecal_field.errors import ContractError, InputError
+from dronecal_field.pipeline.detect import FrameDecoder
+from dronecal_field.runfile.reader import open_run
+from dronecal_field.runfile.records import FORMAT_VERSION, Frame, GnssFix, MarkerSpec, RunMetadata
+from dronecal_field.runfile.writer import RunWriter
+from dronecal_field.videopackets import (
+    StreamMonitor,
+    VideoFrame,
+    access_unit,
+    is_keyframe,
+    nal_type,
+    open_packet_source,
+    parameter_sets,
+    split_annexb,
+)
+
+PARAMS = {"h264": {7, 8}, "h265": {32, 33, 34}}
+
+
+def encode_clip(path, fmt="h264", n=30, size=(160, 128), gop=10, fps=25):
+    """A real clip (MP4 / MKV, no B-frames): a bright square moving one pixel per frame on grey noise."""
+    import av
+
+    rng = np.random.default_rng(3)
+    background = rng.integers(60, 120, (size[1], size[0], 3), dtype=np.uint8)
+    with av.open(str(path), "w") as out:
+        stream = out.add_stream("libx264" if fmt == "h264" else "libx265", rate=fps)
+        stream.width, stream.height, stream.pix_fmt = size[0], size[1], "yuv420p"
+        if fmt == "h264":
+            stream.options = {"bf": "0", "g": str(gop), "crf": "18"}
+        else:
+            stream.options = {"x265-params": f"bframes=0:keyint={gop}:min-keyint={gop}:log-level=error", "crf": "18"}
+        for i in range(n):
+            img = background.copy()
+            img[20:60, 10 + i : 50 + i] = 240
+            frame = av.VideoFrame.from_ndarray(img, format="rgb24")
+            frame.pts, frame.time_base = i, Fraction(1, fps)
+            for packet in stream.encode(frame):
+                out.mux(packet)
+        for packet in stream.encode(None):
+            out.mux(packet)
+
+
+def read_all(url):
+    source = open_packet_source(url)
+    frames = []
+    while True:
+        f = source.read(timeout_s=5.0)
+        if f is None:
+            break
+        frames.append(f)
+    source.close()
+    return source, frames
+
+
+def decode_all(frames, fmt):
+    import av
+
+    ctx = av.CodecContext.create("h264" if fmt == "h264" else "hevc", "r")
+    out = []
+    for f in frames:
+        out.extend(ctx.decode(av.Packet(f.data)))
+    out.extend(ctx.decode(None))
+    return [np.ascontiguousarray(np.frombuffer(p.planes[0], np.uint8).reshape(p.height, p.planes[0].line_size)[:, : p.width]) for p in out]
+
+
+@pytest.mark.parametrize("fmt,ext", [("h264", "mp4"), ("h265", "mkv"), ("h264", "mkv")])
+def test_file_packets_become_annexb_access_units_with_parameter_sets(tmp_path, fmt, ext):
+    clip = tmp_path / f"clip.{ext}"
+    encode_clip(clip, fmt, n=30, gop=10)
+    source, frames = read_all(str(clip))
+    assert source.format == fmt and (source.width, source.height) == (160, 128)
+    assert len(frames) == 30 and source.clock == "file"
+    assert [f.keyframe for f in frames].count(True) == 3
+    for f in frames:
+        assert f.data.startswith(b"\x00\x00\x00\x01")  # avcC/hvcC samples came length-prefixed
+        types = {nal_type(n, fmt) for n in split_annexb(f.data)}
+        if f.keyframe:
+            assert PARAMS[fmt] <= types  # SPS/PPS (+VPS) in front of every keyframe, from the extradata
+        assert is_keyframe(f.data, fmt) == f.keyframe
+    assert [f.pts_ns for f in frames] == [i * 40_000_000 for i in range(30)]
+    # Each keyframe access unit decodes on its own, from its own bytes.
+    for k in (10, 20):
+        assert decode_all(frames[k:k + 5], fmt)[0].shape == (128, 160)
+    assert len(decode_all(frames, fmt)) == 30
+    assert source.monitor.frames_lost == 0 and not source.b_frames
+
+
+def test_parameter_sets_from_avcc_and_annexb():
+    sps, pps = bytes([0x67, 0x42, 0xC0, 0x0D, 0xDA]), bytes([0x68, 0xCE, 0x3C, 0x80])
+    avcc = bytes([1, 0x42, 0xC0, 0x0D, 0xFF, 0xE1]) + len(sps).to_bytes(2, "big") + sps + b"\x01" + len(pps).to_bytes(2, "big") + pps
+    assert parameter_sets(avcc, "h264") == ([sps, pps], 4)
+    annexb = b"\x00\x00\x00\x01" + sps + b"\x00\x00\x01" + pps
+    assert parameter_sets(annexb, "h264") == ([sps, pps], None)
+    idr = bytes([0x65, 0x88, 0x84, 0x00, 0x33])
+    # An Annex B keyframe without in-band parameter sets gets them (after its delimiter); a P-frame is untouched.
+    au = access_unit(b"\x00\x00\x00\x01\x09\xf0" + b"\x00\x00\x01" + idr, "h264", True, [sps, pps])
+    assert [nal_type(n, "h264") for n in split_annexb(au)] == [9, 7, 8, 5]
+    p_frame = b"\x00\x00\x00\x01" + bytes([0x41, 0x9A, 0x00])
+    assert access_unit(p_frame, "h264", False, [sps, pps]) == p_frame
+    length_prefixed = len(idr).to_bytes(4, "big") + idr
+    assert split_annexb(access_unit(length_prefixed, "h264", True, [sps, pps], 4)) == [sps, pps, idr]
+
+
+def test_stream_monitor_reports_a_stall_a_gap_and_corruption():
+    m = StreamMonitor(frame_period_s=0.04)
+    t0 = 1_700_000_000_000_000_000
+    incidents = []
+    period = 40_000_000
+    for i in range(50):  # 2 s steady, 2 ms network delay
+        incidents += m.observe(t0 + i * period + 2_000_000, i * period)
+    assert not m.lagging and m.lag_ns == 0
+    # The server stalls for 1 s, then sends 25 backlogged frames in a burst, then runs on.
+    stall_end = t0 + 50 * period + 1_000_000_000
+    for k in range(25):
+        incidents += m.observe(stall_end + k * 1_000_000, (50 + k) * period)
+    assert m.lagging and 0.9e9 < m.max_lag_ns < 1.1e9
+    for i in range(75, 200):  # caught up: pacing as before
+        incidents += m.observe(t0 + i * period + 2_000_000, i * period)
+    lag = [x for x in incidents if x.kind == "video_lag"]
+    assert len(lag) == 1 and 0.9 < lag[0].value < 1.1 and m.lag_events == 1
+    # Three frames (200-202) never arrive; the next arrives flagged corrupt.
+    incidents = m.observe(t0 + 203 * period + 2_000_000, 203 * period, corrupt=True)
+    assert [x.kind for x in incidents] == ["video_corrupt", "video_lost"]
+    assert incidents[1].value == 3.0 and m.frames_lost == 3 and m.corrupt == 1
+
+
+def _meta(width=160, height=128):
+    return RunMetadata(format_version=FORMAT_VERSION, width=width, height=height, marker=MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.5))
+
+
+def test_video_run_round_trip_and_window_decoding_from_the_keyframe(tmp_path):
+    clip = tmp_path / "clip.mp4"
+    encode_clip(clip, "h264", n=40, gop=10)
+    _, frames = read_all(str(clip))
+    t0 = 1_700_000_000_000_000_000
+    path = tmp_path / "run.mcap"
+    with RunWriter(path, _meta(), camera="video", chunk_size=4000) as w:
+        for f in frames:
+            w.write_frame(Frame(timestamp_ns=t0 + f.pts_ns, format="h264", data=f.data))
+        w.write_fix(GnssFix(timestamp_ns=t0, lat_deg=1.0, lon_deg=2.0, alt_m=3.0))
+        with pytest.raises(InputError, match="camera='image'"):
+            w.write_frame(Frame(timestamp_ns=t0, format="jpeg", data=b"\xff\xd8"))
+    reference = decode_all(frames, "h264")
+    with open_run(path) as run:
+        assert run.video and run.topics["/camera/video"] == "foxglove.CompressedVideo"
+        assert [f.data for f in run.iter_frames()] == [f.data for f in frames]
+        # Frames 23-26: the reader starts at keyframe 20, the decoder decodes 20-26 and nothing else.
+        window = (t0 + 23 * 40_000_000, t0 + 26 * 40_000_000)
+        got = list(run.iter_frames([window]))
+    assert [g.timestamp_ns for g in got] == [t0 + k * 40_000_000 for k in range(20, 27)]
+    assert isinstance(got[0], VideoFrame) and got[0].keyframe and not got[1].keyframe
+    decoder = FrameDecoder()
+    images = {}
+    for k, g in zip(range(20, 27), got):
+        decoder.push(g)
+        if k in (23, 26):
+            images[k] = decoder.gray()
+    assert np.array_equal(images[23], reference[23]) and np.array_equal(images[26], reference[26])
+    assert decoder.video_stats == (7, 0)
+    # A frame asked for before any keyframe is None (counted corrupt by calibrate), never a wrong picture.
+    late = FrameDecoder()
+    late.push(got[1])
+    assert late.gray() is None
+
+
+def test_a_run_with_both_camera_topics_is_refused(tmp_path):
+    path = tmp_path / "both.mcap"
+    with RunWriter(path, _meta(), camera="video") as w:
+        w.write_fix(GnssFix(timestamp_ns=1, lat_deg=1.0, lon_deg=2.0, alt_m=3.0))
+        from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+        w._write_proto("/camera/image", CompressedImage(data=b"x", format="jpeg"), 2)
+    with pytest.raises(ContractError, match="one camera topic"):
+        open_run(path)
