@@ -10,6 +10,11 @@ finalises the file and commands nothing.
 
 The marker comes from the --marker-* flags, else from plan.json beside the
 mission (written by `dronecal-field plan`). See docs/fly.md.
+
+While recording, the live pipeline checks each hold as it ends (the marker
+detected, the running calibration, coverage of the plan's ROI) and ends with
+a verdict and, for missed waypoints, RUN's refly.plan; --live-port serves it
+to Foxglove, --calibrate calibrates the run after landing. See docs/live.md.
 """
 
 from __future__ import annotations
@@ -55,6 +60,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     marker.add_argument("--marker-id", type=int, metavar="ID", help="ArUco id (default 0)")
     marker.add_argument("--marker-size", type=float, metavar="M", help="side of the marker's black square, metres")
     marker.add_argument("--marker-offset", metavar="F,R,D", help="marker centre from the GNSS antenna, body frame forward,right,down, metres (default 0,0,0)")
+    live = parser.add_argument_group("live (docs/live.md)")
+    live.add_argument("--live-port", type=int, default=0, metavar="PORT",
+                      help="serve the live view to Foxglove on this WebSocket port (8765 is Foxglove's usual one; default 0: no server)")
+    live.add_argument("--live-host", default="127.0.0.1", metavar="ADDR", help="address of the live view (default 127.0.0.1: this machine only)")
+    live.add_argument("--no-live", action="store_true", help="record only: no live detection, calibration or verdict")
+    live.add_argument("--calibrate", action="store_true", help="after landing, calibrate the run into RUN-calibration/ beside it (calibrate's defaults)")
     parser.add_argument("--out", required=True, metavar="RUN.mcap", help="run file to write; the .tlog goes beside it")
     parser.set_defaults(func=run)
 
@@ -198,6 +209,8 @@ def run(args: argparse.Namespace) -> int:
     link.add_listener(before_recording)
     source = None
     recorder = None
+    live = None
+    closed_mono = None
     try:
         hb = link.wait_heartbeat(args.heartbeat_timeout)
         print(f"vehicle: {describe_heartbeat(hb)} (sysid {link.target_system}) on {link.endpoint}", flush=True)
@@ -233,15 +246,23 @@ def run(args: argparse.Namespace) -> int:
             print(f"note: ArduCopter keeps some values differently, as expected: {'; '.join(report.storage_changes[:3])}{more}")
 
         link.remove_listener(before_recording)  # the recorder takes over the clock and the tlog
-        recorder = _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, __version__, clock, backlog)
+        if not args.no_live:
+            from dronecal_field.live.session import start_live
+
+            live = start_live(mission, marker, video_status.width, video_status.height, plan_json, _site_origin(plan_json), args.min_fix,
+                              args.camera_latency, args.live_host, args.live_port)
+            if live.view is not None:
+                print(f"live view: Foxglove, open connection ws://{args.live_host}:{live.view.port} (layout docs/foxglove-layout.json)", flush=True)
+        recorder = _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, __version__, clock, backlog, live)
         if args.start:
             arm_and_start_mission(link)
             print("started: GUIDED, armed, MISSION_START sent", flush=True)
         else:
             print("waiting for the pilot to arm and switch to AUTO (Ctrl-C ends the recording; nothing is commanded)", flush=True)
-        if not _record_until_done(recorder, mission, args.timeout_s):
+        if not _record_until_done(recorder, mission, args.timeout_s, live):
             summary = recorder.stop().summary()
             recorder = None
+            closed_mono = time.monotonic()
             raise LinkError(f"the mission did not end within --timeout-s {args.timeout_s:g}; {out} is finalised ({summary}); the vehicle was not commanded")
     except KeyboardInterrupt:
         if recorder is not None:
@@ -252,14 +273,24 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if recorder is not None:
             summary = recorder.stop().summary()
+            closed_mono = time.monotonic()
             print(f"\nrecorded {out} and {tlog_path.name}: {summary}", flush=True)
         if source is not None:
             source.close()
         link.close()
+        if live is not None:
+            from dronecal_field.live.session import conclude
+
+            _result, lines = conclude(live, out, mission)
+            print("\n".join(lines), flush=True)
+    if args.calibrate and closed_mono is not None:
+        from dronecal_field.live.session import calibrate_after_landing
+
+        print("\n".join(calibrate_after_landing(out, args.min_fix, closed_mono)), flush=True)
     return 0
 
 
-def _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, version, clock, backlog):
+def _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, version, clock, backlog, observer=None):
     from dronecal_field.mavlink.missionfile import to_qgc_plan
     from dronecal_field.recording.marker_check import MarkerCheck
     from dronecal_field.recording.recorder import Recorder
@@ -315,11 +346,15 @@ def _start_recorder(args, link, source, first, mission, mission_path, marker, pl
         link_timeout_s=args.link_timeout,
         clock=clock,
         start_ns=start_ns,
+        observer=observer,
     ).start()
 
 
-def _record_until_done(recorder, mission, timeout_s: float | None = None) -> bool:
-    """Print the status line each second until the mission is over (True) or ``timeout_s`` passed (False)."""
+def _record_until_done(recorder, mission, timeout_s: float | None = None, live=None) -> bool:
+    """Print the status line each second until the mission is over (True) or ``timeout_s`` passed (False).
+
+    With the live pipeline, its part joins the status line and its summaries get lines of their own.
+    """
     from dronecal_field.recording.status import format_status
 
     tty = sys.stdout.isatty()
@@ -334,6 +369,10 @@ def _record_until_done(recorder, mission, timeout_s: float | None = None) -> boo
         if now - last_print >= 1.0:
             last_print = now
             line = format_status(recorder.status())
+            if live is not None:
+                for summary in live.new_summaries():
+                    print(("\r" + summary.ljust(120) + "\n") if tty else summary, end="" if tty else "\n", flush=True)
+                line += " | " + live.status_text()
             print(("\r" + line.ljust(120)) if tty else line, end="" if tty else "\n", flush=True)
         if _mission_over(recorder, mission):
             done_since = done_since or now

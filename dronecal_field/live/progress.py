@@ -1,0 +1,362 @@
+"""The live core: each flown waypoint's detections and point, the running calibration, coverage, the verdict.
+
+Pure functions over arrays and records (no threads, no sockets), built from
+the offline stage's own parts so that the live numbers mean what
+``calibrate``'s do: the same detector (pipeline/detect.py), the same
+per-hold point (pipeline/points.window_point over HoverWindow.stable), the
+same solver (core/calibrate.py) and linearised uncertainty
+(core/uncertainty.py). What differs is the amount of work: a few frames per
+hold instead of every frame, no legs in the solve, no Monte-Carlo.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from dronecal_field.core.camera import Camera
+from dronecal_field.pipeline.detect import Detection
+from dronecal_field.pipeline.hover import HoverWindow
+from dronecal_field.pipeline.points import PointOptions, WaypointPoint, marker_track_at, window_point
+
+MIN_SOLVE_POINTS = 6  # as calibrate (pipeline.run.MIN_POINTS)
+NOT_DETECTED = "marker not detected"
+
+
+@dataclass(frozen=True)
+class LiveOptions:
+    """How much work the live pipeline does per waypoint (defaults: a few frames, well under a second of CPU)."""
+
+    frames_per_hold: int = 10  # frames decoded per hold (calibrate decodes up to 24)
+    frames_per_leg: int = 16
+    min_fix: str = "rtk_fixed"
+    summary_every: int = 3  # a summary line every N waypoints
+    points: PointOptions = field(default_factory=PointOptions)
+
+
+@dataclass(frozen=True, eq=False)
+class FixTrack:
+    """The GNSS track so far in the live ENU frame.
+
+    ``t_ns`` (N,) int64 fix times; ``marker_enu_m`` (N, 3) the marker (lever
+    arm applied with the attitude); ``sigma_enu_m`` (N, 3) receiver std;
+    ``fix_types`` (N,) names.
+    """
+
+    t_ns: np.ndarray
+    marker_enu_m: np.ndarray
+    sigma_enu_m: np.ndarray
+    fix_types: list[str | None]
+
+
+@dataclass(frozen=True, eq=False)
+class WaypointOutcome:
+    """What one flown waypoint gave.
+
+    ``kind`` is ``hold`` (a hover window) or ``leg`` (the leg flown into a
+    fly-through waypoint); ``point`` the hold's 3D-2D point (None for a leg);
+    ``uv_px`` (K, 2) the marker centres seen; ``problem`` None when the
+    waypoint is good, else why it must be flown again.
+    """
+
+    seq: int
+    kind: str
+    end_ns: int
+    frames: int
+    detections: list[Detection]
+    point: WaypointPoint | None
+    problem: str | None
+
+    @property
+    def good(self) -> bool:
+        return self.problem is None
+
+    @property
+    def uv_px(self) -> np.ndarray:
+        return np.array([[d.u_px, d.v_px] for d in self.detections], float).reshape(-1, 2)
+
+
+@dataclass(frozen=True, eq=False)
+class LiveEstimate:
+    """The running calibration after some waypoints.
+
+    ``ground_error_15m_cm`` is the linearised prediction of the ground
+    position error 15 m out (as calibrate's report gives it); ``focal_std_px``
+    the linearised standard deviation of the mean focal length.
+    """
+
+    waypoints: int
+    n_points: int
+    camera: Camera
+    model: str
+    rms_px: float
+    focal_px: float
+    focal_std_px: float
+    ground_error_15m_cm: float
+
+    def to_dict(self) -> dict:
+        i = self.camera.intrinsics
+        return {
+            "waypoints": self.waypoints, "n_points": self.n_points, "model": self.model, "rms_px": self.rms_px,
+            "focal_px": self.focal_px, "focal_std_px": self.focal_std_px, "ground_error_15m_cm": self.ground_error_15m_cm,
+            "fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy, "distortion": self.camera.distortion.as_array().tolist(),
+            "position_enu_m": self.camera.pose.position_world.tolist(),
+        }
+
+
+# ----------------------------------------------------------------------------
+# frames and detections
+
+
+def pick_frames(frames: list[Any], start_ns: int, end_ns: int, n: int) -> list[Any]:
+    """Up to ``n`` frames (with ``timestamp_ns``) of [start_ns, end_ns], spread evenly over the span."""
+    inside = [f for f in frames if start_ns <= f.timestamp_ns <= end_ns]
+    if len(inside) <= n:
+        return inside
+    idx = np.unique(np.round(np.linspace(0, len(inside) - 1, n)).astype(int))
+    return [inside[k] for k in idx]
+
+
+def detect_in_frames(frames: list[Any], marker: Any, detector: Any) -> list[Detection]:
+    """The marker in each frame (JPEG/PNG bytes), calibrate's detector; the frames in time order.
+
+    ``marker`` is the run's MarkerSpec; ``detector`` from
+    ``detect.make_aruco_detector`` (None for an LED marker).
+    """
+    from dronecal_field.pipeline.detect import decode_gray, detect_aruco, detect_led, roi_around
+
+    found: list[Detection] = []
+    last: Detection | None = None
+    for frame in sorted(frames, key=lambda f: f.timestamp_ns):
+        image = decode_gray(frame.data)
+        if image is None:
+            continue
+        roi = roi_around(last, image.shape) if last is not None else None
+        while True:
+            if marker.kind == "aruco":
+                res = detect_aruco(image, detector, int(marker.marker_id), frame.timestamp_ns, roi)
+            else:
+                res = detect_led(image, frame.timestamp_ns, roi)
+            if res.detection is not None or roi is None:
+                break
+            roi = None  # lost in the tracking box: the whole frame
+        if res.detection is not None:
+            found.append(res.detection)
+            last = res.detection
+    return found
+
+
+# ----------------------------------------------------------------------------
+# points
+
+
+def fix_track(
+    fixes: list[Any], attitudes: list[Any], origin: Any, offset_frd_m: np.ndarray
+) -> FixTrack:
+    """The marker's ENU track from GnssFix and Attitude records (any order), at ``origin`` (EnuOrigin)."""
+    from dronecal_field.geodesy import geodetic_to_enu
+
+    fixes = sorted((f for f in fixes if f.fix_type != "no_fix"), key=lambda f: f.timestamp_ns)
+    if not fixes:
+        return FixTrack(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), [])
+    t = np.array([f.timestamp_ns for f in fixes], np.int64)
+    lla = np.array([(f.lat_deg, f.lon_deg, f.alt_m) for f in fixes], float)
+    antenna = geodetic_to_enu(lla[:, 0], lla[:, 1], lla[:, 2], origin)
+    sigma = np.array(
+        [np.sqrt(np.clip(np.diag(f.covariance_enu), 0, None)) if f.covariance_enu is not None else (np.nan,) * 3 for f in fixes], float
+    )
+    att_t = att_rpy = None
+    if attitudes:
+        att = sorted(attitudes, key=lambda a: a.timestamp_ns)
+        att_t = np.array([a.timestamp_ns for a in att], np.int64)
+        att_rpy = np.array([(a.roll_rad, a.pitch_rad, a.yaw_rad) for a in att], float)
+    # At the fixes' own instants: the lever arm turned by the attitude then (no pairing gap applies).
+    marker, _ = marker_track_at(t, t, antenna, np.asarray(offset_frd_m, float), att_t, att_rpy)
+    return FixTrack(t_ns=t, marker_enu_m=marker, sigma_enu_m=sigma, fix_types=[f.fix_type for f in fixes])
+
+
+def hold_outcome(
+    seq: int, index: int, start_ns: int, end_ns: int, frames: int, detections: list[Detection], track: FixTrack,
+    camera_offset_ns: int, marker_size_m: float | None, options: LiveOptions,
+) -> WaypointOutcome:
+    """One hold's outcome: its point as calibrate makes it (``window_point`` over the settled part)."""
+    from dataclasses import replace
+
+    po = replace(options.points, min_fix=options.min_fix)
+    window = HoverWindow(index=index, start_ns=int(start_ns), end_ns=int(end_ns), source="event", seq=int(seq))
+    # Live, only a few frames are decoded: a hold needs 3 detections, like calibrate's minimum.
+    po = replace(po, min_detections=min(po.min_detections, max(1, frames)))
+    det_t = np.array([d.timestamp_ns for d in detections], np.int64)
+    det_uv = np.array([[d.u_px, d.v_px] for d in detections], float).reshape(-1, 2)
+    det_size = np.array([d.size_px for d in detections], float)
+    point = window_point(
+        window, window.stable(po.settle_s, po.tail_s), track.t_ns, track.marker_enu_m, track.sigma_enu_m, track.fix_types,
+        det_t, det_uv, int(camera_offset_ns), po, det_size, marker_size_m,
+    )
+    problem = None
+    if not detections:
+        problem = NOT_DETECTED
+    elif not point.used:
+        problem = NOT_DETECTED if "marker detections" in (point.dropped or "") else point.dropped
+    return WaypointOutcome(seq=int(seq), kind="hold", end_ns=int(end_ns), frames=frames, detections=detections, point=point, problem=problem)
+
+
+def leg_outcome(seq: int, end_ns: int, frames: int, detections: list[Detection], min_detections: int = 3) -> WaypointOutcome:
+    """A fly-through waypoint: the leg into it showed the marker (``min_detections`` frames) or not."""
+    problem = None if len(detections) >= min(min_detections, max(1, frames)) else NOT_DETECTED
+    return WaypointOutcome(seq=int(seq), kind="leg", end_ns=int(end_ns), frames=frames, detections=detections, point=None, problem=problem)
+
+
+# ----------------------------------------------------------------------------
+# the running calibration
+
+
+def solve(points: list[WaypointPoint], width: int, height: int, waypoints: int, previous: LiveEstimate | None = None) -> LiveEstimate | None:
+    """The camera from the used hold points (None below 6 points or on degenerate geometry), with its linearised uncertainty.
+
+    ``previous`` starts the solver from the last estimate (one short fit per hold).
+    """
+    from dronecal_field.core.calibrate import calibrate
+    from dronecal_field.core.uncertainty import linearised
+    from dronecal_field.errors import DronecalError
+
+    used = [p for p in points if p.used]
+    if len(used) < MIN_SOLVE_POINTS:
+        return None
+    X = np.array([p.marker_enu_m for p in used])  # (N, 3) ENU metres
+    uv = np.array([p.uv_px for p in used])  # (N, 2) px
+    s3 = np.array([p.sigma_enu_m for p in used])
+    s2 = np.array([p.sigma_px for p in used])
+    try:
+        initial = previous.camera if previous is not None and previous.n_points >= MIN_SOLVE_POINTS else None
+        result = calibrate(X, uv, width, height, model="auto", loss="huber", loss_scale_px=2.0, initial=initial)
+        if initial is not None and result.rms_px > 5.0 * max(previous.rms_px, 0.5):
+            result = calibrate(X, uv, width, height, model="auto", loss="huber", loss_scale_px=2.0)  # a bad start: from DLT
+        lin = linearised(result.camera, X, sigma_3d=s3, sigma_2d=s2, model=result.model)
+    except (DronecalError, ValueError, np.linalg.LinAlgError):
+        return previous  # coplanar so far, or a failed fit: keep what we had
+    i = result.camera.intrinsics
+    focal_std = 0.5 * float(np.hypot(lin.param_std.get("fx", np.nan), lin.param_std.get("fy", np.nan)))
+    return LiveEstimate(
+        waypoints=int(waypoints), n_points=len(used), camera=result.camera, model=result.model.name, rms_px=float(result.rms_px),
+        focal_px=0.5 * (i.fx + i.fy), focal_std_px=focal_std, ground_error_15m_cm=float(lin.ground_error_15m_cm),
+    )
+
+
+# ----------------------------------------------------------------------------
+# coverage and the verdict
+
+
+def image_roi(plan: dict | None):
+    """The plan's ROI in the image of its guessed camera (sampling.roi.Roi), None without a plan.json or ROI.
+
+    Rebuilt from plan.json's ``camera_guess`` and ``roi`` exactly as ``plan``
+    built it, so coverage here is the same figure as plan's ``coverage.pct``.
+    """
+    from dronecal_field.sampling.roi import RoiSpec, build_roi
+
+    try:
+        g, r = plan["camera_guess"], plan["roi"]
+        R_enu_from_site = np.asarray(plan["site_frame"]["R_enu_from_site"], float)
+        R_cam_from_enu = np.asarray(g["rotation_world_to_camera"], float)
+        R = R_cam_from_enu @ R_enu_from_site  # camera from site
+        c = R_enu_from_site.T @ np.asarray(g["position_enu_m"], float)
+        f = float(g["focal_px"])
+        camera = Camera.from_arrays(
+            [f, f, float(g["cx"]), float(g["cy"])], g.get("distortion_k1_k2_p1_p2_k3") or [0.0] * 5, R, -R @ c,
+            int(g["width"]), int(g["height"]),
+        )
+        poly = r.get("polygon_site_m")
+        spec = RoiSpec(
+            kind=str(r.get("kind", "range")), range_m=tuple(float(v) for v in r["range_m"]),
+            polygon_site=tuple(tuple(float(v) for v in p[:2]) for p in poly) if poly else None,
+            layer_heights_m=tuple(float(v) for v in r.get("layer_heights_m") or (0.0,)), source=str(r.get("source", "plan.json")),
+        )
+        cells = r.get("cells")
+        return build_roi(camera, spec, cells_across=int(cells[0]) if cells else 16)
+    except Exception:  # noqa: BLE001 - no ROI is a valid answer (no plan.json, an older format): coverage is then not shown
+        return None
+
+
+def coverage(roi: Any, outcomes: list[WaypointOutcome]) -> float | None:
+    """Share of the ROI's image cells within one cell of a marker seen so far (plan's coverage rule); None without an ROI."""
+    if roi is None:
+        return None
+    uv = [o.uv_px for o in outcomes if len(o.detections)]
+    return float(roi.coverage(np.concatenate(uv) if uv else np.zeros((0, 2))))
+
+
+def expected_seqs(mission: Any, plan: dict | None) -> list[int]:
+    """The mission seqs that are measurement points: plan.json's grid, else every NAV_WAYPOINT with a hold."""
+    from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT
+
+    grid = (plan or {}).get("grid") if isinstance(plan, dict) else None
+    if isinstance(grid, list):
+        seqs = sorted({int(g["mission_seq"]) for g in grid if isinstance(g, dict) and g.get("mission_seq") is not None})
+        nav = {item.seq for item in mission.items if item.command == CMD_NAV_WAYPOINT}
+        if seqs and set(seqs) <= nav:
+            return seqs
+    return [item.seq for item in mission.items[1:] if item.command == CMD_NAV_WAYPOINT and item.hold_s > 0]
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The end of the mission: good, or which waypoints to fly again and why."""
+
+    good: bool
+    text: str
+    refly_seqs: tuple[int, ...]
+
+
+def verdict(outcomes: list[WaypointOutcome], expected: list[int], estimate: LiveEstimate | None, cover: float | None) -> Verdict:
+    """``good: ...`` or ``re-fly waypoints 12, 17, 31 (marker not detected)``; unflown expected waypoints are re-flown too."""
+    by_seq: dict[int, WaypointOutcome] = {}
+    for o in outcomes:
+        if o.seq not in by_seq or (o.good and not by_seq[o.seq].good):
+            by_seq[o.seq] = o
+    reasons: dict[str, list[int]] = {}
+    for seq in expected:
+        o = by_seq.get(seq)
+        why = "not flown" if o is None else o.problem
+        if why is not None:
+            reasons.setdefault(why, []).append(seq)
+    for seq, o in by_seq.items():  # a waypoint outside the plan's grid that failed still counts
+        if seq not in expected and o.problem is not None and o.kind == "hold":
+            reasons.setdefault(o.problem, []).append(seq)
+    refly = tuple(sorted({s for seqs in reasons.values() for s in seqs}))
+    flown = sum(1 for s in expected if s in by_seq)
+    detected = sum(1 for s in expected if s in by_seq and by_seq[s].good)
+    tail = []
+    if cover is not None:
+        tail.append(f"coverage {100 * cover:.0f} % of the plan's ROI")
+    if estimate is not None:
+        tail.append(f"predicted ground error {estimate.ground_error_15m_cm:.1f} cm at 15 m ({estimate.n_points} points)")
+    elif detected < MIN_SOLVE_POINTS:
+        tail.append(f"only {detected} points: calibrate needs {MIN_SOLVE_POINTS}")
+    if not refly:
+        return Verdict(True, f"good: {detected}/{len(expected)} waypoints detected" + ("; " + ", ".join(tail) if tail else ""), ())
+    parts = [f"{', '.join(str(s) for s in seqs)} ({why})" for why, seqs in sorted(reasons.items(), key=lambda kv: min(kv[1]))]
+    text = f"re-fly waypoints {'; '.join(parts)}" + f" — {detected}/{len(expected)} detected of {flown} flown" + ("; " + ", ".join(tail) if tail else "")
+    return Verdict(False, text, refly)
+
+
+def summary_line(outcomes: list[WaypointOutcome], expected: list[int], estimate: LiveEstimate | None, cover: float | None,
+                 offset: Any | None) -> str:
+    """``live: 9/24 waypoints, 8 detected, 1 missed (seq 12) | coverage 41 % | ground 3.2 cm at 15 m | camera offset +0.12 s``."""
+    missed = sorted({o.seq for o in outcomes if not o.good} - {o.seq for o in outcomes if o.good})
+    detected = len({o.seq for o in outcomes if o.good})
+    parts = [f"live: {len({o.seq for o in outcomes})}/{len(expected)} waypoints, {detected} detected, {len(missed)} missed"
+             + (f" (seq {', '.join(map(str, missed[:8]))}{'...' if len(missed) > 8 else ''})" if missed else "")]
+    if cover is not None:
+        parts.append(f"coverage {100 * cover:.0f} %")
+    if estimate is not None:
+        parts.append(f"f {estimate.focal_px:.1f} ± {estimate.focal_std_px:.1f} px, ground {estimate.ground_error_15m_cm:.1f} cm at 15 m")
+    else:
+        parts.append("calibration: waiting for 6 points")
+    if offset is not None and offset.method != "none":
+        parts.append(f"camera offset {offset.offset_s:+.3f} s" + (f" ± {offset.std_s:.3f}" if offset.std_s is not None else ""))
+    else:
+        parts.append("camera offset: not observable yet (needs the marker moving)")
+    return " | ".join(parts)

@@ -1,0 +1,88 @@
+"""What ``fly`` does with the live pipeline: start it beside the recorder, conclude it after landing.
+
+The I/O shell of the live package: it opens the Foxglove server, writes
+``live.json`` and ``refly.plan`` beside the run and, with ``fly
+--calibrate``, runs the normal ``calibrate`` on the closed run.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from dronecal_field.live.progress import LiveOptions
+from dronecal_field.live.worker import LiveCalibration, LiveResult
+
+
+def start_live(
+    mission: Any, marker: Any, width: int, height: int, plan_json: dict | None, origin: Any, min_fix: str,
+    camera_latency_s: float | None, live_host: str, live_port: int,
+) -> LiveCalibration:
+    """The live calibration, started; with ``live_port`` > 0 (or -1: any free port) its Foxglove server too.
+
+    A port that cannot be bound is an InputError naming the flag: the pilot asked for the view.
+    """
+    from dronecal_field.errors import InputError
+
+    view = None
+    if live_port != 0:
+        from dronecal_field.live.view import LiveView
+
+        try:
+            view = LiveView(host=live_host, port=max(0, live_port))
+        except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types for a taken port
+            raise InputError(f"--live-port {live_port}: cannot serve Foxglove on {live_host}:{live_port} ({exc}); choose a free port or 0 for none") from None
+    return LiveCalibration(
+        mission, marker, width, height, plan=plan_json, origin=origin, options=LiveOptions(min_fix=min_fix), view=view,
+        camera_latency_s=camera_latency_s,
+    ).start()
+
+
+def refly_path(run_path: Path) -> Path:
+    """``refly.plan`` beside ``run.mcap``; ``run-2.refly.plan`` beside ``run-2.mcap`` (a later flight keeps the first's)."""
+    return run_path.with_name("refly.plan" if run_path.stem == "run" else f"{run_path.stem}.refly.plan")
+
+
+def conclude(live: LiveCalibration, run_path: Path, mission: Any, timeout_s: float = 30.0) -> tuple[LiveResult, list[str]]:
+    """Finish the live work; write ``<run>.live.json`` and, if waypoints were missed, the refly plan. (result, lines to print)."""
+    from dronecal_field.live.refly import write_refly_plan
+
+    result = live.finish(timeout_s)
+    lines = [s for s in live.new_summaries()]
+    lines.append(f"verdict: {result.verdict.text}")
+    doc = result.to_dict()
+    doc["run"] = run_path.name
+    if result.verdict.refly_seqs:
+        path = refly_path(run_path)
+        mapping = write_refly_plan(path, mission, result.verdict.refly_seqs, result.expected)
+        doc["refly"] = {"file": path.name, "new_seq_to_flown_seq": {str(k): v for k, v in mapping.items()}}
+        lines.append(f"refly: {path} holds just those {len(mapping)} waypoints (upload it to re-fly them; fly commands nothing by itself)")
+    if result.jobs_dropped:
+        lines.append(f"note: {result.jobs_dropped} waypoints were not checked live (the worker was busy): calibrate checks them")
+    live_json = run_path.with_name(run_path.stem + ".live.json")
+    live_json.write_text(json.dumps(doc, indent=2, default=float), encoding="utf-8")
+    if live.view is not None:
+        live.view.close()
+    return result, lines
+
+
+def calibrate_after_landing(run_path: Path, min_fix: str, closed_mono: float) -> list[str]:
+    """``calibrate RUN`` as the user would run it (its defaults, its output), into ``<run>-calibration/``; lines to print."""
+    import argparse
+    import contextlib
+    import io
+
+    from dronecal_field.commands import calibrate as calibrate_cmd
+
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers()
+    calibrate_cmd.register(sub)
+    args = parser.parse_args(["calibrate", str(run_path), "--min-fix", min_fix])
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        calibrate_cmd.run_single(args, run_path)
+    lines = out.getvalue().rstrip().splitlines()
+    lines.append(f"calibration ready {time.monotonic() - closed_mono:.1f} s after the run file was closed")
+    return lines
