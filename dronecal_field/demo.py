@@ -149,6 +149,7 @@ def start_simulators(
     vehicle = subprocess.Popen(cli_argv(
         "sim", "vehicle", "--listen", f"udp:127.0.0.1:{vehicle_port}", "--out", f"udp:127.0.0.1:{camera_link_port}",
         "--home", f"{home_lat},{home_lon},{home_alt}", "--speedup", speedup,
+        "--gps-rate-ms", 100,  # GPS_RATE_MS 100: the 10 Hz RTK setting docs/fly.md asks for (ArduPilot's default is 200)
     ), stdout=(logs / "sim-vehicle.log").open("w"), stderr=subprocess.STDOUT)
     camera = subprocess.Popen(cli_argv(
         "sim", "camera", "--connect", f"udpin:127.0.0.1:{camera_link_port}", "--camera", truth_path, "--serve", video_url,

@@ -2,9 +2,15 @@
 
 Three threads around the pure parts (render.py, camera_track.py):
 
-* a MAVLink listener (pymavlink, the scheme given explicitly) that only
-  listens: GLOBAL_POSITION_INT, ATTITUDE and GPS_RAW_INT of one vehicle, each
-  stamped with its host arrival time;
+* a MAVLink client (pymavlink, the scheme given explicitly) that asks the
+  vehicle on its own link for what it needs, as a GCS does (ArduPilot 4.7
+  streams nothing on a link until asked): SET_MESSAGE_INTERVAL for SIMSTATE,
+  GLOBAL_POSITION_INT and ATTITUDE at 10 Hz, GPS_RAW_INT and MISSION_CURRENT
+  at 2 Hz, asked again whenever the position goes quiet; it never commands
+  anything else. Each sample is stamped with its host arrival time; the
+  vehicle is drawn at its true position and attitude (SIMSTATE, as SITL
+  sends, with GLOBAL_POSITION_INT's height) when the vehicle sends SIMSTATE,
+  else at the EKF's (GLOBAL_POSITION_INT, ATTITUDE);
 * a frame loop that, while anyone watches, renders the vehicle as it was at
   ``frame time - latency`` through the true camera and JPEG-encodes it;
 * an HTTP server (ThreadingHTTPServer) that streams the frames as
@@ -34,6 +40,18 @@ from dronecal_field.sim.scene import MarkerSpec, VehiclePose
 
 BOUNDARY = "dronecalframe"
 MAVLINK_SCHEMES = ("udpin", "udpout", "udp", "tcp", "tcpin", "udpbcast", "serial")
+
+
+# What the camera asks for on its link (Hz): the truth, the EKF's position and attitude as a
+# fallback, the ellipsoid height and the mission seq (for --hide-marker-at).
+STREAM_REQUESTS_HZ: tuple[tuple[str, float], ...] = (
+    ("SIMSTATE", 10.0),
+    ("GLOBAL_POSITION_INT", 10.0),
+    ("ATTITUDE", 10.0),
+    ("GPS_RAW_INT", 2.0),
+    ("MISSION_CURRENT", 2.0),
+)
+REQUEST_AGAIN_NS = 2_000_000_000  # no position for this long: ask again
 
 
 @dataclass(frozen=True)
@@ -249,6 +267,9 @@ class SimCamera:
         self.hide_marker_at = frozenset(int(s) for s in hide_marker_at)
         self.mission_seq: int | None = None  # the vehicle's MISSION_CURRENT.seq
         self.frames_hidden = 0
+        self.stream_requests = 0  # times the camera asked the vehicle for its streams
+        self.position_source: str | None = None  # "SIMSTATE" (truth) or "GLOBAL_POSITION_INT" (EKF)
+        self._vehicle_compid: int | None = None
         self.origin = EnuOrigin(*camera.enu_origin)
         self.track = PoseTrack(horizon_s=max(30.0, 4.0 * latency_s), use_ellipsoid=use_ellipsoid)
         self.renderer = FrameRenderer(camera, marker, noise_sigma_dn=noise_sigma_dn, seed=seed)
@@ -330,28 +351,77 @@ class SimCamera:
 
     # -- threads
 
+    def _request_streams(self, mav, target_system: int, target_component: int) -> None:
+        """SET_MESSAGE_INTERVAL on this link for what the camera needs (no ACK awaited: asked again if quiet)."""
+        from pymavlink import mavutil
+
+        for name, hz in STREAM_REQUESTS_HZ:
+            msgid = getattr(mavutil.mavlink, f"MAVLINK_MSG_ID_{name}")
+            mav.mav.command_long_send(target_system, target_component, mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msgid, 1e6 / hz, 0, 0, 0, 0, 0)
+        self.stream_requests += 1
+
     def _listen(self) -> None:
-        types = ["GLOBAL_POSITION_INT", "ATTITUDE", "GPS_RAW_INT", "MISSION_CURRENT"]
+        types = ["HEARTBEAT", "SIMSTATE", "GLOBAL_POSITION_INT", "ATTITUDE", "GPS_RAW_INT", "MISSION_CURRENT"]
         mav = self._mav
+        last_position_ns = 0
+        last_request_ns = 0
+        last_heartbeat_ns = 0
+        simstate_seen = False
+        alt_msl_m: float | None = None
         try:
             while not self._stop.is_set():
                 msg = mav.recv_match(type=types, blocking=True, timeout=0.2)
+                now_ns = time.time_ns()
+                if now_ns - last_heartbeat_ns > 1_000_000_000:
+                    # a camera's heartbeat (MAV_TYPE_CAMERA, no autopilot): lets a vehicle listening on
+                    # udpin/tcp learn this link's address before the camera's first request
+                    mav.mav.heartbeat_send(30, 8, 0, 0, 0)
+                    last_heartbeat_ns = now_ns
+                if (
+                    self.vehicle_sysid is not None
+                    and now_ns - last_position_ns > REQUEST_AGAIN_NS
+                    and now_ns - last_request_ns > REQUEST_AGAIN_NS
+                    and self._vehicle_compid is not None
+                ):
+                    # nothing (or nothing lately: a restarted vehicle forgets) on this link: ask, as a GCS does
+                    self._request_streams(mav, self.vehicle_sysid, self._vehicle_compid)
+                    last_request_ns = now_ns
                 if msg is None:
                     continue
-                now_ns = time.time_ns()
                 sysid = msg.get_srcSystem()
                 kind = msg.get_type()
+                if kind == "HEARTBEAT":
+                    if msg.type == 6 or msg.autopilot == 8:  # a GCS (MAV_TYPE_GCS) or no autopilot: not a vehicle
+                        continue
+                    if self.vehicle_sysid is None:
+                        self.vehicle_sysid = sysid  # follow the first vehicle that announces itself
+                    if sysid == self.vehicle_sysid:
+                        self._vehicle_compid = msg.get_srcComponent()
+                    continue
                 if self.vehicle_sysid is None:
                     if kind != "GLOBAL_POSITION_INT":
                         continue
-                    self.vehicle_sysid = sysid  # follow the first vehicle that reports a position
+                    self.vehicle_sysid = sysid  # a vehicle whose heartbeat we missed but that streams to us
                 if sysid != self.vehicle_sysid:
                     continue
                 self.messages_received += 1
-                if kind == "GLOBAL_POSITION_INT":
-                    self.track.add_position(now_ns, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
-                elif kind == "ATTITUDE":
+                if kind == "SIMSTATE":
+                    # SITL's truth: lat/lon and attitude (no height: GLOBAL_POSITION_INT's, the EKF's, is used)
+                    simstate_seen = True
+                    last_position_ns = now_ns
+                    self.position_source = "SIMSTATE"
+                    if alt_msl_m is not None:
+                        self.track.add_position(now_ns, msg.lat * 1e-7, msg.lng * 1e-7, alt_msl_m)
                     self.track.add_attitude(now_ns, msg.roll, msg.pitch, msg.yaw)
+                elif kind == "GLOBAL_POSITION_INT":
+                    alt_msl_m = msg.alt * 1e-3
+                    if not simstate_seen:
+                        last_position_ns = now_ns
+                        self.position_source = "GLOBAL_POSITION_INT"
+                        self.track.add_position(now_ns, msg.lat * 1e-7, msg.lon * 1e-7, alt_msl_m)
+                elif kind == "ATTITUDE":
+                    if not simstate_seen:
+                        self.track.add_attitude(now_ns, msg.roll, msg.pitch, msg.yaw)
                 elif kind == "MISSION_CURRENT":
                     self.mission_seq = int(msg.seq)
                 else:

@@ -8,8 +8,8 @@ telemetry streams.
 Streams behave per link as ArduPilot 4.7 does (shared/replays/arducopter-sitl
 README, "A second link"): every link, the first included, gets only
 HEARTBEAT (1 Hz), TIMESYNC (every 10 s), GPS_GLOBAL_ORIGIN and HOME_POSITION
-(once, when the origin is set), STATUSTEXT and MISSION_ITEM_REACHED until a
-client asks on that link: SET_MESSAGE_INTERVAL for one message,
+(once, when the origin is set) until a client asks on that link (STATUSTEXT
+and MISSION_ITEM_REACHED go to links a client has spoken on): SET_MESSAGE_INTERVAL for one message,
 REQUEST_DATA_STREAM for a stream group, or the link's stream-rate parameters
 ``MAVn_*`` (n = link number + 1: ``MAV1_*`` for the first ``--listen``,
 ``MAV2_*`` for the second...; the older ``SRn_*`` names do nothing in 4.7).
@@ -340,6 +340,7 @@ class SimVehicle:
         self._next_timesync_s = 0.0
         self._next_heartbeat_s = 0.0
         self._announced_origin = False
+        self._active: set[int] = set()  # links that have received a message (ArduPilot: "active" channels)
         self.home_set = False
         self.fix_type = 0
         self.ekf_flags = ap.EKF_UNINITIALIZED
@@ -443,6 +444,7 @@ class SimVehicle:
                     self._handle(conn, msg)
 
     def _handle(self, link: Any, msg: Any) -> None:
+        self._active.add(id(link))
         target = getattr(msg, "target_system", 0)
         if target not in (0, self.config.sysid):
             return
@@ -467,7 +469,7 @@ class SimVehicle:
         elif mtype == "PARAM_SET":
             name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else msg.param_id.decode().rstrip("\x00")
             if self._set_param(name, float(msg.param_value)) is not None:
-                self._broadcast(self._param_value(name))  # ArduPilot announces a change on every link
+                self._broadcast_active(self._param_value(name))  # ArduPilot announces a change on every active link
         elif mtype == "PARAM_REQUEST_READ":
             name = msg.param_id.rstrip("\x00") if isinstance(msg.param_id, str) else msg.param_id.decode().rstrip("\x00")
             if name in self.params:
@@ -575,6 +577,13 @@ class SimVehicle:
         for conn in self.links:
             self._send_to(conn, msg)
 
+    def _broadcast_active(self, msg: Any) -> None:
+        """To the links a client has spoken on: ArduPilot sends STATUSTEXT and MISSION_ITEM_REACHED to
+        active channels only, so a listen-only client hears none (recorded on SERIAL1)."""
+        for conn in self.links:
+            if id(conn) in self._active:
+                self._send_to(conn, msg)
+
     # ----- boot -----
     def _boot_sequence(self) -> list[tuple[float, str]]:
         b = self.config.boot_s
@@ -626,10 +635,10 @@ class SimVehicle:
             self.battery_pct = max(0.0, self.battery_pct - dt / 30.0)  # about 1 % per 30 s of flight
         # event messages first, so a REACHED precedes the position that follows it
         for seq in m.reached:
-            self._broadcast(self.enc.mission_item_reached_encode(seq))
+            self._broadcast_active(self.enc.mission_item_reached_encode(seq))
         m.reached.clear()
         for severity, text in m.texts:
-            self._broadcast(self.enc.statustext_encode(severity, text.encode("utf-8")[:50], 0, 0))
+            self._broadcast_active(self.enc.statustext_encode(severity, text.encode("utf-8")[:50], 0, 0))
         m.texts.clear()
         self._gps_step(now)
         # every link: HEARTBEAT at 1 Hz, a TIMESYNC now and then, origin and home once
