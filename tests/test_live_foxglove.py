@@ -1,0 +1,202 @@
+"""Issue 13: the live view over a real Foxglove WebSocket, read by a client written here (RFC 6455 over a socket).
+
+The live pipeline is fed as the recorder feeds it (``on_frame``, ``on_record``)
+with frames rendered by the simulator's renderer (real JPEG) and fixes where
+the drone is; the client connects to the server on loopback, checks the
+advertised channels and decodes one message of each with the schema the
+server advertised.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import socket
+import struct
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic
+from dronecal_field.live.progress import LiveOptions
+from dronecal_field.live.view import LiveView
+from dronecal_field.live.worker import LiveCalibration
+from dronecal_field.mavlink.missionfile import parse_qgc_plan
+from dronecal_field.runfile.records import Attitude, Frame, GnssFix, MarkerSpec, RunEvent
+from dronecal_field.sim.render import FrameRenderer
+from dronecal_field.sim.scene import MarkerSpec as SimMarker
+from dronecal_field.sim.scene import VehiclePose, make_truth_camera
+from test_mavlink_support import HOME, plan_document
+
+OFFSET = (0.10, 0.0, 0.05)
+WAYPOINTS = [(x, y, z) for y in (5.0, 8.0) for z in (1.5, 3.0) for x in (-1.5, 1.5)]
+EXPECTED = {
+    "/live/camera/image": "foxglove.CompressedImage",
+    "/live/camera/annotations": "foxglove.ImageAnnotations",
+    "/live/coverage": "foxglove.ImageAnnotations",
+    "/live/camera/calibration": "foxglove.CameraCalibration",
+    "/live/gnss": "foxglove.LocationFix",
+    "/live/waypoints": "foxglove.GeoJSON",
+    "/live/status": "",
+}
+
+
+# ----- a minimal WebSocket client (RFC 6455): handshake, masked text frames out, frames in -----
+def ws_connect(port: int, subprotocol: str = "foxglove.sdk.v1") -> socket.socket:
+    sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+    key = base64.b64encode(os.urandom(16)).decode()
+    sock.sendall((f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                  f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\nSec-WebSocket-Protocol: {subprotocol}\r\n\r\n").encode())
+    head = b""
+    while b"\r\n\r\n" not in head:
+        head += sock.recv(1)
+    assert head.startswith(b"HTTP/1.1 101"), head
+    assert subprotocol.encode() in head
+    return sock
+
+
+def _exact(sock: socket.socket, n: int) -> bytes:
+    buf = b""
+    while len(buf) < n:
+        chunk = sock.recv(n - len(buf))
+        assert chunk, "server closed the connection"
+        buf += chunk
+    return buf
+
+
+def ws_recv(sock: socket.socket) -> tuple[int, bytes]:
+    """(opcode, payload) of the next message, fragments joined."""
+    opcode, payload = None, b""
+    while True:
+        b0, b1 = _exact(sock, 2)
+        n = b1 & 0x7F
+        if n == 126:
+            n = struct.unpack(">H", _exact(sock, 2))[0]
+        elif n == 127:
+            n = struct.unpack(">Q", _exact(sock, 8))[0]
+        data = _exact(sock, n)
+        if b0 & 0x0F in (0x9, 0xA):  # ping/pong: ignore
+            continue
+        opcode = opcode if (b0 & 0x0F) == 0 else b0 & 0x0F
+        payload += data
+        if b0 & 0x80:
+            return opcode, payload
+
+
+def ws_send_text(sock: socket.socket, text: str) -> None:
+    data = text.encode()
+    mask = os.urandom(4)
+    n = len(data)
+    head = bytes([0x81]) + (bytes([0x80 | n]) if n < 126 else bytes([0x80 | 126]) + struct.pack(">H", n))
+    sock.sendall(head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(data)))
+
+
+def message_class(channel: dict):
+    """A protobuf class from the FileDescriptorSet the server advertised for ``channel``."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    fds = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"]))
+    pool = descriptor_pool.DescriptorPool()
+    for f in fds.file:
+        pool.Add(f)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
+
+
+# ----- feeding the live pipeline as the recorder does -----
+def feed_flight(live: LiveCalibration, truth, t0_ns: int) -> None:
+    """Eight 2 s holds: frames at 15 Hz, fixes at 10 Hz and attitude at 10 Hz, then each hold's ``hover`` event."""
+    renderer = FrameRenderer(truth, SimMarker(size_m=0.4, offset_frd_m=OFFSET), noise_sigma_dn=1.0, seed=4)
+    origin = EnuOrigin(*HOME)
+    rng = np.random.default_rng(5)
+    t = t0_ns
+    for k, (x, y, z) in enumerate(WAYPOINTS):
+        yaw = float(np.arctan2(-x, -y))  # nose (and marker) towards the camera
+        start = t
+        for j in range(30):  # 2 s at 15 Hz
+            ts = start + j * 66_666_667
+            pose = VehiclePose(antenna_enu_m=np.array([x, y, z]), yaw_rad=yaw)
+            ok, jpeg = cv2.imencode(".jpg", renderer.render(pose), [cv2.IMWRITE_JPEG_QUALITY, 90])
+            live.on_frame(Frame(timestamp_ns=ts, format="jpeg", data=jpeg.tobytes()))
+        for j in range(21):  # 10 Hz
+            ts = start + j * 100_000_000
+            lat, lon, h = enu_to_geodetic(np.array([[x, y, z]]) + rng.normal(0, 0.005, 3), origin)[0]
+            live.on_record(GnssFix(timestamp_ns=ts, lat_deg=lat, lon_deg=lon, alt_m=h, covariance_enu=np.diag([1e-4, 1e-4, 2e-4]), fix_type="rtk_fixed"))
+            live.on_record(Attitude(timestamp_ns=ts, roll_rad=0.0, pitch_rad=0.0, yaw_rad=yaw))
+        end = start + 2_000_000_000
+        live.on_record(RunEvent(timestamp_ns=start, duration_ns=end - start, type="hover", metadata={"seq": str(4 + k)}))
+        t = end + 500_000_000
+
+
+def test_foxglove_client_sees_every_channel_and_decodes_one_message_of_each():
+    truth = make_truth_camera(HOME, 4.0, 0.0, 20.0, 560.0, 640, 480)
+    mission = parse_qgc_plan(json.dumps(plan_document(WAYPOINTS, hold_s=3.0)))
+    view = LiveView(port=0)
+    marker = MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.4, offset_frd_m=OFFSET)
+    live = LiveCalibration(mission, marker, 640, 480, origin=EnuOrigin(*HOME), options=LiveOptions(), view=view).start()
+    sock = None
+    try:
+        feed_flight(live, truth, time.time_ns())
+        sock = ws_connect(view.port)
+        channels: dict[str, dict] = {}
+        deadline = time.monotonic() + 20
+        while set(channels) != set(EXPECTED) and time.monotonic() < deadline:
+            op, payload = ws_recv(sock)
+            if op == 1:
+                msg = json.loads(payload)
+                if msg.get("op") == "advertise":
+                    channels.update({c["topic"]: c for c in msg["channels"]})
+        assert set(channels) == set(EXPECTED)
+        for topic, schema in EXPECTED.items():
+            if schema:
+                assert channels[topic]["schemaName"] == schema and channels[topic]["encoding"] == "protobuf", channels[topic]
+        assert channels["/live/status"]["encoding"] == "json"
+        by_sub = {k: c for k, c in enumerate(channels.values(), start=1)}
+        ws_send_text(sock, json.dumps({"op": "subscribe", "subscriptions": [{"id": k, "channelId": c["id"]} for k, c in by_sub.items()]}))
+
+        decoded: dict[str, object] = {}
+        deadline = time.monotonic() + 30
+        while len(decoded) < len(EXPECTED) and time.monotonic() < deadline:
+            op, payload = ws_recv(sock)
+            if op != 2 or payload[0] != 0x01:
+                continue
+            sub, _log_time = struct.unpack_from("<IQ", payload, 1)
+            c = by_sub[sub]
+            body = payload[13:]
+            if c["topic"] in decoded:
+                continue
+            if c["topic"] in ("/live/camera/calibration", "/live/camera/annotations") and live.estimate is None:
+                continue  # wait for the running calibration (and its reprojection)
+            decoded[c["topic"]] = json.loads(body) if c["encoding"] == "json" else message_class(c).FromString(body)
+        assert set(decoded) == set(EXPECTED), sorted(set(EXPECTED) - set(decoded))
+    finally:
+        if sock is not None:
+            sock.close()
+        result = live.finish()
+        view.close()
+
+    # every good hold was seen, and the calibration from 8 points is the truth's within 2 %
+    assert result.verdict.good and len(result.outcomes) == 8
+    cal = decoded["/live/camera/calibration"]
+    assert (cal.width, cal.height, cal.distortion_model) == (640, 480, "plumb_bob")
+    assert cal.K[0] == pytest.approx(560.0, rel=0.02) and cal.K[8] == 1.0
+    assert result.estimate is not None and abs(result.estimate.focal_px - 560.0) < 5 * result.estimate.focal_std_px + 2.0
+    image = decoded["/live/camera/image"]
+    assert image.format == "jpeg" and cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_GRAYSCALE).shape == (480, 640)
+    fix = decoded["/live/gnss"]
+    assert fix.latitude == pytest.approx(HOME[0], abs=2e-4) and fix.longitude == pytest.approx(HOME[1], abs=2e-4)
+    assert fix.position_covariance[0] == pytest.approx(1e-4)
+    waypoints = json.loads(decoded["/live/waypoints"].geojson)
+    assert len(waypoints["features"]) == 8
+    coverage = decoded["/live/coverage"]
+    assert sum(len(p.points) for p in coverage.points) > 0
+    # the red circle: a hold's GNSS position through the live calibration, where the truth sees the marker (that hold's)
+    annotations = decoded["/live/camera/annotations"]
+    reprojected = [(c.position.x, c.position.y) for c in annotations.circles if c.diameter == 14.0]
+    assert len(reprojected) == 1
+    markers = np.array([[x, y, z] + VehiclePose(antenna_enu_m=np.zeros(3), yaw_rad=float(np.arctan2(-x, -y))).R_enu_from_frd @ np.array(OFFSET)
+                        for x, y, z in WAYPOINTS])
+    assert np.min(np.hypot(*(truth.project(markers) - np.array(reprojected[0])).T)) < 3.0
+    assert "status" in decoded["/live/status"] or "verdict" in decoded["/live/status"]
