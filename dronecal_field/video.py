@@ -1,13 +1,17 @@
-"""Video sources: HTTP MJPEG (JPEG pass-through), RTSP, devices and files (OpenCV).
+"""Video sources: HTTP MJPEG (JPEG pass-through), RTSP and files (H.264/H.265 pass-through), devices (OpenCV).
 
 The transport is chosen by an explicit scheme, never guessed:
 
 ==========================  ================================================
 ``http://``, ``https://``   MJPEG (``multipart/x-mixed-replace``); each part's
                             JPEG bytes are passed through untouched
-``rtsp://``, ``rtsps://``   OpenCV (FFmpeg); frames encoded to JPEG
+``rtsp://``, ``rtsps://``   PyAV packets, never decoded: H.264/H.265 access
+                            units for ``/camera/video``
+                            (:mod:`dronecal_field.videopackets`), over TCP or
+                            UDP as ``rtsp_transport`` says
 ``/dev/videoN``             OpenCV (V4L2); frames encoded to JPEG
-``file://PATH`` or a path   OpenCV; frames encoded to JPEG
+``file://PATH`` or a path   H.264/H.265 files as packets (as RTSP); other
+                            codecs through OpenCV, frames encoded to JPEG
 ==========================  ================================================
 
 Each source runs one capture thread that stamps every frame with the host
@@ -41,6 +45,7 @@ def open_video(
     timeout_s: float = 5.0,
     queue_size: int = 16,
     jpeg_quality: int = 95,
+    rtsp_transport: str = "tcp",
 ) -> "VideoSource":
     """Open a video source by explicit scheme (see the module docstring).
 
@@ -51,6 +56,8 @@ def open_video(
     timeout_s : connect / first-response timeout, seconds.
     queue_size : frames buffered between the capture thread and ``read``.
     jpeg_quality : JPEG quality (0-100) for sources OpenCV decodes.
+    rtsp_transport : ``tcp`` (default: a slow reader delays, never corrupts)
+        or ``udp`` (losses are counted by the stream monitor).
 
     Raises
     ------
@@ -61,13 +68,21 @@ def open_video(
     if lowered.startswith(("http://", "https://")):
         source: VideoSource = MjpegHttpSource(url, timeout_s=timeout_s, queue_size=queue_size)
     elif lowered.startswith(("rtsp://", "rtsps://")):
-        source = OpenCvSource(url, live=True, timeout_s=timeout_s, queue_size=queue_size, jpeg_quality=jpeg_quality)
+        from dronecal_field.videopackets import open_packet_source
+
+        return open_packet_source(url, timeout_s=timeout_s, rtsp_transport=rtsp_transport, queue_size=max(queue_size, 64))
     elif lowered.startswith("/dev/video"):
         source = OpenCvSource(url, live=True, timeout_s=timeout_s, queue_size=queue_size, jpeg_quality=jpeg_quality)
     elif lowered.startswith("file://") or "://" not in url:
         path = url[len("file://"):] if lowered.startswith("file://") else url
         if not Path(path).is_file():
             raise VideoError(f"video file {path!r} does not exist; give an existing file, /dev/videoN, rtsp:// or http:// URL")
+        from dronecal_field.videopackets import open_packet_source
+
+        try:
+            return open_packet_source(path, timeout_s=timeout_s, queue_size=queue_size)
+        except VideoError:
+            pass  # not H.264/H.265 (MJPEG, VP9...): decoded by OpenCV and encoded to JPEG
         source = OpenCvSource(path, live=False, timeout_s=timeout_s, queue_size=queue_size, jpeg_quality=jpeg_quality)
     else:
         scheme = url.split("://", 1)[0]

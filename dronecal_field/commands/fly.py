@@ -49,7 +49,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     checks.add_argument("--max-home-distance", type=float, default=500.0, metavar="M", help="largest home-to-mission distance, metres (default 500)")
     checks.add_argument("--ready-timeout", type=float, default=60.0, metavar="S", help="wait this long for a booting vehicle to pass the checks (default 60)")
     video = parser.add_argument_group("video")
-    video.add_argument("--video", required=True, metavar="URL", help="camera stream: http://.../stream.mjpg (MJPEG, JPEG passed through), rtsp://..., /dev/videoN or a file")
+    video.add_argument("--video", required=True, metavar="URL", help="camera stream: http://.../stream.mjpg (MJPEG, JPEG passed through), rtsp://... (H.264/H.265 passed through to /camera/video), /dev/videoN or a file")
+    video.add_argument("--rtsp-transport", choices=("tcp", "udp"), default="tcp", help="RTSP transport (default tcp: a slow reader delays, never corrupts; udp losses are counted and shown)")
     video.add_argument("--camera-width", type=int, metavar="PX", help="expected image width (default: from the first frame)")
     video.add_argument("--camera-height", type=int, metavar="PX", help="expected image height (default: from the first frame)")
     video.add_argument("--camera-latency", type=float, metavar="S", help="capture-to-arrival delay of the stream, seconds, if known (metadata camera.latency_s; default unknown)")
@@ -115,19 +116,35 @@ def _site_origin(plan_json: dict | None):
     return None
 
 
-def _probe_video(url: str, first_timeout_s: float = 5.0, probe_s: float = 1.0):
-    """Open the stream, read the first frame and count frames for ``probe_s``: (source, first, VideoStatus)."""
+def _probe_video(url: str, first_timeout_s: float = 5.0, probe_s: float = 1.0, rtsp_transport: str = "tcp", rtcp_wait_s: float = 6.0):
+    """Open the stream, read the first frame and count frames for ``probe_s``: (source, first, VideoStatus).
+
+    An H.264/H.265 stream (RTSP, files) is probed without decoding; over RTSP
+    the probe waits up to ``rtcp_wait_s`` for the camera's first RTCP sender
+    report, so that the recording is stamped at capture from its first frame.
+    """
     from dronecal_field.errors import VideoError
     from dronecal_field.mavlink.preflight import VideoStatus
     from dronecal_field.video import open_video
 
     try:
-        source = open_video(url)
+        source = open_video(url, rtsp_transport=rtsp_transport)
     except VideoError as exc:
         return None, None, VideoStatus(url=url, error=str(exc))
     first = source.read(timeout_s=first_timeout_s)
     if first is None:
         return source, None, VideoStatus(url=url, frames=0)
+    if first.format in ("h264", "h265"):
+        frames, t0 = 1, time.monotonic()
+        while time.monotonic() - t0 < probe_s or (source.live and source.clock != "rtcp" and time.monotonic() - t0 < rtcp_wait_s):
+            if source.read(timeout_s=probe_s) is not None:
+                frames += 1
+        fps = (frames - 1) / max(time.monotonic() - t0, 1e-6)
+        if source.b_frames or source.monitor.reordered:
+            return source, None, VideoStatus(
+                url=url, frames=frames, error="the camera sends B-frames (frames out of order); set its encoder to no B-frames (IP frames only, e.g. H.264 baseline)"
+            )
+        return source, first, VideoStatus(url=url, frames=frames, fps=fps, width=source.width, height=source.height)
     import cv2
     import numpy as np
 
@@ -217,7 +234,7 @@ def run(args: argparse.Namespace) -> int:
         request_telemetry(link)
         gnss_meter = GnssRateMeter()
         link.add_listener(lambda direction, _stamp_ns, msg: gnss_meter.feed(msg) if direction == "in" else None)
-        source, first, video_status = _probe_video(args.video)
+        source, first, video_status = _probe_video(args.video, rtsp_transport=args.rtsp_transport)
         _wait_for_gnss_rate(gnss_meter, timeout_s=3.0)
         if first is not None:
             for flag, expected, actual in (("--camera-width", args.camera_width, video_status.width), ("--camera-height", args.camera_height, video_status.height)):
@@ -327,7 +344,10 @@ def _start_recorder(args, link, source, first, mission, mission_path, marker, pl
             "recording.start_ns": str(start_ns),
         },
     )
-    writer = RunWriter(out, metadata)
+    passthrough = first is not None and first.format in ("h264", "h265")
+    if passthrough:
+        metadata = _video_metadata(metadata, source, args)
+    writer = RunWriter(out, metadata, camera="video" if passthrough else "image")
     data = mission_path.read_bytes() if mission.source_format == "plan" else to_qgc_plan(mission).encode("utf-8")
     writer.attach("mission.plan", data, "application/json")
     if plan_json is not None:
@@ -350,6 +370,25 @@ def _start_recorder(args, link, source, first, mission, mission_path, marker, pl
     ).start()
 
 
+def _video_metadata(metadata, source, args):
+    """The run metadata of a /camera/video recording: how its frames are stamped (``camera.clock``)."""
+    from dataclasses import replace
+
+    clock = source.lock_clock()  # one clock for the whole run
+    extra = dict(metadata.extra)
+    extra["camera.clock"] = clock
+    extra["camera.timestamps"] = {
+        "rtcp": "capture time: RTP presentation time through the camera's RTCP sender reports (its wall clock)",
+        "arrival": "host UTC at arrival through the stream's own pacing (smallest network delay); no RTCP sender report",
+        "file": "recording start + presentation time in the file",
+    }[clock]
+    extra["video.rtsp_transport"] = args.rtsp_transport
+    if source.rtcp_delay_ns is not None:
+        extra["camera.rtcp_to_arrival_s"] = repr(source.rtcp_delay_ns / 1e9)  # network + camera clock offset, measured
+    latency = 0.0 if clock == "rtcp" else args.camera_latency
+    return replace(metadata, camera_latency_s=latency, extra=extra)
+
+
 def _record_until_done(recorder, mission, timeout_s: float | None = None, live=None) -> bool:
     """Print the status line each second until the mission is over (True) or ``timeout_s`` passed (False).
 
@@ -368,7 +407,7 @@ def _record_until_done(recorder, mission, timeout_s: float | None = None, live=N
             return False
         if now - last_print >= 1.0:
             last_print = now
-            line = format_status(recorder.status())
+            line = format_status(recorder.status(), color=tty)
             if live is not None:
                 for summary in live.new_summaries():
                     print(("\r" + summary.ljust(120) + "\n") if tty else summary, end="" if tty else "\n", flush=True)

@@ -1,4 +1,9 @@
-"""A cheap "is the marker in view" probe for the live status line (not the calibration detector)."""
+"""A cheap "is the marker in view" probe for the live status line (not the calibration detector).
+
+For an H.264/H.265 stream the recorder hands it keyframes only, each decoded
+on its own by a fresh decoder, about once a second on the recorder's monitor
+thread: never the whole stream.
+"""
 
 from __future__ import annotations
 
@@ -28,12 +33,21 @@ class MarkerCheck:
         self.max_width = max_width
         self._detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)), cv2.aruco.DetectorParameters())
 
-    def seen(self, jpeg: bytes) -> bool:
-        """True if the marker is found in this JPEG (False for undecodable data)."""
+    def seen(self, data: bytes, format: str = "jpeg") -> bool:
+        """True if the marker is found in this frame (False for undecodable data).
+
+        ``format`` ``jpeg``/``png``, or ``h264``/``h265`` for a keyframe access
+        unit with its parameter sets (Annex B), decoded on its own.
+        """
         import numpy as np
 
         cv2 = self._cv2
-        image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
+        if format in ("h264", "h265"):
+            from dronecal_field.videopackets import decode_keyframe_gray
+
+            image = decode_keyframe_gray(data, format)
+        else:
+            image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
         if image is None:
             return False
         if image.shape[1] > self.max_width:

@@ -178,6 +178,10 @@ class RecordingReport:
     fixes_repeated: int = 0
     fixes_at_arrival: int = 0
     leg_events: int = 0
+    video_lag_events: int = 0
+    video_max_lag_s: float = 0.0
+    frames_lost_stream: int = 0
+    packets_corrupt: int = 0
 
     def summary(self) -> str:
         """One line for the operator."""
@@ -187,6 +191,12 @@ class RecordingReport:
             + f", {self.mavlink_messages} MAVLink messages, {self.hover_events} hover windows, {self.leg_events} legs, {self.video_gaps} video gaps, "
             f"{self.link_losses} link losses in {self.duration_s:.1f} s"
             + (f" ({self.frames_discarded_at_start} frames from before the start not recorded)" if self.frames_discarded_at_start else "")
+            + (
+                f"; VIDEO FELL BEHIND {self.video_lag_events} times (up to {self.video_max_lag_s:.2f} s), "
+                f"{self.frames_lost_stream} frames lost in the stream, {self.packets_corrupt} corrupt packets"
+                if self.video_lag_events or self.frames_lost_stream or self.packets_corrupt
+                else ""
+            )
         )
 
 
@@ -290,6 +300,11 @@ class Recorder:
         self.attitudes = 0
         self.hover_events = 0
         self.video_gaps = 0
+        # an H.264/H.265 stream's own health (videopackets.StreamMonitor): lag spans, frames lost, corrupt packets
+        self.video_lag_events = 0
+        self.video_max_lag_s = 0.0
+        self.frames_lost_stream = 0
+        self.packets_corrupt = 0
         self.link_losses = 0
         self.marker_seen: bool | None = None
         # vehicle progress, for the status line and the end of the mission
@@ -391,6 +406,10 @@ class Recorder:
             fixes_repeated=self.fixes_repeated,
             fixes_at_arrival=self.fix_clock.fallbacks,
             leg_events=self.leg_events,
+            video_lag_events=self.video_lag_events,
+            video_max_lag_s=self.video_max_lag_s,
+            frames_lost_stream=self.frames_lost_stream,
+            packets_corrupt=self.packets_corrupt,
         )
 
     # ----- link reader thread -----
@@ -562,8 +581,10 @@ class Recorder:
                 self.video_gaps += 1
             self._last_frame_mono = now
             self._frame_times.append(now)
-            self._latest_frame = frame
+            if getattr(frame, "keyframe", True):
+                self._latest_frame = frame  # the marker probe decodes keyframes only (an H.264/H.265 stream)
             self._offer_frame(frame)
+            self._stream_incidents()
             observer = self.observer
             if observer is not None:
                 try:
@@ -571,6 +592,31 @@ class Recorder:
                 except Exception:  # noqa: BLE001 - a live view must never cost the recording
                     self.observer_errors += 1
                     self.observer = None
+
+    def _stream_incidents(self) -> None:
+        """Events and counts of the stream's own incidents (lag, frames lost, corrupt packets): loud, never hidden."""
+        take = getattr(self.video, "incidents", None)
+        if take is None:
+            return
+        for incident in take():
+            span = max(0, incident.end_ns - incident.start_ns)
+            if incident.kind == "video_lag":
+                self.video_lag_events += 1
+                self.video_max_lag_s = max(self.video_max_lag_s, incident.value)
+                meta = {"lag_s": f"{incident.value:.3f}"}
+            elif incident.kind == "video_lost":
+                self.frames_lost_stream += int(incident.value)
+                meta = {"frames": str(int(incident.value))}
+            else:
+                self.packets_corrupt += int(incident.value)
+                meta = {"packets": str(int(incident.value))}
+            self._event(RunEvent(incident.start_ns, span, incident.kind, meta))
+
+    @property
+    def video_lag_s(self) -> float | None:
+        """How far the recorder lags the stream's own clock now, seconds (H.264/H.265 sources); None otherwise."""
+        monitor = getattr(self.video, "monitor", None)
+        return None if monitor is None else monitor.lag_ns / 1e9
 
     # ----- monitor thread -----
     def _monitor_loop(self) -> None:
@@ -591,7 +637,7 @@ class Recorder:
             if self.marker_check is not None and now - last_marker >= 1.0 and self._latest_frame is not None:
                 last_marker = now
                 try:
-                    self.marker_seen = self.marker_check.seen(self._latest_frame.data)
+                    self.marker_seen = self.marker_check.seen(self._latest_frame.data, self._latest_frame.format)
                 except Exception:  # noqa: BLE001 - the probe is cosmetic; never stop recording for it
                     self.marker_seen = None
 
@@ -633,4 +679,7 @@ class Recorder:
             video_ok=self.video_ok,
             elapsed_s=now - self._started_mono,
             remaining_s=left,
+            video_lag_s=self.video_lag_s,
+            video_lagging=bool(getattr(getattr(self.video, "monitor", None), "lagging", False)),
+            video_lost=self.frames_lost_stream + self.packets_corrupt,
         )

@@ -166,6 +166,12 @@ class RecorderStatus:
         Wall seconds since the recording started.
     remaining_s : float or None
         Estimated wall seconds left in the mission.
+    video_lag_s : float or None
+        How far the recorder lags the stream's own clock (H.264/H.265), seconds.
+    video_lagging : bool
+        The lag is more than a frame (sustained over a second).
+    video_lost : int
+        Frames lost in the stream plus corrupt packets.
     """
 
     waypoint: int
@@ -182,6 +188,9 @@ class RecorderStatus:
     video_ok: bool
     elapsed_s: float
     remaining_s: float | None
+    video_lag_s: float | None = None
+    video_lagging: bool = False
+    video_lost: int = 0
 
 
 def _mmss(seconds: float) -> str:
@@ -189,13 +198,24 @@ def _mmss(seconds: float) -> str:
     return f"{seconds // 60:02d}:{seconds % 60:02d}"
 
 
-def format_status(s: RecorderStatus) -> str:
+def status_alarm(s: RecorderStatus) -> bool:
+    """True when the status line must be red: link or video lost, video behind, frames lost."""
+    return not s.link_ok or not s.video_ok or s.video_lagging or s.video_lost > 0 or s.dropped > 0
+
+
+def format_status(s: RecorderStatus, color: bool = False) -> str:
     """``wp 3/12 AUTO armed | rtk_fixed 18 sats | 29.8 fps 0 dropped | marker yes | 01:02 / ~03:10 left``."""
     marker = "?" if s.marker_seen is None else ("yes" if s.marker_seen else "no")
     link = "" if s.link_ok else " | LINK LOST"
     video = "" if s.video_ok else " | NO VIDEO"
+    if s.video_lagging:
+        video += f" | VIDEO BEHIND {s.video_lag_s or 0.0:.2f} s"
+    if s.video_lost:
+        video += f" | {s.video_lost} VIDEO LOST"
     left = "" if s.remaining_s is None else f" / ~{_mmss(s.remaining_s)} left"
-    return (
+    line = (
         f"wp {s.waypoint}/{s.waypoints} {s.mode} {'armed' if s.armed else 'disarmed'} | {s.fix} {s.satellites} sats | "
         f"{s.fps:4.1f} fps {s.dropped} dropped | marker {marker} | {_mmss(s.elapsed_s)}{left}{link}{video}"
     )
+    # ``color``: a terminal gets the line in red (ANSI) while anything is wrong.
+    return f"\x1b[31m{line}\x1b[0m" if color and status_alarm(s) else line
