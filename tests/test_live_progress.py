@@ -1,0 +1,88 @@
+"""Issue 13: the live core's pure parts (verdict, refly mission, frame picking) and the observer's bounds."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dronecal_field.live.progress import WaypointOutcome, expected_seqs, pick_frames, verdict
+from dronecal_field.live.refly import refly_mission, write_refly_plan
+from dronecal_field.live.worker import RING_BYTES, LiveCalibration
+from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT, parse_qgc_plan, read_mission
+from dronecal_field.runfile.records import Frame, MarkerSpec, RunEvent
+from test_mavlink_support import plan_document
+
+WAYPOINTS = [(float(x), 6.0, 2.0) for x in range(-3, 4)]  # seqs 4..10, RTL 11
+
+
+def _mission(extra_items=()):
+    return parse_qgc_plan(json.dumps(plan_document(WAYPOINTS, hold_s=3.0, extra_items=extra_items)))
+
+
+def _outcome(seq, problem=None, kind="hold"):
+    return WaypointOutcome(seq=seq, kind=kind, end_ns=0, frames=10, detections=[], point=None, problem=problem)
+
+
+def test_verdict_names_missed_and_unflown_waypoints_by_reason():
+    expected = [4, 5, 6, 7, 8, 9, 10]
+    outcomes = [_outcome(4), _outcome(5, "marker not detected"), _outcome(6), _outcome(7, "only 1 GNSS fixes in the settled part (dropout); need 3"),
+                _outcome(8, "marker not detected")]
+    v = verdict(outcomes, expected, None, 0.42)
+    assert not v.good and v.refly_seqs == (5, 7, 8, 9, 10)
+    assert v.text.startswith("re-fly waypoints 5, 8 (marker not detected); 7 (only 1 GNSS fixes")
+    assert "9, 10 (not flown)" in v.text and "2/7 detected of 5 flown" in v.text and "coverage 42 %" in v.text
+    # a waypoint re-tried and then seen counts as good
+    v2 = verdict([*_outcome_list(expected), _outcome(5, "marker not detected"), _outcome(5)], expected, None, None)
+    assert v2.good and v2.text.startswith("good: 7/7 waypoints detected")
+
+
+def _outcome_list(seqs):
+    return [_outcome(s) for s in seqs]
+
+
+def test_refly_mission_keeps_opening_closing_and_only_the_chosen_points(tmp_path):
+    mission = _mission()
+    cut, mapping = refly_mission(mission, [5, 9], expected_seqs(mission, None))
+    assert [it.command for it in cut.items[1:]] == [22, 178, 201, 16, 16, 20]
+    assert [it.seq for it in cut.items] == list(range(len(cut.items)))
+    assert mapping == {4: 5, 5: 9}
+    assert [(it.x, it.y, it.z, it.hold_s) for it in cut.items[4:6]] == [(mission.items[s].x, mission.items[s].y, mission.items[s].z, 3.0) for s in (5, 9)]
+    # written and read back as a QGroundControl plan: the same items
+    write_refly_plan(tmp_path / "refly.plan", mission, [5, 9], expected_seqs(mission, None))
+    back = read_mission(tmp_path / "refly.plan")
+    assert [(it.command, it.x, it.y, it.z) for it in back.items[1:]] == [(it.command, it.x, it.y, it.z) for it in cut.items[1:]]
+    with pytest.raises(ValueError, match="not NAV_WAYPOINTs"):
+        refly_mission(mission, [2], [4, 5])
+
+
+def test_expected_seqs_follow_plan_grid_when_it_names_mission_waypoints():
+    mission = _mission()
+    assert expected_seqs(mission, None) == [4, 5, 6, 7, 8, 9, 10]
+    assert expected_seqs(mission, {"grid": [{"mission_seq": 6}, {"mission_seq": 4}]}) == [4, 6]
+    assert expected_seqs(mission, {"grid": [{"mission_seq": 3}]}) == [4, 5, 6, 7, 8, 9, 10]  # 3 is the ROI: not this plan's grid
+    assert all(mission.items[s].command == CMD_NAV_WAYPOINT for s in expected_seqs(mission, None))
+
+
+def test_pick_frames_spreads_over_the_span():
+    frames = [Frame(timestamp_ns=t, format="jpeg", data=b"") for t in range(0, 100)]
+    picked = pick_frames(frames, 10, 69, 4)
+    assert [f.timestamp_ns for f in picked] == [10, 30, 49, 69]
+    assert len(pick_frames(frames, 10, 12, 10)) == 3
+
+
+def test_observer_memory_is_bounded_and_a_full_queue_skips_waypoints_without_waiting():
+    marker = MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.4)
+    live = LiveCalibration(_mission(), marker, 1920, 1080, job_queue=2)  # not started: nothing drains the queue
+    blob = bytes(1 << 20)  # 1 MB frames at 30 fps for 200 s
+    for k in range(6000):
+        live.on_frame(Frame(timestamp_ns=k * 33_333_333, format="jpeg", data=blob))
+    assert live._ring_bytes <= RING_BYTES and len(live._frames) == RING_BYTES // len(blob)
+    kept = np.diff([f.timestamp_ns for f in live._frames])
+    assert kept.min() >= 62_500_000  # ring keeps at most 16 frames a second
+    for seq in (4, 5, 6, 7):
+        live.on_record(RunEvent(timestamp_ns=0, duration_ns=1, type="hover", metadata={"seq": str(seq)}))
+    assert live.jobs_dropped == 2 and live.unchecked == [6, 7]
+    result = live.finish(timeout_s=1.0)
+    assert result.unchecked == [6, 7] and 6 not in result.verdict.refly_seqs
