@@ -86,3 +86,16 @@ def test_observer_memory_is_bounded_and_a_full_queue_skips_waypoints_without_wai
     assert live.jobs_dropped == 2 and live.unchecked == [6, 7]
     result = live.finish(timeout_s=1.0)
     assert result.unchecked == [6, 7] and 6 not in result.verdict.refly_seqs
+
+
+def test_docs_layout_is_the_generated_one_and_names_only_live_topics():
+    from pathlib import Path
+
+    from dronecal_field.live.view import layout_json
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "foxglove-layout.json").read_text()
+    assert text == layout_json()  # regenerate: python -c "from dronecal_field.live.view import layout_json; print(layout_json(), end='')"
+    import re
+
+    topics = set(re.findall(r'"(/live/[a-z/]+)"', text))
+    assert topics == {"/live/camera/image", "/live/camera/calibration", "/live/camera/annotations", "/live/coverage", "/live/gnss", "/live/status"}

@@ -166,3 +166,38 @@ def _stamp(m: Any, t_ns: int):
     from foxglove.messages import Timestamp  # noqa: F401 - re-exported by the SDK
 
     return Timestamp(sec=int(t_ns) // 1_000_000_000, nsec=int(t_ns) % 1_000_000_000)
+
+
+def layout_json() -> str:
+    """The Foxglove layout of docs/foxglove-layout.json (built with the SDK's ``foxglove.layouts``).
+
+    Left: the camera with the detections, the running reprojection and the
+    coverage drawn on it (the calibration topic lets Foxglove undistort).
+    Right: the map (fixes and planned waypoints), the status and the
+    calibration's numbers.
+    """
+    import foxglove.layouts as fl
+
+    image = fl.ImagePanel(
+        title="camera: detection (green), GNSS through the live calibration (red), coverage (blue) over the plan's ROI (grey)",
+        config=fl.ImageConfig(image_mode=fl.ImageModeConfig(
+            image_topic="/live/camera/image", calibration_topic="/live/camera/calibration",
+            annotations={"/live/camera/annotations": fl.ImageAnnotationSettings(visible=True),
+                         "/live/coverage": fl.ImageAnnotationSettings(visible=True)},
+        )),
+    )
+    map_panel = fl.MapPanel(title="drone and waypoints", config=fl.MapConfig(
+        follow_topic="/live/gnss", zoom_level=21,
+        topic_config={"/live/gnss": fl.MapTopicSettings(history_mode="all", point_size=3)},
+    ))
+    status = fl.RawMessagesPanel(title="status, summary, verdict", config=fl.RawMessagesConfig(topic_path="/live/status", expansion="all"))
+    calibration = fl.RawMessagesPanel(title="live calibration", config=fl.RawMessagesConfig(topic_path="/live/camera/calibration", expansion="all"))
+    layout = fl.Layout(content=fl.SplitContainer(direction="row", items=[
+        fl.SplitItem(proportion=3, content=image),
+        fl.SplitItem(proportion=2, content=fl.SplitContainer(direction="column", items=[
+            fl.SplitItem(proportion=3, content=map_panel),
+            fl.SplitItem(proportion=1, content=status),
+            fl.SplitItem(proportion=1, content=calibration),
+        ])),
+    ]))
+    return json.dumps(json.loads(layout.to_json()), indent=2) + "\n"
