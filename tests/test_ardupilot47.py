@@ -243,3 +243,106 @@ def test_sim_camera_asks_for_its_telemetry_and_draws_the_true_position():
     assert asked["SIMSTATE"] == pytest.approx(0.1) and asked["GLOBAL_POSITION_INT"] == pytest.approx(0.1) and asked["ATTITUDE"] == pytest.approx(0.1)
     assert "SIMSTATE" not in first_link  # the camera's requests stayed on its link
     assert pose is not None and np.linalg.norm(pose[0].antenna_enu_m - truth_enu) < 0.05
+
+
+def test_fly_beside_a_ground_station_on_another_link(tmp_path, capsys):
+    """fly on link 1 while a GCS on link 2 watches at its own rates and, mid-flight, uploads its own
+    mission: fly's requests stay on fly's link, the GCS's rates are untouched, fly never re-uploads
+    and says the mission was changed."""
+    import json
+
+    from dronecal_field.cli import main
+    from dronecal_field.mavlink.mission import send_mission
+    from dronecal_field.mavlink.missionfile import parse_qgc_plan
+    from dronecal_field.runfile.reader import open_run
+    from test_mavlink_support import MjpegServer, plan_document, write_plan
+
+    waypoints = [(-1.0, 4.0, 1.5), (0.0, 4.0, 1.5), (1.0, 4.0, 2.0)]
+    plan = write_plan(tmp_path / "mission.plan", waypoints, hold_s=1.0)
+    theirs = parse_qgc_plan(json.dumps(plan_document(waypoints + [(0.0, 3.0, 2.0)], hold_s=1.0)))  # one more point
+    sim = _vehicle(listen=("udp:127.0.0.1:0", "udp:127.0.0.1:0"), gps_rate_ms=100.0)
+    fly_url, gcs_url = sim.addresses()
+    camera = MjpegServer(fps=10)
+    gcs = open_link(gcs_url)
+    out = tmp_path / "run.mcap"
+    result: dict = {}
+    try:
+        seen = Counts(gcs, sim)
+        d = gcs.dialect
+        ask_telemetry(gcs, (("GLOBAL_POSITION_INT", 4.0), ("ATTITUDE", 4.0), ("MISSION_CURRENT", 1.0)))  # the GCS's own choice
+        flying = threading.Thread(
+            target=lambda: result.update(rc=main(["fly", "--connect", fly_url, "--mission", str(plan), "--video", camera.url, "--out", str(out),
+                                                  "--marker-size", "0.3", "--start", "--no-live", "--timeout-s", "120"])),
+            daemon=True,
+        )
+        flying.start()
+        assert wait_until(lambda: any(m.seq >= 5 for m in seen.of("MISSION_ITEM_REACHED")), 60)
+        t_upload = sim.time_s
+        send_mission(gcs, theirs.items, timeout_s=0.5)  # the pilot's ground station changes the mission
+        flying.join(timeout=120)
+        t_end = sim.time_s
+        gcs_streams = dict(sim.streams[id(sim.links[1])].streamed())
+        fly_streams = dict(sim.streams[id(sim.links[0])].streamed())
+    finally:
+        gcs.close()
+        sim.stop()
+        camera.close()
+    captured = capsys.readouterr()
+    assert result.get("rc") == 0, captured.err[-2000:]
+    t_start = min(t for t, m in seen.items if m.get_type() == "MISSION_ITEM_REACHED")
+    during = seen.between(t_start, t_end)
+    span = t_end - t_start
+    # the GCS's link kept the GCS's rates all flight; fly's asks (GPS 10 Hz, GPI 10 Hz) went to fly's link only
+    assert during["GLOBAL_POSITION_INT"] / span == pytest.approx(4.0, rel=0.12)
+    assert during["ATTITUDE"] / span == pytest.approx(4.0, rel=0.12)
+    assert during["GPS_RAW_INT"] == 0 and during["SYS_STATUS"] == 0
+    assert gcs_streams["GLOBAL_POSITION_INT"] == pytest.approx(0.25) and fly_streams["GLOBAL_POSITION_INT"] == pytest.approx(0.1)
+    assert fly_streams["GPS_RAW_INT"] == pytest.approx(0.1)
+    # both see the mission progress; fly noticed the other upload, said so, and did not upload again
+    assert "MISSION CHANGED BY ANOTHER CLIENT" in captured.err and "fly did not re-upload" in captured.err
+    reached_gcs = sorted({m.seq for m in seen.of("MISSION_ITEM_REACHED")})
+    with open_run(out) as run:
+        reached_fly = sorted({int(e.metadata["seq"]) for e in run.iter_events() if e.type == "hover"})
+        fixes = list(run.iter_fixes())
+    sent = [m for m in mavutil_tlog(out.with_suffix(".tlog")) if m.get_srcSystem() == 255]
+    assert sum(m.get_type() == "MISSION_COUNT" for m in sent) == 1  # fly's one upload, before the flight
+    assert {4, 5, 6} <= set(reached_fly) and {4, 5, 6, 7} <= set(reached_gcs)  # seq 7: the GCS's extra point, flown
+    assert len(fixes) > 0.8 * 10 * (t_end - t_start)  # 10 Hz GNSS on fly's link
+    print(f"fly beside a GCS: flight {t_end - t_start:.1f} vehicle s, GCS upload at {t_upload - t_start:.1f} s, "
+          f"GCS GLOBAL_POSITION_INT {during['GLOBAL_POSITION_INT'] / span:.2f} Hz, fly fixes {len(fixes)} ({len(fixes) / span:.1f}/s), "
+          f"reached fly {reached_fly} GCS {reached_gcs}")
+
+
+def mavutil_tlog(path) -> list:
+    log = mavutil_module().mavlink_connection(str(path))
+    out = []
+    while (msg := log.recv_match()) is not None:
+        out.append(msg)
+    return out
+
+
+def test_an_upload_while_another_ground_station_uploads_is_refused_in_one_line():
+    from dronecal_field.errors import MissionRejectedError
+    from dronecal_field.mavlink.mission import upload_and_verify
+    from test_mavlink_support import plan_document
+
+    sim = _vehicle(listen=("udp:127.0.0.1:0", "udp:127.0.0.1:0"))
+    fly_link, gcs = (open_link(url) for url in sim.addresses())
+    try:
+        ask_telemetry(gcs)
+        ask_telemetry(fly_link)
+        assert wait_until(lambda: sim.model.ready, 10)
+        gcs.send(gcs.dialect.MAVLink_mission_count_message(1, 1, 10, 0))  # the GCS's upload starts (and stalls)
+        assert gcs.wait_message({"MISSION_REQUEST"}, timeout_s=2.0) is not None
+        import json
+
+        from dronecal_field.mavlink.missionfile import parse_qgc_plan
+
+        items = parse_qgc_plan(json.dumps(plan_document([(0.0, 4.0, 1.5)]))).items
+        with pytest.raises(MissionRejectedError, match="another ground station is uploading") as err:
+            upload_and_verify(fly_link, items, timeout_s=0.5)
+    finally:
+        fly_link.close()
+        gcs.close()
+        sim.stop()
+    assert "\n" not in str(err.value)

@@ -185,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
     from dronecal_field.errors import InputError, LinkError
     from dronecal_field.mavlink.control import arm_and_start_mission, describe_heartbeat, request_telemetry
     from dronecal_field.mavlink.link import open_link
-    from dronecal_field.mavlink.mission import upload_and_verify
+    from dronecal_field.mavlink.mission import MissionWatch, upload_and_verify
     from dronecal_field.mavlink.missionfile import read_mission
     from dronecal_field.mavlink.preflight import GnssRateMeter, format_checklist, require_preflight, run_preflight
 
@@ -227,6 +227,7 @@ def run(args: argparse.Namespace) -> int:
     source = None
     recorder = None
     live = None
+    watch = None
     closed_mono = None
     try:
         hb = link.wait_heartbeat(args.heartbeat_timeout)
@@ -258,6 +259,8 @@ def run(args: argparse.Namespace) -> int:
 
         report = upload_and_verify(link, mission.items)
         print(f"mission: {report.items} items uploaded and read back identical in {report.duration_s:.1f} s", flush=True)
+        watch = MissionWatch(report.items, link.target_system)  # a ground station on another link may change it
+        link.add_listener(watch.feed)
         if report.storage_changes:
             more = f" (+{len(report.storage_changes) - 3} more)" if len(report.storage_changes) > 3 else ""
             print(f"note: ArduCopter keeps some values differently, as expected: {'; '.join(report.storage_changes[:3])}{more}")
@@ -276,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
             print("started: GUIDED, armed, MISSION_START sent", flush=True)
         else:
             print("waiting for the pilot to arm and switch to AUTO (Ctrl-C ends the recording; nothing is commanded)", flush=True)
-        if not _record_until_done(recorder, mission, args.timeout_s, live):
+        if not _record_until_done(recorder, mission, args.timeout_s, live, watch):
             summary = recorder.stop().summary()
             recorder = None
             closed_mono = time.monotonic()
@@ -292,6 +295,8 @@ def run(args: argparse.Namespace) -> int:
             summary = recorder.stop().summary()
             closed_mono = time.monotonic()
             print(f"\nrecorded {out} and {tlog_path.name}: {summary}", flush=True)
+        if watch is not None and watch.changed:
+            print(f"WARNING: {watch.describe()}", file=sys.stderr, flush=True)
         if source is not None:
             source.close()
         link.close()
@@ -389,8 +394,10 @@ def _video_metadata(metadata, source, args):
     return replace(metadata, camera_latency_s=latency, extra=extra)
 
 
-def _record_until_done(recorder, mission, timeout_s: float | None = None, live=None) -> bool:
+def _record_until_done(recorder, mission, timeout_s: float | None = None, live=None, watch=None) -> bool:
     """Print the status line each second until the mission is over (True) or ``timeout_s`` passed (False).
+
+    A mission changed by another client (``watch``, a MissionWatch) is said once, loudly; recording goes on.
 
     With the live pipeline, its part joins the status line and its summaries get lines of their own.
     """
@@ -399,12 +406,16 @@ def _record_until_done(recorder, mission, timeout_s: float | None = None, live=N
     tty = sys.stdout.isatty()
     last_print = 0.0
     done_since = None
+    warned = False
     started = time.monotonic()
     while True:
         time.sleep(0.1)
         now = time.monotonic()
         if timeout_s is not None and now - started > timeout_s:
             return False
+        if watch is not None and watch.changed and not warned:
+            warned = True
+            print(f"\nWARNING: {watch.describe()}", file=sys.stderr, flush=True)
         if now - last_print >= 1.0:
             last_print = now
             line = format_status(recorder.status(), color=tty)

@@ -201,6 +201,12 @@ def send_mission(
                     )
                 if msg.type == ap.MAV_MISSION_OPERATION_CANCELLED and not requested:
                     continue
+                if msg.type == ap.MAV_MISSION_DENIED and not requested:
+                    # ArduPilot: another link's upload is under way (one transfer at a time)
+                    raise MissionRejectedError(
+                        "vehicle refused the mission: DENIED before any item (another ground station is uploading a mission); "
+                        "let it finish, then run fly again (its mission will be replaced by ours)"
+                    )
                 # the vehicle answers the item it could not take, so the culprit is the last one sent
                 bad = items[max(last_sent, 0)]
                 where = f" at item {bad.seq}"
@@ -283,3 +289,50 @@ def upload_and_verify(
         readback=tuple(back),
         storage_changes=tuple(storage_changes(list(items))),
     )
+
+
+class MissionWatch:
+    """Notices the vehicle's mission being changed by another client after ours was uploaded.
+
+    A ground station on another link (QGroundControl, MAVProxy) can upload
+    while ``fly`` records; ArduPilot then announces "Flight plan received"
+    on every active link and MISSION_CURRENT.total follows the new mission.
+    ``fly`` never answers by uploading again (that would fight the pilot's
+    ground station); it says so and records on. Feed it every message
+    (``link.add_listener(watch.feed)``) from after our own upload.
+
+    Parameters
+    ----------
+    items : int
+        Items of our uploaded mission, home included.
+    vehicle_system : int
+        The vehicle's system id (messages from others are ignored).
+    """
+
+    def __init__(self, items: int, vehicle_system: int) -> None:
+        self.expected_total = int(items) - 1  # MISSION_CURRENT.total counts the items after home
+        self.vehicle_system = int(vehicle_system)
+        self.changes: list[str] = []
+
+    @property
+    def changed(self) -> bool:
+        """Someone else changed the mission since ours was uploaded."""
+        return bool(self.changes)
+
+    def feed(self, direction: str, _stamp_ns: int, msg: Any) -> None:
+        """A message in or out (a :class:`MavLink` listener)."""
+        if direction != "in" or msg.get_srcSystem() != self.vehicle_system:
+            return
+        mtype = msg.get_type()
+        if mtype == "STATUSTEXT" and str(msg.text).startswith("Flight plan received"):
+            self.changes.append("the vehicle received another flight plan")
+        elif mtype == "MISSION_CURRENT" and int(getattr(msg, "total", 0) or 0) not in (0, self.expected_total):
+            # total 0 = not reported (MAVLink 1 or an old firmware); it never goes back to 0 with a mission
+            self.changes.append(f"the vehicle's mission now has {int(msg.total) + 1} items, ours {self.expected_total + 1}")
+            self.expected_total = int(msg.total)  # said once per change
+
+    def describe(self) -> str:
+        """One line for the operator, or "" when nothing changed."""
+        if not self.changes:
+            return ""
+        return f"MISSION CHANGED BY ANOTHER CLIENT ({'; '.join(dict.fromkeys(self.changes))}): the flight no longer follows the plan fly uploaded; fly did not re-upload"
