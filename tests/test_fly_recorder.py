@@ -137,7 +137,8 @@ def test_preflight_table(change, min_fix, failing, warning):
 
 
 def test_gnss_rate_counts_new_fixes_and_warns_below_8_hz():
-    # A 10 Hz stream from a 5 Hz receiver repeats every fix; a 10 Hz receiver does not.
+    # A 10 Hz stream from a 5 Hz receiver repeats every fix, its time_usec included (ArduPilot 4.7);
+    # a 10 Hz receiver does not. Consecutive fixes may share a position: still new fixes.
     mav = mavlink_dialect().MAVLink(None)
     rng = np.random.default_rng(0)
     rates = {}
@@ -148,7 +149,8 @@ def test_gnss_rate_counts_new_fixes_and_warns_below_8_hz():
             if k % (10 // receiver_hz) == 0:
                 lat, lon = -353632610 + int(rng.integers(-3, 4)), 1491652300 + int(rng.integers(-3, 4))
             alt = 584000 + (k // (10 // receiver_hz)) % 7
-            meter.feed(mav.gps_raw_int_encode(1_000_000 + k * 100_000, 6, lat, lon, alt, 65535, 65535, 0, 0, 20, alt_ellipsoid=alt))
+            fix_usec = 1_000_000 + (k - k % (10 // receiver_hz)) * 100_000
+            meter.feed(mav.gps_raw_int_encode(fix_usec, 6, lat, lon, alt, 65535, 65535, 0, 0, 20, alt_ellipsoid=alt))
         rates[receiver_hz] = meter.rate_hz()
     assert rates[5] == pytest.approx(5.0, abs=0.6) and rates[10] == pytest.approx(10.0, abs=0.6)
     slow = evaluate_preflight(VehicleSnapshot(**{**GOOD.__dict__, "gnss_rate_hz": rates[5]}), MISSION, VIDEO)

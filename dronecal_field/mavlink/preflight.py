@@ -110,11 +110,13 @@ class VehicleSnapshot:
 class GnssRateMeter:
     """New fixes per second in a GPS_RAW_INT stream, over the vehicle's own clock.
 
-    A message is a new fix when its position differs from the previous one's
-    (a stream asked for faster than the receiver makes fixes carries
-    nothing new; ArduPilot's GPS_RATE_MS sets the receiver's rate). Seconds
-    are the messages' ``time_usec`` (the fix time), so a simulator running
-    faster than real time reads the same.
+    A message is a new fix when its ``time_usec`` (the fix's own time)
+    differs from the previous one's: a stream asked for faster than the
+    receiver makes fixes repeats the last fix, time and all (ArduPilot 4.7,
+    recorded in fly-calib-t1.tlog; GPS_RATE_MS sets the receiver's rate).
+    Not its position: in a still hover a third of the new fixes repeat the
+    position before them exactly (1e-7 deg quantisation). Seconds are the
+    fixes' times, so a simulator running faster than real time reads the same.
     """
 
     def __init__(self, window_s: float = 2.0) -> None:
@@ -127,7 +129,7 @@ class GnssRateMeter:
         """One GPS_RAW_INT message (other types are ignored)."""
         if msg.get_type() != "GPS_RAW_INT" or not msg.time_usec or msg.fix_type < 2:
             return
-        key = (msg.lat, msg.lon, msg.alt, getattr(msg, "alt_ellipsoid", 0))
+        key = int(msg.time_usec)
         with self._lock:
             self._samples.append((msg.time_usec * 1e-6, key != self._last_key))
             self._last_key = key
