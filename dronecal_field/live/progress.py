@@ -103,6 +103,7 @@ class LiveEstimate:
             "focal_px": self.focal_px, "focal_std_px": self.focal_std_px, "ground_error_15m_cm": self.ground_error_15m_cm,
             "fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy, "distortion": self.camera.distortion.as_array().tolist(),
             "position_enu_m": self.camera.pose.position_world.tolist(),
+            "R_cam_from_enu": np.asarray(self.camera.pose.R_cam_from_world).tolist(),
         }
 
 
