@@ -17,7 +17,7 @@ from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink.link import open_link
 from dronecal_field.mavlink.mission import download_mission, send_mission, upload_and_verify
 from dronecal_field.mavlink.missionfile import MissionItem, parse_qgc_plan
-from test_mavlink_support import HOME, MessageLog, ask_telemetry, plan_document, start_sim, wait_until, wait_ready
+from test_mavlink_support import FAST_PARAMS, HOME, MessageLog, ask_telemetry, plan_document, start_sim, wait_until, wait_ready
 
 ORIGIN = EnuOrigin(*HOME)
 WAYPOINTS = [(-2.0, 4.0, 1.5), (0.0, 4.0, 1.5), (2.0, 4.0, 2.5)]
@@ -226,7 +226,9 @@ def test_reached_for_a_waypoint_with_a_hold_comes_when_the_hold_ends(flight):
         reached_s = next(tt for tt, m in rec.of("MISSION_ITEM_REACHED") if m.seq == seq)
         at_point = (np.linalg.norm(enu - np.array(target), axis=1) < 0.1) & still & (t > reached_s - 10)
         arrived_s = t[np.argmax(at_point)]
-        assert reached_s - arrived_s == pytest.approx(HOLD_S, abs=0.15)
+        # the hold timer starts as the S-curve target reaches the point, the vehicle settling for wp_settle_s before
+        # (the recorded 1 m leg + 3 s hold cycle of ArduCopter 4.7: 6.9-7.2 s, test_sim_flight_timing)
+        assert reached_s - arrived_s == pytest.approx(HOLD_S + FAST_PARAMS.wp_settle_s, abs=0.15)
 
 
 def test_do_set_roi_points_the_nose_within_1_degree_during_holds(flight):
