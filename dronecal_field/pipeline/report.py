@@ -30,6 +30,7 @@ HOMOGRAPHY_FILE = "ground_homography.yaml"
 VALIDITY_GEOJSON = "validity.geojson"
 DETECTIONS_CSV = "detections.csv"
 ANNOTATED_SUFFIX = ".annotated.mcap"
+OUTPUT_FILES = (CAMERA_FILE, CAMERA_INFO_FILE, REPORT_JSON, REPORT_HTML, HOMOGRAPHY_FILE, VALIDITY_GEOJSON, DETECTIONS_CSV)
 
 
 def _atomic_write(path: Path, data: bytes | str) -> None:
@@ -496,42 +497,17 @@ def write_outputs(report, out_dir: Path) -> dict[str, str]:
     beside an old report; files in ``out_dir`` that calibrate did not write
     (the user's) are moved into the new folder.
     """
-    import shutil
-    import tempfile
+    from dronecal_field.outfolder import replace_folder, staged_folder
 
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir} is a file: give a folder for the calibration outputs")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
-    try:
+    with staged_folder(out_dir) as tmp:
         outputs = _write_outputs_into(report, tmp, out_dir)
-        _swap_in(tmp, out_dir, {Path(v).name for v in outputs.values()})
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        ours = {Path(v).name for v in outputs.values()} | set(OUTPUT_FILES)
+        # calibrate's own files of an earlier run are dropped even when this run writes no such file (no stale validity.geojson)
+        replace_folder(tmp, out_dir, lambda name: name in ours)
     return outputs
-
-
-def _swap_in(new: Path, out_dir: Path, ours: set[str]) -> None:
-    """Put the folder ``new`` in place of ``out_dir``; entries of the old folder not named in ``ours`` move across."""
-    import os
-    import shutil
-    import tempfile
-
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(new, 0o777 & ~umask)  # mkdtemp makes it private; the output folder is an ordinary one
-    if not out_dir.exists():
-        os.rename(new, out_dir)
-        return
-    old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old-", dir=out_dir.parent))
-    os.rename(out_dir, old / out_dir.name)
-    os.rename(new, out_dir)
-    for entry in (old / out_dir.name).iterdir():
-        if entry.name not in ours and not (out_dir / entry.name).exists():
-            os.rename(entry, out_dir / entry.name)  # the user's file: same file system, a rename
-    shutil.rmtree(old, ignore_errors=True)
 
 
 def _write_outputs_into(report, tmp: Path, out_dir: Path) -> dict[str, str]:

@@ -11,8 +11,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import shutil
-import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -23,6 +21,7 @@ from dronecal_field.core.camera import Camera, pixel_rays_batch
 from dronecal_field.errors import InputError, PlanError
 from dronecal_field.geodesy import enu_to_geodetic
 from dronecal_field.plan import mission as msn
+from dronecal_field.outfolder import replace_folder, staged_folder
 from dronecal_field.plan.route import FlightModel, Route, plan_route
 from dronecal_field.plan.site import CameraSite, LensGuess, Marker, guess_camera, latlon_to_site, resolve_focal_px
 from dronecal_field.plan.strategies import (
@@ -989,17 +988,6 @@ def mission_geojson(result: PlanResult) -> dict:
 _PLAN_OUTPUT = re.compile(r"^mission(-\d+)?\.(plan|waypoints)$|^(mission\.geojson|plan\.json|camera_guess\.yaml|preview\.png)$")
 
 
-def _keep_user_files(old_plan: Path, new_plan: Path) -> None:
-    """Copy what the user put in an earlier plan folder (field notes, photos) into the new one: plan replaces only its own files."""
-    for entry in old_plan.iterdir():
-        if _PLAN_OUTPUT.match(entry.name) or (new_plan / entry.name).exists():
-            continue
-        if entry.is_dir():
-            shutil.copytree(entry, new_plan / entry.name, symlinks=True)
-        else:
-            shutil.copy2(entry, new_plan / entry.name, follow_symlinks=False)
-
-
 def write_plan(result: PlanResult, out_dir: str | os.PathLike) -> list[Path]:
     """Write the plan folder atomically; returns the written paths.
 
@@ -1023,11 +1011,7 @@ def write_plan(result: PlanResult, out_dir: str | os.PathLike) -> list[Path]:
         validate_plan(plan)
         plans.append(plan)
     names = result.mission_names()
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the plan folder is an ordinary one
-    try:
+    with staged_folder(out) as tmp:
         for name, plan, mission in zip(names, plans, result.missions):
             (tmp / f"{name}.plan").write_text(msn.dumps(plan), encoding="utf-8")
             (tmp / f"{name}.waypoints").write_text(msn.waypoints_text(mission), encoding="utf-8")
@@ -1036,16 +1020,6 @@ def write_plan(result: PlanResult, out_dir: str | os.PathLike) -> list[Path]:
         write_camera(tmp / "camera_guess.yaml", result.camera_enu,
                      comment=f"dronecal-field plan: GUESSED camera (not calibrated): {req.lens.focal_source}, distortion {req.lens.distortion_level}")
         render_preview(result, tmp / "preview.png")
-        if out.exists():
-            _keep_user_files(out, tmp)
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-            os.rename(out, old / out.name)
-            os.rename(tmp, out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.rename(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        replace_folder(tmp, out, lambda name: bool(_PLAN_OUTPUT.match(name)))
     files = [f"{n}.{ext}" for n in names for ext in ("plan", "waypoints")] + list(PLAN_FILES[2:])
     return [out / f for f in files]
