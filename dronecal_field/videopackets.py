@@ -565,11 +565,11 @@ class PacketSource:
                 pass
             self._queue.put_nowait(frame)
 
-    def _stamp(self, arrival_ns: int, pts_ns: int, realtime_us: int | None) -> int:
+    def _stamp(self, arrival_ns: int, pts_ns: int, demux_pts_ns: int, realtime_us: int | None) -> int:
         if not self.live:
             return self._start_ns + pts_ns
         if realtime_us:
-            capture = int(realtime_us) * 1000 + pts_ns
+            capture = int(realtime_us) * 1000 + demux_pts_ns
             delay = arrival_ns - capture
             if self.rtcp_delay_ns is None or delay < self.rtcp_delay_ns:
                 self.rtcp_delay_ns = delay
@@ -601,12 +601,14 @@ class PacketSource:
             if not parts or part_pts is None:
                 return None
             pts_ns = int((part_pts - first_pts) * tb * 1_000_000_000)
+            # RTCP's start_time_realtime is the wall time of the demuxer's pts 0, not of our first frame.
+            demux_pts_ns = int(part_pts * tb * 1_000_000_000)
             nals = merge_parts(parts, fmt, self._length_size)
             key = part_key or is_keyframe(join_annexb(nals[:8]), fmt)
             au = access_unit(join_annexb(nals), fmt, key, self._params, None)
             for incident in self.monitor.observe(part_arrival, pts_ns, corrupt=part_corrupt):
                 self._incidents.append(incident)
-            t_ns = self._stamp(part_arrival, pts_ns, container.start_time_realtime if self.live else None)
+            t_ns = self._stamp(part_arrival, pts_ns, demux_pts_ns, container.start_time_realtime if self.live else None)
             return VideoFrame(timestamp_ns=t_ns, format=fmt, data=au, keyframe=key, pts_ns=pts_ns)
 
         try:

@@ -19,8 +19,9 @@ then sends the backlog in a burst, with the frames' own timestamps);
 keyframe), a camera that loses frames.
 
 ``--log FILE`` writes one line per frame handed to the payloader:
-``index pts_ns wall_ns payload_bytes keyframe`` (payload bytes = the NAL units
-without start codes, AUD and SEI; a fingerprint the recorded frames share).
+``index pts_ns send_wall_ns payload_bytes keyframe capture_wall_ns`` (payload
+bytes = the slices' NAL units: a fingerprint the recorded frames share;
+capture = the frame's capture instant on the server's realtime clock, base time + running time, before overlay and encoding).
 """
 
 import argparse
@@ -28,31 +29,67 @@ import sys
 import threading
 import time
 
-import gi
-
-gi.require_version("Gst", "1.0")
-gi.require_version("GstRtspServer", "1.0")
-from gi.repository import GLib, Gst, GstRtspServer  # noqa: E402
-
-
 def payload_bytes(data: bytes, h265: bool) -> int:
+    """Bytes of the slices (VCL NAL units) of one frame, Annex B or 4-byte length-prefixed: a fingerprint."""
+    if data[:3] == b"\x00\x00\x01" or data[:4] == b"\x00\x00\x00\x01":
+        nals = []
+        i = data.find(b"\x00\x00\x01")
+        while i >= 0:
+            j = data.find(b"\x00\x00\x01", i + 3)
+            nal = data[i + 3 : (len(data) if j < 0 else j)]
+            nals.append(nal.rstrip(b"\x00") if j >= 0 else nal)
+            i = j
+    else:
+        nals, pos = [], 0
+        while pos + 4 <= len(data):
+            n = int.from_bytes(data[pos : pos + 4], "big")
+            nals.append(data[pos + 4 : pos + 4 + n])
+            pos += 4 + n
     total = 0
-    i = data.find(b"\x00\x00\x01")
-    while i >= 0:
-        j = data.find(b"\x00\x00\x01", i + 3)
-        nal = data[i + 3 : (len(data) if j < 0 else j)]
-        if j >= 0:
-            nal = nal.rstrip(b"\x00")
+    for nal in nals:
         if nal:
             t = (nal[0] >> 1) & 0x3F if h265 else nal[0] & 0x1F
-            skip = (35, 39, 40) if h265 else (6, 9)
-            if t not in skip:
+            if (t < 32) if h265 else (1 <= t <= 5):
                 total += len(nal)
-        i = j
     return total
 
 
+def stamp_errors_ns(sent, frames, h265: bool, at: str = "send") -> list[int]:
+    """Recorded stamp minus the server's send time, per recorded frame matched in the server log.
+
+    ``sent``: (index, pts_ns, send_wall_ns, payload_bytes, keyframe,
+    capture_wall_ns) lines of the log; ``at``: ``send`` or ``capture``; ``frames``: recorded (pts_ns, timestamp_ns, annexb_bytes). The two
+    pts clocks differ by one constant (the server's running time against the
+    client's first packet): the constant most frames agree on, by payload
+    size, pairs them. Usable from the venv (no GStreamer import here).
+    """
+    from collections import Counter
+
+    by_size = {}
+    for _, pts, wall, size, *_ in sent:
+        by_size.setdefault(size, []).append((pts, wall))
+    votes = Counter()
+    sizes = []
+    for pts, _, data in frames:
+        size = payload_bytes(data, h265)
+        sizes.append(size)
+        for spts, _ in by_size.get(size, ()):
+            votes[spts - pts] += 1
+    if not votes:
+        return []
+    offset, _ = votes.most_common(1)[0]
+    column = 2 if at == "send" else 5
+    wall_of = {line[1]: line[column] for line in sent}
+    return [t - wall_of[pts + offset] for (pts, t, _), size in zip(frames, sizes) if pts + offset in wall_of]
+
+
 def main() -> int:
+    import gi
+
+    gi.require_version("Gst", "1.0")
+    gi.require_version("GstRtspServer", "1.0")
+    from gi.repository import GLib, Gst, GstRtspServer
+
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--port", type=int, default=0)
     p.add_argument("--codec", choices=("h264", "h265"), default="h264")
@@ -85,17 +122,38 @@ def main() -> int:
         )
     overlay = "timeoverlay halignment=left valignment=top font-desc=\"Sans 24\" time-mode=running-time ! "
     launch = (
-        f"( videotestsrc is-live=true pattern={args.pattern} ! "
+        f"( videotestsrc name=src is-live=true pattern={args.pattern} ! "
         f"video/x-raw,width={args.width},height={args.height},framerate={args.fps}/1,format=I420 ! {overlay}{enc} )"
     )
 
     log = open(args.log, "w", buffering=1) if args.log else None
     h265 = args.codec == "h265"
 
+    def rtcp_at_capture(_bin, _sub, element):
+        # A camera's sender reports tie RTP time to its (NTP) wall clock at capture: the pipeline
+        # clock is the realtime clock and the reports carry capture time, not send time.
+        factory_name = element.get_factory().get_name() if element.get_factory() else ""
+        if factory_name == "rtpbin":
+            element.set_property("ntp-time-source", "ntp")
+            element.set_property("rtcp-sync-send-time", False)
+
     def configure(_factory, media):
         pipeline = media.get_element()
+        top = pipeline.get_parent()
+        if top is not None:
+            top.connect("deep-element-added", rtcp_at_capture)
         pay = pipeline.get_by_name("pay0")
-        state = {"index": 0, "paused": False}
+        state = {"index": 0, "paused": False, "captured": []}
+
+        src = pipeline.get_by_name("src")
+
+        def captured(_pad, info):
+            # The frame's capture instant as the server's clock defines it (realtime pipeline clock):
+            # base time + the buffer's running time, which is what its RTCP reports map.
+            state["captured"].append(src.get_base_time() + info.get_buffer().pts)
+            return Gst.PadProbeReturn.OK
+
+        src.get_static_pad("src").add_probe(Gst.PadProbeType.BUFFER, captured)
 
         def probe(_pad, info):
             buf = info.get_buffer()
@@ -112,7 +170,8 @@ def main() -> int:
                 size = payload_bytes(bytes(info_map.data), h265) if ok else -1
                 if ok:
                     buf.unmap(info_map)
-                log.write(f"{index} {buf.pts} {time.time_ns()} {size} {int(key)}\n")
+                capture = state["captured"][index] if index < len(state["captured"]) else 0
+                log.write(f"{index} {buf.pts} {time.time_ns()} {size} {int(key)} {capture}\n")
             return Gst.PadProbeReturn.OK
 
         pay.get_static_pad("sink").add_probe(Gst.PadProbeType.BUFFER, probe)
@@ -123,6 +182,9 @@ def main() -> int:
     factory = GstRtspServer.RTSPMediaFactory()
     factory.set_launch(launch)
     factory.set_shared(False)
+    clock = Gst.SystemClock.obtain()
+    clock.set_property("clock-type", Gst.ClockType.REALTIME)
+    factory.set_clock(clock)
     factory.connect("media-configure", configure)
     server.get_mount_points().add_factory("/cam", factory)
     if server.attach(None) == 0:

@@ -1,0 +1,171 @@
+"""RTSP pass-through against a real RTSP server on loopback (GStreamer's, tests/rtsp_server.py).
+
+The server runs under Debian's Python (``make rtsp-deps`` installs it; CI's
+``make test`` does). Streams are small (320x240, 25 fps, a few seconds), so
+each test costs seconds. Nothing here asserts a rate or a wall-clock span:
+counts are of frames the server itself logged, with wide margins.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from dronecal_field.videopackets import nal_type, open_packet_source, split_annexb
+from rtsp_server import stamp_errors_ns
+
+SERVER = Path(__file__).with_name("rtsp_server.py")
+SYSTEM_PYTHON = "/usr/bin/python3"
+
+
+class RtspServer:
+    def __init__(self, tmp_path, *args: str) -> None:
+        self.log = tmp_path / "server.log"
+        self.proc = subprocess.Popen(
+            [SYSTEM_PYTHON, str(SERVER), "--log", str(self.log), *args],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )
+        line = self.proc.stdout.readline()
+        if not line.startswith("READY"):
+            err = self.proc.stderr.read() if self.proc.poll() is not None else ""
+            self.close()
+            pytest.fail(f"the RTSP server did not start ({line!r} {err[-500:]}); run `make rtsp-deps` (GStreamer RTSP server, Debian packages)")
+        self.url = line.split()[1]
+
+    def sent(self) -> list[tuple[int, int, int, int, int]]:
+        """(index, pts_ns, wall_ns, payload_bytes, keyframe) of every frame the server paid out."""
+        return [tuple(int(v) for v in line.split()) for line in self.log.read_text().splitlines() if line.strip()]
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.stdin.close()
+            try:
+                self.proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+@pytest.fixture
+def server(tmp_path):
+    servers = []
+
+    def start(*args: str) -> RtspServer:
+        s = RtspServer(tmp_path, *args)
+        servers.append(s)
+        return s
+
+    yield start
+    for s in servers:
+        s.close()
+
+
+def _read(source, n: int, timeout_s: float = 20.0) -> list:
+    frames = []
+    deadline = time.monotonic() + timeout_s
+    while len(frames) < n and time.monotonic() < deadline:
+        f = source.read(timeout_s=1.0)
+        if f is not None:
+            frames.append(f)
+    return frames
+
+
+@pytest.mark.parametrize("codec", ["h264", "h265"])
+def test_rtsp_stream_is_recorded_as_access_units_stamped_through_rtcp(server, codec):
+    srv = server("--codec", codec, "--gop", "25")
+    source = open_packet_source(srv.url)
+    try:
+        frames = _read(source, 175)  # 7 s: the first RTCP sender report comes within ~5 s
+    finally:
+        source.close()
+    assert source.format == codec and (source.width, source.height) == (320, 240)
+    assert len(frames) == 175
+    params = {"h264": {7, 8}, "h265": {32, 33, 34}}[codec]
+    keyframes = [f for f in frames if f.keyframe]
+    assert 6 <= len(keyframes) <= 8
+    for f in keyframes:
+        assert params <= {nal_type(n, codec) for n in split_annexb(f.data)}
+    # One access unit per frame, in order, 40 ms apart in the stream's clock, none lost.
+    steps = {b.pts_ns - a.pts_ns for a, b in zip(frames, frames[1:])}
+    assert steps == {40_000_000}
+    assert source.monitor.frames_lost == 0 and source.monitor.corrupt == 0 and not source.b_frames
+    # The camera's (here the server's) clock through RTCP: frames are stamped when the server
+    # captured them, which its log says; loopback delivery adds well under a frame.
+    assert source.clock == "rtcp"
+    recorded = [(f.pts_ns, f.timestamp_ns, f.data) for f in frames[-75:]]
+    capture_ms = sorted(e / 1e6 for e in stamp_errors_ns(srv.sent(), recorded, codec == "h265", at="capture"))
+    send_ms = sorted(e / 1e6 for e in stamp_errors_ns(srv.sent(), recorded, codec == "h265", at="send"))
+    assert len(capture_ms) >= 70 and len(send_ms) >= 70
+    # Stamped at capture: within a millisecond of the server's capture instant, the same for every frame ...
+    assert abs(capture_ms[len(capture_ms) // 2]) < 1.0 and capture_ms[-1] - capture_ms[0] < 1.0, capture_ms
+    # ... and so before the server sent it (its overlay and encoder take a few ms to tens of ms).
+    assert -80.0 < send_ms[len(send_ms) // 2] < 0.0, send_ms
+
+
+def test_parameter_sets_only_in_the_sdp_are_put_in_front_of_every_keyframe(server):
+    srv = server("--params-out-of-band", "--gop", "10")
+    source = open_packet_source(srv.url)
+    try:
+        frames = _read(source, 40)
+    finally:
+        source.close()
+    keyframes = [f for f in frames if f.keyframe]
+    assert len(keyframes) >= 3
+    for f in keyframes:
+        assert [nal_type(n, "h264") for n in split_annexb(f.data)][:3] in ([9, 7, 8], [7, 8, 5], [7, 8, 6])
+
+
+def test_a_server_that_stalls_is_reported_as_lag_not_hidden(server):
+    srv = server("--pause-at", "1.5", "--pause-for", "1.5")
+    source = open_packet_source(srv.url)
+    source.lock_clock()  # stamped on arrival through the stream's pacing (the stall comes before any RTCP report)
+    frames, arrivals = [], []
+    try:
+        while len(frames) < 125:
+            f = source.read(timeout_s=5.0)
+            assert f is not None
+            frames.append(f)
+            arrivals.append(time.time_ns())
+    finally:
+        source.close()
+    incidents = source.incidents()
+    lags = [i for i in incidents if i.kind == "video_lag"]
+    assert source.monitor.lag_events >= 1 and lags, incidents
+    assert 1.0 < max(i.value for i in lags) < 2.5  # the 1.5 s stall, as the lag behind the stream's clock
+    # The backlog sent in a burst keeps the frames' own times (the stream's pacing), not their late arrival.
+    assert source.clock == "arrival"
+    late = [f for f, t in zip(frames, arrivals) if t - f.timestamp_ns > 500_000_000]
+    assert len(late) >= 10
+    steps = {b.timestamp_ns - a.timestamp_ns for a, b in zip(late, late[1:])}
+    assert steps == {40_000_000}
+
+
+@pytest.mark.parametrize("transport", ["tcp", "udp"])
+def test_frames_the_camera_loses_are_counted(server, transport):
+    srv = server("--drop-every", "10", "--gop", "50")
+    source = open_packet_source(srv.url, rtsp_transport=transport)
+    try:
+        frames = _read(source, 60)
+    finally:
+        source.close()
+    span = (frames[-1].pts_ns - frames[0].pts_ns) // 40_000_000 + 1
+    assert span - len(frames) == source.monitor.frames_lost
+    assert 4 <= source.monitor.frames_lost <= 8  # every 10th frame of ~65
+    assert source.monitor.loss_events == source.monitor.frames_lost
+
+
+def test_a_consumer_slower_than_the_stream_drops_frames_counted(server):
+    srv = server()
+    source = open_packet_source(srv.url, queue_size=4)
+    try:
+        assert source.read(timeout_s=10.0) is not None
+        time.sleep(2.0)  # the consumer stalls; the stream goes on
+        frames = _read(source, 10)
+    finally:
+        source.close()
+    assert len(frames) == 10
+    assert source.frames_dropped >= 10  # ~50 frames arrived for a queue of 4
