@@ -71,6 +71,48 @@ def enu_to_geodetic(enu: np.ndarray, origin: EnuOrigin) -> np.ndarray:
     return np.stack([np.asarray(lat), np.asarray(lon), np.asarray(h)], -1)
 
 
+# PROJ's EGM96 grid (pyproj's data directory or PROJ_DATA); not shipped with pyproj's wheel.
+EGM96_GRID = "us_nga_egm96_15.tif"
+
+
+@lru_cache(maxsize=1)
+def _egm96_transformer():
+    """WGS84 ellipsoidal -> EGM96 height, or None when PROJ has no grid offline (it would then fall
+    back to a "ballpark" transformation that leaves heights unchanged: a silent 0 m separation)."""
+    import warnings
+
+    from pyproj.transformer import TransformerGroup
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "best transformation is not available": answered by returning None
+        group = TransformerGroup("EPSG:4979", "EPSG:4326+5773", always_xy=True)
+    if not group.best_available or not group.transformers:
+        return None
+    return group.transformers[0]
+
+
+def geoid_separation_m(lat_deg: float, lon_deg: float) -> float | None:
+    """EGM96 geoid separation N (ellipsoidal minus AMSL height, m) at a point, or None.
+
+    From PROJ's EGM96 grid when it is installed where PROJ finds it offline
+    (``EGM96_GRID`` in pyproj's data directory or ``PROJ_DATA``); None when it
+    is not, so a caller can say which datum it wrote instead of writing an
+    ellipsoidal height where AMSL is read (about 30 m off in Atlanta).
+
+    Parameters
+    ----------
+    lat_deg, lon_deg : float
+        WGS84 degrees.
+    """
+    transformer = _egm96_transformer()
+    if transformer is None:
+        return None
+    _lon, _lat, h_amsl = transformer.transform(float(lon_deg), float(lat_deg), 0.0)
+    if not np.isfinite(h_amsl):
+        return None
+    return float(0.0 - h_amsl)
+
+
 def site_to_enu_rotation(azimuth_deg: float) -> np.ndarray:
     """(3, 3) R_enu_from_site: site frame X along the azimuth, Y left, Z up (docs/conventions.md)."""
     a = np.radians(azimuth_deg)

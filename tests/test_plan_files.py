@@ -202,6 +202,9 @@ def test_cli_flags_amsl_condition_yaw_rtl_and_takeoff(tmp_path):
             assert nxt["params"][0] == pytest.approx(np.degrees(np.arctan2(-e, -n)) % 360, abs=0.05)
     home = parse_waypoints((out / "mission.waypoints").read_text())[0]
     assert home["params"][4:6] == pytest.approx([-35.363330, 149.165290], abs=1e-7)
+    # home's height as QGC, Mission Planner and MAVSDK read it: AMSL (the ellipsoidal 604.5 m less N = 20.5 m), in both files
+    assert home["frame"] == 0 and home["params"][6] == pytest.approx(584.0, abs=1e-3)
+    assert plan["dronecal"]["plannedHomePositionHeight"].startswith("AMSL")
 
 
 def test_optimize_respects_the_flight_time_budget(tmp_path, capsys):
@@ -294,6 +297,52 @@ def test_geofence_keeps_every_waypoint_inside(tmp_path):
     assert user.contains_points(wps).all()
 
 
+def _self_crossings(ring) -> list[tuple[int, int]]:
+    """(i, j) of every pair of non-neighbouring edges of a closed ring that cross (a simple polygon has none)."""
+    r = np.asarray(ring, float)
+    assert np.array_equal(r[0], r[-1])  # closed, as RFC 7946 wants
+    r = r[:-1]
+    n = len(r)
+
+    def orient(a, b, c):
+        return np.sign((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]))
+
+    out = []
+    for i in range(n):
+        for j in range(i + 2, n):
+            if i == 0 and j == n - 1:
+                continue
+            a, b, c, d = r[i], r[i + 1], r[j], r[(j + 1) % n]
+            if orient(a, b, c) * orient(a, b, d) < 0 and orient(c, d, a) * orient(c, d, b) < 0:
+                out.append((i, j))
+    return out
+
+
+def test_a_self_crossing_ring_is_cut_to_a_simple_polygon_and_home_height_states_its_datum():
+    from dronecal_field.geodesy import geoid_separation_m
+    from dronecal_field.plan.mission import Mission, home_datum_warning, polygon_feature, qgc_plan
+
+    # a square whose first corner folds into a small bow-tie, as the 4K footprint's corners did
+    ring = np.array([[0.0, 0.0], [-0.1, 0.1], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0], [0.1, -0.1]])  # edges 1-2 and 4-5 cross
+    assert _self_crossings(np.vstack([ring, ring[:1]])) != []
+    feature = polygon_feature(ring, {})
+    coords = feature["geometry"]["coordinates"][0]
+    assert _self_crossings(coords) == [] and len(coords) >= 5
+    xy = np.array(coords)[:-1]
+    area = 0.5 * abs(np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1]))
+    assert area == pytest.approx(100.0, abs=1.0)  # the square kept, only the fold cut
+
+    # no geoid separation given: home's height is AMSL only if PROJ's EGM96 grid is installed; else the file says so
+    mission = Mission(home_lat_deg=33.749, home_lon_deg=-84.388, home_h_m=290.0, home_alt_m=290.0, home_alt_is_amsl=False, alt_frame="relative",
+                      items=(), speed_m_s=1.0, home_datum="WGS84 ellipsoidal (no geoid known: not AMSL)")
+    plan = qgc_plan(mission, None, None, 1.0)
+    assert plan["dronecal"]["plannedHomePositionHeight"].startswith("WGS84 ellipsoidal")
+    warning = home_datum_warning(mission)
+    assert "plannedHomePosition" in warning and "--geoid-separation" in warning and "\n" not in warning
+    n_atlanta = geoid_separation_m(33.749, -84.388)
+    assert n_atlanta is None or n_atlanta == pytest.approx(-30.0, abs=2.0)  # Atlanta: about 30 m
+
+
 @pytest.mark.parametrize("site", ["paper-pinhole", "paper-distorted", "security-4k"])
 def test_committed_mission_folders_are_current(tmp_path, site):
     """missions/<site>/ is what the site file gives today (golden files; regenerate with plan --site ... --out missions/<site>)."""
@@ -301,6 +350,11 @@ def test_committed_mission_folders_are_current(tmp_path, site):
     assert rc == 0
     fresh = parse_waypoints((out / "mission.waypoints").read_text())
     golden = parse_waypoints((MISSIONS / site / "mission.waypoints").read_text())
+    # every polygon (footprint, fence, keep-out) is a valid GeoJSON polygon: no edge crosses another
+    polygons = [f for f in json.loads((out / "mission.geojson").read_text())["features"] if f["geometry"]["type"] == "Polygon"]
+    assert {f["properties"]["kind"] for f in polygons} >= {"footprint", "geofence"}
+    for f in polygons:
+        assert _self_crossings(f["geometry"]["coordinates"][0]) == [], f["properties"]["kind"]
     assert len(fresh) == len(golden) >= 30
     for f, g in zip(fresh, golden):
         assert (f["command"], f["frame"]) == (g["command"], g["frame"])

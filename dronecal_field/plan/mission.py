@@ -28,7 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic
+from dronecal_field.geodesy import EGM96_GRID, EnuOrigin, enu_to_geodetic
+from dronecal_field.geodesy import geoid_separation_m as geoid_separation_m_at
 
 # MAV_CMD and MAV_FRAME values used here (common.xml)
 MAV_CMD_NAV_WAYPOINT = 16
@@ -86,6 +87,7 @@ class Mission:
     items: tuple[MissionItem, ...]
     speed_m_s: float
     geoid_separation_m: float | None = None
+    home_datum: str = "AMSL (the site's geoid separation)"  # what home_alt_m is, in words (stated in the .plan)
 
     @property
     def alt_frame_text(self) -> str:
@@ -174,17 +176,39 @@ def build_mission(
             from dronecal_field.errors import PlanError
 
             raise PlanError(f"item '{it.label}' would fly at altitude {it.z:.2f} m ({alt_frame}); ArduPilot reads 0 as 'here': raise --min-agl")
-    amsl_known = geoid_separation_m is not None
+    home_sep = geoid_separation_m
+    home_datum = "AMSL (the site's geoid separation)"
+    if home_sep is None:
+        # QGC, Mission Planner and MAVSDK read home's height as AMSL: convert it with PROJ's geoid if installed
+        home_sep = geoid_separation_m_at(float(home_geo[0]), float(home_geo[1]))
+        home_datum = "AMSL (EGM96, PROJ grid)" if home_sep is not None else "WGS84 ellipsoidal (no geoid known: not AMSL)"
     return Mission(
         home_lat_deg=float(home_geo[0]),
         home_lon_deg=float(home_geo[1]),
         home_h_m=home_h,
-        home_alt_m=round(home_h - geoid_separation_m if amsl_known else home_h, 3),
-        home_alt_is_amsl=amsl_known,
+        home_alt_m=round(home_h - home_sep if home_sep is not None else home_h, 3),
+        home_alt_is_amsl=home_sep is not None,
         alt_frame=alt_frame,
         items=tuple(items),
         speed_m_s=float(speed_m_s),
         geoid_separation_m=geoid_separation_m,
+        home_datum=home_datum,
+    )
+
+
+def home_datum_warning(mission: Mission) -> str | None:
+    """The warning for a home height written in the wrong datum, or None when it is AMSL.
+
+    QGroundControl, Mission Planner and MAVSDK read the ``.plan``'s
+    ``plannedHomePosition`` and the ``.waypoints`` home line (frame 0) as
+    heights above mean sea level.
+    """
+    if mission.home_alt_is_amsl:
+        return None
+    return (
+        f"the home height in mission.plan (plannedHomePosition) and the .waypoints home line is ellipsoidal ({mission.home_alt_m:.2f} m, WGS84): "
+        "QGroundControl, Mission Planner and MAVSDK read it as AMSL; no geoid separation was given and PROJ's EGM96 grid "
+        f"({EGM96_GRID}) is not installed: give --geoid-separation N (m) or --ground-amsl to write AMSL"
     )
 
 
@@ -255,6 +279,8 @@ def qgc_plan(mission: Mission, fence_latlon: np.ndarray | None, keep_out: tuple[
             "vehicleType": MAV_TYPE_QUADROTOR,
             "version": 2,
         },
+        # a foreign member (ignored by QGC and MAVSDK): which height plannedHomePosition carries
+        "dronecal": {"plannedHomePositionHeight": mission.home_datum},
         "rallyPoints": {"points": [], "version": 2},
         "version": 1,
     }
@@ -322,9 +348,62 @@ def line_feature(coords: np.ndarray, props: dict) -> dict:
     return {"type": "Feature", "geometry": {"type": "LineString", "coordinates": rows}, "properties": props}
 
 
+def _crossing(a, b, c, d) -> tuple[float, float] | None:
+    """Where segments a-b and c-d cross each other properly (not at an end), or None."""
+    def orient(p, q, r) -> float:
+        return (q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0])
+
+    o1, o2, o3, o4 = orient(a, b, c), orient(a, b, d), orient(c, d, a), orient(c, d, b)
+    if o1 * o2 >= 0 or o3 * o4 >= 0:
+        return None
+    t = o3 / (o3 - o4)
+    return (a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1]))
+
+
+def _area(pts: list[tuple[float, float]]) -> float:
+    """Unsigned shoelace area of a ring."""
+    xy = np.asarray(pts, float)
+    return 0.5 * abs(float(np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1])))
+
+
+def simple_ring(ring: np.ndarray) -> np.ndarray:
+    """(K, 2) the ring without its self-crossings: each small loop cut off at its crossing point.
+
+    A ring traced from an image border (the camera's ground footprint) folds
+    into small bow-ties where distorted rays near a corner cross (the 4K plan
+    had two), which GIS tools reject as an invalid polygon. Of the two rings
+    either side of a crossing the larger (by area) is kept.
+
+    Parameters
+    ----------
+    ring : (M, 2) open ring (first vertex not repeated), any planar or lon/lat units
+    """
+    pts = [tuple(map(float, p)) for p in np.asarray(ring, float)[:, :2]]
+    changed = True
+    while changed and len(pts) > 3:
+        changed = False
+        n = len(pts)
+        for i in range(n):
+            for j in range(i + 2, n):
+                if i == 0 and j == n - 1:
+                    continue  # the closing segment's neighbour
+                p = _crossing(pts[i], pts[i + 1], pts[j], pts[(j + 1) % n])
+                if p is None:
+                    continue
+                inner = [p] + pts[i + 1 : j + 1]
+                outer = pts[: i + 1] + [p] + pts[j + 1 :]
+                pts = outer if _area(outer) >= _area(inner) else inner
+                changed = True
+                break
+            if changed:
+                break
+    return np.asarray(pts)
+
+
 def polygon_feature(lonlat: np.ndarray, props: dict) -> dict:
-    """Polygon from (M, 2) lon/lat vertices; the ring is closed and counter-clockwise (RFC 7946)."""
-    ring = np.asarray(lonlat, float)[:, :2]
+    """Polygon from (M, 2) lon/lat vertices; the ring is closed, simple (no self-crossing) and
+    counter-clockwise (RFC 7946)."""
+    ring = simple_ring(np.asarray(lonlat, float)[:, :2])
     area2 = np.sum(ring[:, 0] * np.roll(ring[:, 1], -1) - np.roll(ring[:, 0], -1) * ring[:, 1])
     if area2 < 0:
         ring = ring[::-1]
