@@ -187,3 +187,75 @@ def test_a_run_with_both_camera_topics_is_refused(tmp_path):
         w._write_proto("/camera/image", CompressedImage(data=b"x", format="jpeg"), 2)
     with pytest.raises(ContractError, match="one camera topic"):
         open_run(path)
+
+
+def video_twin(src, dst, fmt="h264", gop=10, crf=16):
+    """A /camera/video copy of a JPEG run: every frame encoded by PyAV's libx264/libx265 (no B-frames),
+    everything else (metadata, fixes, attitude, events, MAVLink, attachments) copied as it is."""
+    import av
+    import cv2
+    from dataclasses import replace
+
+    from dronecal_field.videopackets import access_unit as to_annexb
+    from dronecal_field.videopackets import parameter_sets as params_of
+
+    with open_run(src) as run:
+        md = replace(run.metadata, extra={**run.metadata.extra, "camera.clock": "file"})
+        frames = list(run.iter_frames())
+        ctx = av.CodecContext.create("libx264" if fmt == "h264" else "libx265", "w")
+        ctx.width, ctx.height, ctx.pix_fmt = run.metadata.width, run.metadata.height, "yuv420p"
+        ctx.time_base = Fraction(1, 1000)
+        ctx.gop_size = gop
+        ctx.max_b_frames = 0
+        ctx.options = {"crf": str(crf)} if fmt == "h264" else {"crf": str(crf), "x265-params": f"bframes=0:keyint={gop}:log-level=error"}
+        ctx.open()
+        t0 = frames[0].timestamp_ns
+        stamp_of = {}
+        with RunWriter(dst, md, camera="video", background_flush=False) as w:
+            def write(packets):
+                for p in packets:
+                    data = to_annexb(bytes(p), fmt, p.is_keyframe, params_of(ctx.extradata, fmt)[0])
+                    w.write_frame(Frame(timestamp_ns=stamp_of[p.pts], format=fmt, data=data))
+
+            for f in frames:
+                img = cv2.imdecode(np.frombuffer(f.data, np.uint8), cv2.IMREAD_COLOR)
+                vf = av.VideoFrame.from_ndarray(img, format="bgr24")
+                vf.pts = (f.timestamp_ns - t0) // 1_000_000
+                stamp_of[vf.pts] = f.timestamp_ns
+                write(ctx.encode(vf))
+            write(ctx.encode(None))
+            for fix in run.iter_fixes():
+                w.write_fix(fix)
+            for att in run.iter_attitude():
+                w.write_attitude(att)
+            for ev in run.iter_events():
+                w.write_event(ev)
+            for name, t, fields in run.iter_mavlink():
+                w.write_mavlink(name, t, fields)
+            for name, _ in run._attachments:
+                w.attach(name, run.attachment(name), "application/json")
+    return len(frames)
+
+
+def test_calibrate_reads_a_camera_video_twin_of_the_nominal_replay(tmp_path):
+    """The nominal replay's frames as an H.264 stream (/camera/video) calibrate as its JPEGs do.
+
+    Measured against the JPEG run (same bands as tests/test_replays.py): focal
+    0.35 % vs 0.33 %, principal point 4.3 vs 4.4 px, position 0.8 vs 0.8 cm,
+    150 vs 149 frames with the marker of 171.
+    """
+    import json
+
+    from conftest import ROOT, run_cli
+    from test_replays import MANIFEST, _errors
+
+    twin = tmp_path / "nominal-h264.mcap"
+    assert video_twin(ROOT / "replays" / "nominal.mcap", twin) == 171
+    out = tmp_path / "cal"
+    proc = run_cli("calibrate", str(twin), "--out", str(out), "--trials", "50", timeout=180)
+    assert proc.returncode == 0, proc.stderr
+    focal_pct, pp_px, pos_m = _errors(out, ROOT / "replays" / MANIFEST["nominal"]["truth"])
+    assert focal_pct < 1.5 and pp_px < 6.0 and pos_m < 0.05
+    frames = json.loads((out / "report.json").read_text())["frames"]
+    assert frames["formats"] == ["h264"] and frames["frames_corrupt_skipped"] == 0
+    assert frames["frames_with_marker"] >= 140
