@@ -113,6 +113,8 @@ def read_camera(path: str | os.PathLike) -> Camera:
         fs.release()
     if not np.all(np.isfinite(K)) or not np.all(np.isfinite(R)) or not np.all(np.isfinite(position)):
         raise InputError(f"camera file {path} holds NaN or inf: regenerate it")
+    if not (np.allclose(R @ R.T, np.eye(3), atol=1e-4) and np.linalg.det(R) > 0):
+        raise InputError(f"camera file {path}: rotation_world_to_camera is not a rotation (R R^T != I or det < 0): regenerate it or fix the matrix")
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise InputError(f"camera file {path}: focal length fx {K[0, 0]:g}, fy {K[1, 1]:g} px must be positive: fix camera_matrix")
     return Camera(

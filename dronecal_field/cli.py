@@ -9,7 +9,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import math
+import os
 import sys
+from pathlib import Path
+from typing import NoReturn
 
 # Order is the order in --help.
 COMMANDS: tuple[str, ...] = (
@@ -24,8 +28,18 @@ COMMANDS: tuple[str, ...] = (
 )
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse that reports a bad flag in one line (the usage block hides it on a small screen).
+
+    Sub-parsers inherit the class, so every command answers the same way.
+    """
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="dronecal-field",
         description="Calibrate fixed cameras by flying an RTK drone with a marker through their view.",
     )
@@ -81,6 +95,139 @@ def environment_message(exc: BaseException) -> str:
         target = f"{exc.filename}" + (f" -> {exc.filename2}" if exc.filename2 else "")
         return f"{target}: {what}: check the path exists, is the kind expected (file or folder) and is writable/readable by you"
     return f"{what}: check the paths, the network address and the free disk space"
+
+
+# --------------------------------------------------------------------------
+# Flag checks shared by the commands: each raises InputError with one line
+# naming the flag, the value and what to give instead. 0 is a value, never
+# "unset": a flag left out is None.
+
+
+def check_number(flag: str, value: float | None, low: float, high: float, *, low_open: bool = False, hint: str = "") -> None:
+    """``value`` must be finite and within [low, high] (``(low, high]`` with ``low_open``); None passes."""
+    from dronecal_field.errors import InputError
+
+    if value is None:
+        return
+    bracket = "(" if low_open else "["
+    ok = math.isfinite(value) and (value > low if low_open else value >= low) and value <= high
+    if not ok:
+        raise InputError(f"{flag} {value:g} is outside {bracket}{low:g}, {high:g}]" + (f": {hint}" if hint else ""))
+
+
+def check_numbers(flag: str, text: str, n: int, *, low: float = -math.inf, high: float = math.inf, hint: str = "") -> tuple[float, ...]:
+    """``n`` finite comma-separated numbers within [low, high], e.g. a marker offset ``0.1,0,0.05``."""
+    from dronecal_field.errors import InputError
+
+    try:
+        values = tuple(float(v) for v in str(text).split(","))
+    except ValueError:
+        values = ()
+    if len(values) != n or not all(math.isfinite(v) and low <= v <= high for v in values):
+        raise InputError(f"{flag} {text!r} is not {n} finite comma-separated numbers" + (f" within [{low:g}, {high:g}]" if math.isfinite(low) or math.isfinite(high) else "")
+                         + (f": {hint}" if hint else ""))
+    return values
+
+
+def check_seed(flag: str, seed: int | None) -> None:
+    """Seeds feed numpy, which takes 0 .. 2**32 - 1."""
+    from dronecal_field.errors import InputError
+
+    if seed is not None and not 0 <= seed < 2**32:
+        raise InputError(f"{flag} {seed} is outside 0..4294967295: give a non-negative seed, e.g. 0")
+
+
+def check_out_dir(flag: str, path: str | os.PathLike) -> None:
+    """An output folder: a folder or a free name, in an existing folder this user can write in."""
+    from dronecal_field.errors import InputError
+
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise InputError(f"{flag} {p} is a file, not a folder: choose a folder name")
+    _check_parent(flag, p)
+
+
+def check_out_file(flag: str, path: str | os.PathLike, *, keep_existing: bool = False) -> None:
+    """An output file: not a folder, in an existing writable folder; ``keep_existing`` refuses to replace one."""
+    from dronecal_field.errors import InputError
+
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{flag} {p} is a folder: give a file name in it, e.g. {p / 'out'}{p.suffix or ''}")
+    if keep_existing and p.exists():
+        raise InputError(f"{flag} {p} already exists; nothing was overwritten: choose a new name or move the old file away")
+    _check_parent(flag, p)
+
+
+def _check_parent(flag: str, p: Path) -> None:
+    import tempfile
+
+    from dronecal_field.errors import InputError
+
+    parent = p.absolute().parent
+    if not parent.is_dir():
+        raise InputError(f"{flag} {p}: folder {parent} does not exist: create it first or choose another path")
+    try:  # the only sure test of "writable" (permission bits lie for root and read-only mounts)
+        with tempfile.TemporaryFile(dir=parent, prefix=".dronecal-probe-"):
+            pass
+    except OSError as exc:
+        raise InputError(f"{flag} {p}: cannot write in {parent} ({exc.strerror or exc}): choose a folder you can write to") from None
+
+
+def check_input_file(flag: str, path: str | os.PathLike | None) -> None:
+    """An input file must exist and be a file (not a folder)."""
+    from dronecal_field.errors import InputError
+
+    if path is None:
+        return
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{flag} {p} does not exist: check the path")
+    if not p.is_file():
+        raise InputError(f"{flag} {p} is not a file: give the file itself")
+
+
+def check_marker(dictionary: str, marker_id: int | None, *, dict_flag: str = "--marker-dictionary", id_flag: str = "--marker-id") -> None:
+    """An OpenCV ArUco dictionary name, and an id that the dictionary holds."""
+    import cv2
+
+    from dronecal_field.errors import InputError
+
+    code = getattr(cv2.aruco, dictionary, None) if dictionary.startswith("DICT_") else None
+    if not isinstance(code, int):
+        raise InputError(f"{dict_flag} {dictionary!r} is not an OpenCV ArUco dictionary: use e.g. DICT_4X4_50")
+    if marker_id is not None:
+        n = cv2.aruco.getPredefinedDictionary(code).bytesList.shape[0]
+        if not 0 <= marker_id < n:
+            raise InputError(f"{id_flag} {marker_id} is not in {dictionary} (ids 0..{n - 1}): give the id printed on the marker")
+
+
+def check_address(flag: str, url: str, schemes: tuple[str, ...]) -> None:
+    """``scheme:HOST:PORT`` (or ``scheme://HOST:PORT/path``) with a known scheme and a port 0-65535."""
+    from urllib.parse import urlsplit
+
+    from dronecal_field.errors import InputError
+
+    example = f"{schemes[0]}:127.0.0.1:14550" if "//" not in url else f"{schemes[0]}://127.0.0.1:8554/stream"
+    scheme = url.split(":", 1)[0].lower() if ":" in url else ""
+    if scheme not in schemes:
+        raise InputError(f"{flag} {url!r} has no known scheme ({', '.join(schemes)}): write e.g. {example}")
+    try:
+        if "//" in url:
+            parts = urlsplit(url)
+            port = parts.port
+            host = parts.hostname
+        else:
+            host, _, port_text = url.split(":", 1)[1].rpartition(":")
+            port = int(port_text)
+            if not host or "[" in host or "]" in host:
+                raise ValueError("no host")
+    except ValueError:
+        raise InputError(f"{flag} {url!r} is not a valid address: write e.g. {example}") from None
+    if port is not None and not 0 <= port <= 65535:
+        raise InputError(f"{flag} {url!r}: port {port} is outside 0-65535: write e.g. {example}")
+    if not host:
+        raise InputError(f"{flag} {url!r} names no host: write e.g. {example}")
 
 
 if __name__ == "__main__":

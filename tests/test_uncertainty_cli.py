@@ -62,8 +62,8 @@ def test_table_output_with_linearised_and_convergence_plot(table1_files):
     "args, needle",
     [
         (["--points", "missing.csv"], "points file missing.csv does not exist"),
-        (["--sigma-3d", "0.01,abc"], "--sigma-3d '0.01,abc' is not three non-negative numbers"),
-        (["--trials", "1"], "--trials 1 is too few"),
+        (["--sigma-3d", "0.01,abc"], "--sigma-3d '0.01,abc' is not three numbers within 0-100 m"),
+        (["--trials", "1"], "--trials 1 is outside 2..100000"),
         (["--model", "fisheye"], "unknown distortion model 'fisheye'"),
     ],
 )

@@ -64,9 +64,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    _check_flags(args)
     if len(args.run) > 1 or args.workers is not None or args.scheduler is not None:
         return run_batch(args)
     return run_single(args, args.run[0])
+
+
+def _check_flags(args: argparse.Namespace) -> None:
+    """The flags the pipeline's options do not bound, checked before any run is read."""
+    from dronecal_field.cli import check_address, check_number, check_out_dir, check_seed
+    from dronecal_field.errors import InputError
+
+    check_seed("--seed", args.seed)
+    check_number("--settle-s", args.settle_s, 0, 60, hint="give the seconds left out at the start of each hold, e.g. 1")
+    if args.workers is not None and args.workers < 0:
+        raise InputError(f"--workers {args.workers} is negative: give a number of worker processes (0 runs them in this process)")
+    if args.scheduler is not None:
+        check_address("--scheduler", args.scheduler, ("tcp", "tls", "inproc", "ucx"))
+    if args.out is not None:
+        check_out_dir("--out", args.out)
 
 
 def _options(args: argparse.Namespace, out: Path | None):

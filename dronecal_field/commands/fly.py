@@ -107,6 +107,42 @@ def _marker_spec(args: argparse.Namespace, plan_json: dict | None):
     )
 
 
+def _check_flags(args: argparse.Namespace) -> None:
+    """Every number, name and address, before the link opens: a typo costs nothing and commands nothing."""
+    from urllib.parse import urlsplit
+
+    from dronecal_field.cli import check_marker, check_number, check_numbers
+    from dronecal_field.errors import InputError
+    from dronecal_field.mavlink.link import parse_endpoint
+
+    check_number("--baud", args.baud, 0, 10_000_000, low_open=True, hint="give the radio's baud rate, e.g. 57600")
+    for flag, value in (("--heartbeat-timeout", args.heartbeat_timeout), ("--link-timeout", args.link_timeout),
+                        ("--timeout-s", args.timeout_s), ("--ready-timeout", args.ready_timeout)):
+        check_number(flag, value, 0, 86_400, low_open=flag != "--ready-timeout", hint="give seconds, e.g. 10")
+    check_number("--min-battery", args.min_battery, 0, 100, hint="give a charge in percent, e.g. 30")
+    check_number("--max-home-distance", args.max_home_distance, 0, 100_000, low_open=True, hint="give metres, e.g. 500")
+    for flag, value in (("--camera-width", args.camera_width), ("--camera-height", args.camera_height)):
+        check_number(flag, value, 16, 20_000, hint="give the stream's image size in pixels, or leave the flag out")
+    check_number("--camera-latency", args.camera_latency, 0, 10, hint="give the capture-to-arrival delay in seconds, or leave the flag out")
+    check_number("--frame-queue", args.frame_queue, 1, 100_000, hint="give a number of frames, e.g. 64")
+    check_number("--marker-size", args.marker_size, 0, 10, low_open=True, hint="give the side of the black square in metres, e.g. 0.3")
+    if args.marker_offset is not None:
+        check_numbers("--marker-offset", args.marker_offset, 3, low=-5, high=5, hint="write F,R,D in metres, e.g. 0.1,0,0.05")
+    if args.marker_dictionary is not None or args.marker_id is not None:
+        check_marker(args.marker_dictionary or "DICT_4X4_50", args.marker_id)
+    parse_endpoint(args.connect, args.baud)  # a malformed address fails here, before anything opens
+    if args.connect.count("[") != args.connect.count("]"):
+        raise InputError(f"--connect {args.connect!r} has an unclosed bracket: write an IPv6 host as udp:[::1]:14550")
+    if "://" in args.video:
+        try:
+            urlsplit(args.video).port
+        except ValueError as exc:
+            raise InputError(f"--video {args.video!r} is not a valid URL ({exc}): write e.g. http://192.168.1.10/stream.mjpg or rtsp://camera/stream") from None
+    out = Path(args.out)
+    if out.is_dir():
+        raise InputError(f"--out {out} is a folder: give the run file's name, e.g. --out {out / 'run.mcap'}")
+
+
 def _site_origin(plan_json: dict | None):
     from dronecal_field.geodesy import EnuOrigin
 
@@ -189,8 +225,12 @@ def run(args: argparse.Namespace) -> int:
     from dronecal_field.mavlink.missionfile import read_mission
     from dronecal_field.mavlink.preflight import GnssRateMeter, format_checklist, require_preflight, run_preflight
 
+    _check_flags(args)
     mission_path = Path(args.mission)
-    mission = read_mission(mission_path)
+    try:
+        mission = read_mission(mission_path)
+    except UnicodeDecodeError as exc:
+        raise InputError(f"--mission {mission_path} is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}): give the .plan or .waypoints file") from None
     plan_json = None
     plan_json_path = mission_path.parent / "plan.json"
     if plan_json_path.is_file():

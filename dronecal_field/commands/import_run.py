@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--marker-offset",
         default="0,0,0",
-        metavar="X,Y,Z",
+        metavar="F,R,D",
         help="marker centre from the GNSS antenna, body frame forward,right,down, metres (default 0,0,0)",
     )
     parser.add_argument(
@@ -66,9 +66,12 @@ def run(args: argparse.Namespace) -> int:
             w, h = (int(v) for v in args.image_size.lower().split("x"))
         except ValueError:
             raise InputError(f"--image-size {args.image_size!r}: write WIDTHxHEIGHT, e.g. 1920x1080") from None
+        if not (16 <= w <= 20_000 and 16 <= h <= 20_000):
+            raise InputError(f"--image-size {args.image_size!r} is outside 16..20000 pixels a side: give the camera's resolution, e.g. 1920x1080")
         image_size = (w, h)
     if not (0 <= args.jpeg_quality <= 100):
         raise InputError(f"--jpeg-quality {args.jpeg_quality} must be within 0..100")
+    _check_flags(args)
     log = read_tlog(args.tlog, position_source=args.position_source) if args.tlog else read_dataflash(args.bin)
     report = import_run(
         args.out,
@@ -102,16 +105,27 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_flags(args: argparse.Namespace) -> None:
+    """Files, numbers and the output, before the log is read: a run file is never written over."""
+    from dronecal_field.cli import check_input_file, check_number, check_out_file
+
+    check_input_file("--tlog", args.tlog)
+    check_input_file("--bin", args.bin)
+    if args.video is not None and "://" not in args.video and not args.video.startswith("/dev/video"):
+        check_input_file("--video", args.video)
+    check_number("--marker-size", args.marker_size, 0, 10, low_open=True, hint="give the side of the black square in metres, e.g. 0.3")
+    check_number("--max-fps", args.max_fps, 0, 1000, low_open=True, hint="give frames per second, e.g. 10, or leave the flag out")
+    # A run may hold the only copy of a flight's frames: never replace one.
+    check_out_file("--out", args.out, keep_existing=True)
+
+
 def _marker(args: argparse.Namespace):
     from dronecal_field.errors import InputError
     from dronecal_field.runfile.records import MarkerSpec
 
-    try:
-        offset = tuple(float(v) for v in args.marker_offset.split(","))
-    except ValueError:
-        offset = ()
-    if len(offset) != 3:
-        raise InputError(f"--marker-offset {args.marker_offset!r}: write three numbers x,y,z in metres")
+    from dronecal_field.cli import check_marker, check_numbers
+
+    offset = check_numbers("--marker-offset", args.marker_offset, 3, low=-5, high=5, hint="write F,R,D in metres, e.g. 0.1,0,0.05")
     if args.marker_kind == "aruco":
         missing = [
             flag
@@ -124,10 +138,7 @@ def _marker(args: argparse.Namespace):
         ]
         if missing:
             raise InputError(f"an ArUco marker needs {', '.join(missing)} (e.g. --marker-dictionary DICT_4X4_50 --marker-id 0 --marker-size 0.3)")
-        import cv2
-
-        if not args.marker_dictionary.startswith("DICT_") or not hasattr(cv2.aruco, args.marker_dictionary):
-            raise InputError(f"--marker-dictionary {args.marker_dictionary!r} is not an OpenCV ArUco dictionary; use e.g. DICT_4X4_50")
+        check_marker(args.marker_dictionary, args.marker_id)
         if args.marker_size <= 0:
             raise InputError(f"--marker-size {args.marker_size} must be positive (metres)")
         if args.marker_id < 0:

@@ -62,8 +62,9 @@ def register(sims: argparse._SubParsersAction) -> None:
     parser.add_argument("--seed", type=int, default=0, help="background and noise seed (default %(default)s)")
     parser.add_argument("--marker-dictionary", default="DICT_4X4_50", help="OpenCV ArUco dictionary (default %(default)s)")
     parser.add_argument("--marker-id", type=int, default=0, help="marker id (default %(default)s)")
-    parser.add_argument("--marker-size", type=float, default=0.4, help="side of the black square, metres (default %(default)s)")
-    parser.add_argument("--marker-offset", default="0.1,0,0.1", help="marker centre from the GNSS antenna, body x,y,z = forward,right,down, metres (default %(default)s)")
+    parser.add_argument("--marker-size", type=float, default=0.3, metavar="M", help="side of the black square, metres (default %(default)s)")
+    parser.add_argument("--marker-offset", default="0,0,0", metavar="F,R,D",
+                        help="marker centre from the GNSS antenna, body frame forward,right,down, metres (default %(default)s)")
     parser.add_argument("--altitude-datum", choices=("auto", "as-reported"), default="auto",
                         help="auto: turn GLOBAL_POSITION_INT's MSL heights into ellipsoidal ones with GPS_RAW_INT.alt_ellipsoid when the vehicle "
                              "reports it; as-reported: use them as they are. The truth camera's enu_origin height must be in the resulting datum.")
@@ -85,6 +86,44 @@ def register(sims: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
+def _check_flags(args: argparse.Namespace) -> None:
+    """Numbers, names, addresses and the truth file's folder, before anything is served."""
+    from urllib.parse import urlsplit
+
+    from dronecal_field.cli import check_marker, check_number, check_numbers, check_out_file, check_seed
+    from dronecal_field.errors import InputError
+    from dronecal_field.mavlink.link import parse_endpoint
+
+    parse_endpoint(args.connect)
+    try:
+        parts = urlsplit(args.serve)
+        parts.port  # noqa: B018 - raises ValueError for a port outside 0-65535
+    except ValueError as exc:
+        raise InputError(f"--serve {args.serve!r} is not a valid URL ({exc}): write e.g. http://127.0.0.1:8554/stream.mjpg") from None
+    if parts.scheme != "http" or not parts.hostname:
+        raise InputError(f"--serve {args.serve!r}: the simulated camera serves MJPEG over http: write e.g. http://127.0.0.1:8554/stream.mjpg")
+    check_number("--fps", args.fps, 0, 240, low_open=True, hint="give frames per second, e.g. 10")
+    check_number("--latency-s", args.latency_s, 0, 10, hint="give seconds, e.g. 0.2")
+    check_number("--noise-px", args.noise_px, 0, 255, hint="give a grey-level standard deviation, e.g. 2")
+    check_number("--jpeg-quality", args.jpeg_quality, 0, 100, hint="give 0..100, e.g. 90")
+    check_marker(args.marker_dictionary, args.marker_id)
+    check_number("--marker-size", args.marker_size, 0, 10, low_open=True, hint="give the side of the black square in metres, e.g. 0.3")
+    check_numbers("--marker-offset", args.marker_offset, 3, low=-5, high=5, hint="write F,R,D in metres, e.g. 0.1,0,0.05")
+    check_number("--duration-s", args.duration_s, 0, 30 * 86_400, low_open=True, hint="give seconds, or leave it out to run until Ctrl-C")
+    check_number("--vehicle-sysid", args.vehicle_sysid, 1, 255, hint="give the vehicle's MAVLink system id, 1..255 (SYSID_THISMAV)")
+    check_seed("--seed", args.seed)
+    check_number("--site-lat", args.site_lat, -90, 90, hint="give WGS84 degrees")
+    check_number("--site-lon", args.site_lon, -180, 180, hint="give WGS84 degrees")
+    check_number("--site-h", args.site_h, -1000, 10_000, hint="give metres")
+    check_number("--site-mount-height", args.site_mount_height, 0, 1000, low_open=True, hint="give metres above the pole foot, e.g. 3")
+    check_number("--site-azimuth", args.site_azimuth, -360, 360, hint="give degrees clockwise from north")
+    check_number("--site-tilt", args.site_tilt, -89, 89, hint="give degrees below horizontal, e.g. 30")
+    check_number("--site-focal-px", args.site_focal_px, 0, 1e6, low_open=True, hint="give the focal length in pixels, e.g. 1000")
+    check_numbers("--site-distortion", args.site_distortion, 5, low=-100, high=100, hint="write k1,k2,p1,p2,k3, e.g. -0.25,0.08,0.001,-0.0005,0")
+    if args.write_truth:
+        check_out_file("--write-truth", args.write_truth)
+
+
 def _truth_camera(args: argparse.Namespace):
     from dronecal_field.camerafile import read_camera, write_camera
     from dronecal_field.core.camera import Distortion
@@ -100,6 +139,8 @@ def _truth_camera(args: argparse.Namespace):
             width, height = (int(v) for v in args.site_image_size.lower().split("x"))
         except ValueError:
             raise InputError(f"--site-image-size {args.site_image_size!r} must be WIDTHxHEIGHT, e.g. 1280x960") from None
+        if not (16 <= width <= 20_000 and 16 <= height <= 20_000):
+            raise InputError(f"--site-image-size {args.site_image_size!r} is outside 16..20000 pixels a side: give e.g. 1280x960")
         camera = make_truth_camera(
             (args.site_lat, args.site_lon, args.site_h),
             mount_height_m=args.site_mount_height,
@@ -122,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
     from dronecal_field.sim.camera import SimCamera
     from dronecal_field.sim.scene import MarkerSpec
 
+    _check_flags(args)
     camera = _truth_camera(args)
     hide = _seqs(args.hide_marker_at)
     marker = MarkerSpec(

@@ -31,7 +31,9 @@ def register(sims: argparse._SubParsersAction) -> None:
     parser.add_argument("--home", required=True, metavar="LAT,LON,H", help="home: degrees, degrees, metres above mean sea level (as SITL's --home)")
     parser.add_argument("--speedup", type=float, default=1.0, metavar="N", help="vehicle seconds per wall second (default 1)")
     parser.add_argument("--boot-s", type=float, default=10.0, metavar="S", help="vehicle seconds until ready to arm; uploads before that get MISSION_ACK NO_SPACE (default 10)")
-    parser.add_argument("--geoid-sep", type=float, default=0.0, metavar="M", help="ellipsoidal minus AMSL height reported in GPS_RAW_INT.alt_ellipsoid, metres (default 0)")
+    parser.add_argument("--geoid-separation", dest="geoid_sep", type=float, default=0.0, metavar="M",
+                        help="ellipsoidal minus AMSL height reported in GPS_RAW_INT.alt_ellipsoid, metres (default 0; the same flag as plan's)")
+    parser.add_argument("--geoid-sep", dest="geoid_sep", type=float, help=argparse.SUPPRESS)  # the old name, for one release
     parser.add_argument("--heading", type=float, default=353.0, metavar="DEG", help="initial heading on the ground (default 353, as SITL's CMAC)")
     parser.add_argument("--wp-speed", type=float, default=5.0, metavar="M/S", help="waypoint speed before any DO_CHANGE_SPEED (default 5)")
     parser.add_argument("--rtl-alt", type=float, default=15.0, metavar="M", help="RTL climb height above home (RTL_ALT, default 15)")
@@ -45,16 +47,37 @@ def register(sims: argparse._SubParsersAction) -> None:
     parser.add_argument("--max-items", type=int, default=700, metavar="N", help="mission capacity including home (default 700)")
     parser.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     parser.add_argument("--signing-key", metavar="KEY", help="MAVLink 2 signing: 64 hex characters or a passphrase; unsigned messages are then ignored")
-    parser.add_argument("--duration", type=float, default=None, metavar="S", help="stop after this many wall seconds (default: run until Ctrl-C)")
+    parser.add_argument("--duration-s", dest="duration", type=float, default=None, metavar="S", help="stop after this many wall seconds (default: run until Ctrl-C)")
+    parser.add_argument("--duration", dest="duration", type=float, help=argparse.SUPPRESS)  # the old name, for one release
     # "--home -35.36,149.16,584" (southern latitudes) must read as a value, not an option: teach
     # argparse that a leading minus followed by digits and commas is a number
     parser._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-\d[\d.]*(,-?[\d.]+)+$")
     parser.set_defaults(func=run)
 
 
+def _check_flags(args: argparse.Namespace) -> None:
+    """Addresses and numbers, before a socket opens."""
+    from dronecal_field.cli import check_address, check_number, check_seed
+
+    for flag, urls in (("--listen", args.listen), ("--out", args.out)):
+        for url in urls:
+            check_address(flag, url, ("udp", "tcp"))
+    check_number("--speedup", args.speedup, 0, 1000, low_open=True, hint="give vehicle seconds per wall second, e.g. 5")
+    check_number("--boot-s", args.boot_s, 0, 3600, hint="give vehicle seconds until ready to arm, e.g. 10")
+    check_number("--geoid-separation", args.geoid_sep, -200, 200, hint="give the geoid separation in metres (Earth's lies within -107..86)")
+    check_number("--heading", args.heading, -360, 360, hint="give degrees clockwise from north, e.g. 353")
+    check_number("--wp-speed", args.wp_speed, 0, 50, low_open=True, hint="give metres per second, e.g. 5")
+    check_number("--rtl-alt", args.rtl_alt, 0, 1000, hint="give metres above home, e.g. 15")
+    check_number("--gps-rate-ms", args.gps_rate_ms, 10, 10_000, hint="give the fix interval in milliseconds, e.g. 100 or 200")
+    check_number("--max-items", args.max_items, 2, 65_535, hint="give the mission capacity including home, e.g. 700")
+    check_number("--duration-s", args.duration, 0, 30 * 86_400, low_open=True, hint="give wall seconds, or leave it out to run until Ctrl-C")
+    check_seed("--seed", args.seed)
+
+
 def run(args: argparse.Namespace) -> int:
     import threading
 
+    from dronecal_field.cli import check_number
     from dronecal_field.errors import InputError
     from dronecal_field.mavlink.link import signing_key_bytes
     from dronecal_field.sim.vehicle import SimVehicle, VehicleConfig, parse_home
@@ -62,7 +85,9 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.listen and not args.out:
         raise InputError("give at least one --listen or --out, e.g. --listen udp:127.0.0.1:14550")
+    _check_flags(args)
     lat, lon, alt = parse_home(args.home)
+    check_number("--home", alt, -1000, 10_000, hint="give LAT,LON,H with H in metres above mean sea level, e.g. -35.363261,149.165230,584")
     stream_params = []
     for text in args.param:
         name, sep, value = text.partition("=")

@@ -25,6 +25,10 @@ import json
 import sys
 
 
+# A million cameras is two hundred times the paper's study; beyond it the design alone exhausts memory.
+MAX_CAMERAS = 1_000_000
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "survey",
@@ -76,12 +80,30 @@ def _run(args: argparse.Namespace) -> int:
     from dronecal_field.survey.evaluate import MonteCarloSettings
     from dronecal_field.survey.runner import SurveyConfig, run_survey
 
+    from dronecal_field.cli import check_address, check_number, check_out_dir, check_seed
+    from dronecal_field.commands.uncertainty import MAX_TRIALS
+    from dronecal_field.core.calibrate import resolve_model
+
     if args.results:
         raise InputError(f"unexpected argument {args.results!r}: the survey writes to --out; use `survey report {args.results}` to read results")
-    if args.trials < 2:
-        raise InputError(f"--trials {args.trials} is too few for statistics: use at least 2 (the paper uses 500)")
-    if args.sigma_2d < 0:
-        raise InputError(f"--sigma-2d {args.sigma_2d} is negative: give a pixel standard deviation >= 0")
+    # Every flag before the results folder is created: a refused survey leaves nothing behind.
+    if not 1 <= args.cameras <= MAX_CAMERAS:
+        raise InputError(f"--cameras {args.cameras} is outside 1..{MAX_CAMERAS}: the paper uses 5000")
+    if not 2 <= args.trials <= MAX_TRIALS:
+        raise InputError(f"--trials {args.trials} is outside 2..{MAX_TRIALS}: the paper uses 500")
+    check_number("--sigma-2d", args.sigma_2d, 0, 1000, hint="give a pixel standard deviation, e.g. 2")
+    parse_sigma_3d(args.sigma_3d)
+    check_number("--pixel-pitch-um", args.pixel_pitch_um, 0, 100, low_open=True, hint="give the sensor's pixel size in micrometres, e.g. 7.5")
+    if args.batch_size < 1:
+        raise InputError(f"--batch-size {args.batch_size} must be at least 1, e.g. 10")
+    if args.workers is not None and args.workers < 0:
+        raise InputError(f"--workers {args.workers} is negative: give a number of worker processes (0 runs in this process)")
+    check_seed("--seed", args.seed)
+    resolve_model(args.model, 1000)
+    catalogue(args.strategies)
+    if args.scheduler is not None:
+        check_address("--scheduler", args.scheduler, ("tcp", "tls", "inproc", "ucx"))
+    check_out_dir("--out", args.out)
     config = SurveyConfig(
         n_cameras=args.cameras,
         design_seed=args.seed,
@@ -117,8 +139,14 @@ def _report(args: argparse.Namespace) -> int:
 
     from dronecal_field.survey.report import write_report
 
+    from dronecal_field.cli import check_out_dir
+    from dronecal_field.errors import InputError
+
     results = _results_arg(args)
+    if args.fig10_trials is not None and args.fig10_trials < 2:
+        raise InputError(f"--fig10-trials {args.fig10_trials} is too few: give at least 2, or leave it out for the survey's trials")
     out_dir = args.report_dir or str(Path(results).with_suffix("")) + "-report"
+    check_out_dir("--report-dir", out_dir)
     files = write_report(results, out_dir, fig10_trials=args.fig10_trials)
     if args.json:
         print(files.json.read_text())
@@ -135,6 +163,9 @@ def _export(args: argparse.Namespace) -> int:
     results = _results_arg(args)
     if not args.to:
         raise InputError("survey export needs --to FILE.parquet")
+    from dronecal_field.cli import check_out_file
+
+    check_out_file("--to", args.to, keep_existing=True)
     dest = export_results(results, args.to)
     print(f"exported {results} -> {dest}")
     return 0

@@ -37,6 +37,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+# No calibration needs more: the Monte-Carlo holds trials x points pixels in memory.
+MAX_POINTS = 100_000
+MAX_TRIALS = 100_000
+
+
 def parse_sigma_3d(text: str) -> tuple[float, float, float]:
     from dronecal_field.errors import InputError
 
@@ -46,24 +51,34 @@ def parse_sigma_3d(text: str) -> tuple[float, float, float]:
         values = ()
     if len(values) == 1:
         values = values * 3
-    if len(values) != 3 or min(values) < 0:
-        raise InputError(f"--sigma-3d {text!r} is not three non-negative numbers: write it as 0.01,0.01,0.015")
+    if len(values) != 3 or not all(0 <= v <= 100 for v in values):  # NaN fails too
+        raise InputError(f"--sigma-3d {text!r} is not three numbers within 0-100 m: write it as 0.01,0.01,0.015")
     return values  # type: ignore[return-value]
 
 
 def read_points_csv(path: str):
     """(N, 3) points from a CSV with header x,y,z."""
-    import csv
     from pathlib import Path
-
-    import numpy as np
 
     from dronecal_field.errors import InputError
 
     p = Path(path)
     if not p.is_file():
         raise InputError(f"points file {path} does not exist: give a CSV with header x,y,z")
-    with p.open(newline="") as f:
+    try:
+        return _read_points(p, path)
+    except UnicodeDecodeError as exc:
+        raise InputError(f"points file {path} is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}): give a CSV with header x,y,z") from None
+
+
+def _read_points(p, path: str):
+    import csv
+
+    import numpy as np
+
+    from dronecal_field.errors import InputError
+
+    with p.open(newline="", encoding="utf-8") as f:
         reader = csv.DictReader(f)
         fields = [h.strip().lower() for h in (reader.fieldnames or [])]
         if not {"x", "y", "z"} <= set(fields):
@@ -75,6 +90,8 @@ def read_points_csv(path: str):
                 rows.append([float(row["x"]), float(row["y"]), float(row["z"])])
             except (TypeError, ValueError):
                 raise InputError(f"points file {path} line {line_no} is not three numbers: fix or delete it") from None
+            if len(rows) > MAX_POINTS:
+                raise InputError(f"points file {path} holds more than {MAX_POINTS} points: a calibration uses tens to thousands; thin the points out")
     if not rows:
         raise InputError(f"points file {path} holds no points")
     return np.asarray(rows, float)
@@ -85,13 +102,20 @@ def run(args: argparse.Namespace) -> int:
     from dronecal_field.core.uncertainty import convergence_curve, linearised, monte_carlo
     from dronecal_field.errors import InputError
 
-    sigma_3d = parse_sigma_3d(args.sigma_3d)
-    if args.sigma_2d < 0:
-        raise InputError(f"--sigma-2d {args.sigma_2d} is negative: give a pixel standard deviation >= 0")
-    camera = read_camera(args.camera)
-    points = read_points_csv(args.points)
+    from dronecal_field.cli import check_number, check_out_file, check_seed
     from dronecal_field.core.calibrate import check_correspondences, resolve_model
 
+    # Every flag is checked before the (slow) Monte-Carlo, so a typo costs nothing.
+    sigma_3d = parse_sigma_3d(args.sigma_3d)
+    check_number("--sigma-2d", args.sigma_2d, 0, 1000, hint="give a pixel standard deviation, e.g. 2")
+    if not 2 <= args.trials <= MAX_TRIALS:
+        raise InputError(f"--trials {args.trials} is outside 2..{MAX_TRIALS}: the paper uses 500")
+    check_seed("--seed", args.seed)
+    resolve_model(args.model, 1000)  # an unknown model name fails here
+    if args.plot_convergence:
+        check_out_file("--plot-convergence", args.plot_convergence)
+    camera = read_camera(args.camera)
+    points = read_points_csv(args.points)
     model = resolve_model(args.model, len(points))
     check_correspondences(points, camera.project(points), model.n_free, 0.05)
     behind = camera.depth(points) <= 0

@@ -146,7 +146,7 @@ class ResultStore:
 
         keys: set[tuple[int, str]] = set()
         for part in self.parts():
-            t = pq.read_table(part, columns=["camera_id", "strategy"])
+            t = read_part(part, columns=["camera_id", "strategy"])
             keys.update(zip(t.column("camera_id").to_pylist(), t.column("strategy").to_pylist()))
         return keys
 
@@ -171,6 +171,18 @@ class ResultStore:
         return n
 
 
+def read_part(part: Path, **kwargs):
+    """One stored part as a pyarrow Table; a damaged part (cut, overwritten) is an InputError naming it."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        return pq.read_table(part, **kwargs)
+    except (pa.ArrowException, OSError) as exc:
+        detail = str(exc).splitlines()[0][:120]
+        raise InputError(f"survey part {part} is damaged ({detail}): delete it; re-running the survey with the same flags recomputes its rows") from None
+
+
 def load_results(path: str | os.PathLike):
     """All rows of a survey: a results directory or a single exported parquet file, sorted by key.
 
@@ -186,7 +198,7 @@ def load_results(path: str | os.PathLike):
         parts = ResultStore(p).parts()
         if not parts:
             raise InputError(f"{p} holds no survey parts: run `dronecal-field survey --out {p}` first")
-        table = pa.concat_tables([pq.read_table(f, schema=schema()) for f in parts])
+        table = pa.concat_tables([read_part(f, schema=schema()) for f in parts])
     elif p.is_file():
         try:
             table = pq.read_table(p)
@@ -210,7 +222,10 @@ def read_config(path: str | os.PathLike) -> dict | None:
         m = ResultStore(p).read_manifest()
         return None if m is None else m.get("config")
     if p.is_file():
-        meta = pq.read_schema(p).metadata or {}
+        try:
+            meta = pq.read_schema(p).metadata or {}
+        except Exception:  # noqa: BLE001 - pyarrow raises several kinds for a damaged footer; load_results names it
+            return None
         raw = meta.get(b"dronecal_survey")
         return None if raw is None else json.loads(raw).get("config")
     return None
