@@ -22,7 +22,7 @@ from dronecal_field.errors import InputError, PlanError
 from dronecal_field.geodesy import enu_to_geodetic
 from dronecal_field.plan import mission as msn
 from dronecal_field.outfolder import replace_folder, staged_folder
-from dronecal_field.plan.route import FlightModel, Route, plan_route
+from dronecal_field.plan.route import FlightModel, Route, plan_route, split_into_flights
 from dronecal_field.plan.site import CameraSite, LensGuess, Marker, guess_camera, latlon_to_site, resolve_focal_px
 from dronecal_field.plan.strategies import (
     PLAN_FOLD_MIN_SLOPE,
@@ -695,8 +695,9 @@ def _flights(req: PlanRequest, chosen: Chosen, limits: Limits) -> tuple[tuple[Ro
         order = one.grid_order
     else:
         order = np.arange(n)
-    veh, mk, hold, leg = chosen.vehicle_site[order], chosen.marker_site[order], chosen.hold_s[order], chosen.leg[order]
-    routes = _split_into_flights(veh, mk, hold, leg, limits, req, takeoff, chosen.leg_speed_m_s)
+    routes = split_into_flights(chosen.vehicle_site[order], chosen.marker_site[order], chosen.hold_s[order], limits, req.flight,
+                                req.endurance_s, reserve=req.reserve, takeoff_site=takeoff, end=req.end, ordered=True,
+                                leg_speed_m_s=chosen.leg_speed_m_s)
     # grid indices of every flight refer to the points as given to the split: map them back to the plan's points
     routes = [replace(r, grid_index=np.where(r.grid_index >= 0, order[np.maximum(r.grid_index, 0)], -1)) for r in routes]
     flight_of = np.full(n, -1)
@@ -704,51 +705,6 @@ def _flights(req: PlanRequest, chosen: Chosen, limits: Limits) -> tuple[tuple[Ro
         g = r.grid_order
         flight_of[g[flight_of[g] < 0]] = k  # a point flown twice (a leg re-entered) belongs to its first flight
     return tuple(routes), flight_of
-
-
-def _split_into_flights(veh: np.ndarray, mk: np.ndarray, hold: np.ndarray, leg: np.ndarray, limits: Limits, req: PlanRequest,
-                        takeoff: np.ndarray, leg_speed: float | None) -> list[Route]:
-    """Consecutive legs into flights within the battery budget (``plan.route.split_into_flights`` when it exists)."""
-    try:
-        from dronecal_field.plan.route import split_into_flights  # type: ignore[attr-defined]
-    except ImportError:
-        split_into_flights = None
-    if split_into_flights is not None:
-        import inspect
-
-        kw: dict[str, Any] = {"reserve": req.reserve, "takeoff_site": takeoff, "end": req.end}
-        if "ordered" in inspect.signature(split_into_flights).parameters:
-            kw["ordered"] = True
-        if "leg_speed_m_s" in inspect.signature(split_into_flights).parameters:
-            kw["leg_speed_m_s"] = leg_speed
-        return list(split_into_flights(veh, mk, hold, limits, req.flight, req.endurance_s, **kw))
-    # this module's own cut, until the route module has one: whole legs, greedily
-    starts = np.r_[0, np.flatnonzero(np.diff(leg) != 0) + 1]
-    ends = np.r_[starts[1:], len(leg)]
-
-    def route(a: int, b: int) -> Route:
-        h = hold[a:b].copy()
-        h[0] = max(h[0], 1.0)  # a flight's first point is where the drone settles
-        h[-1] = max(h[-1], 1.0)
-        r = plan_route(veh[a:b], mk[a:b], limits, req.flight, takeoff_site=takeoff, end=req.end, hold_s=h, ordered=True,
-                       leg_speed_m_s=leg_speed)
-        return replace(r, grid_index=np.where(r.grid_index >= 0, r.grid_index + a, -1))
-
-    routes: list[Route] = []
-    a = 0
-    k = 0
-    while k < len(starts):
-        b = int(ends[k])
-        if route(a, b).flight_time_s > req.battery_budget_s:
-            raise PlanError(f"one leg of the plan alone takes longer than 75 % of the {req.endurance_s / 60:g} min battery: "
-                            "raise --endurance or use --sampling hover")
-        while k + 1 < len(starts) and route(a, int(ends[k + 1])).flight_time_s <= req.battery_budget_s:
-            k += 1
-            b = int(ends[k])
-        routes.append(route(a, b))
-        a = b
-        k += 1
-    return routes
 
 
 def _monte_carlo(req: PlanRequest, cam_site: Camera, chosen: Chosen, model: str) -> dict | None:
