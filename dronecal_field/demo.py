@@ -211,7 +211,7 @@ def run_demo(
         "plan", "--out", plan_dir, f"--lat={SITE['lat']}", f"--lon={SITE['lon']}", "--ground-alt", SITE["ground_h"],
         "--mount-height", SITE["mount_height"], "--azimuth", SITE["azimuth"], "--tilt", SITE["tilt"],
         "--image-size", f"{TRUTH['width']}x{TRUTH['height']}", "--focal-px", TRUTH["focal_px"] * 0.95,
-        "--distortion", "medium", "--marker-size", MARKER["size_m"], "--aruco-dict", MARKER["dictionary"],
+        "--distortion", "medium", "--marker-size", MARKER["size_m"], "--marker-dictionary", MARKER["dictionary"],
         "--marker-id", MARKER["marker_id"], "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]),
         "--hover", "3", "--trials", "200",
     ), logs / "plan.log", timeout_s=300)

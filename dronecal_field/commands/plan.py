@@ -21,6 +21,10 @@ import argparse
 import sys
 
 
+# Flags named as in every other command (fly, import, sim camera); the site-file keys keep their names.
+RENAMED = {"--aruco-dict": "--marker-dictionary"}
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     from dronecal_field.plan.site import OPTIONS
 
@@ -38,10 +42,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         group = groups.setdefault(spec.group, parser.add_argument_group(spec.group))
         default_text = "" if spec.default in (None, False) else f" (default {spec.default})"
         text = (spec.help + default_text).replace("%", "%%")  # argparse formats help strings with %
+        flag = RENAMED.get(spec.flag, spec.flag)
         if spec.flag_only:
-            group.add_argument(spec.flag, dest=spec.key, action="store_true", default=None, help=text)
+            group.add_argument(flag, dest=spec.key, action="store_true", default=None, help=text)
         else:
-            group.add_argument(spec.flag, dest=spec.key, metavar=spec.metavar, default=None, help=text)
+            group.add_argument(flag, dest=spec.key, metavar=spec.metavar, default=None, help=text)
+        if flag != spec.flag:  # the old name, hidden, for one release
+            group.add_argument(spec.flag, dest=spec.key, default=None, help=argparse.SUPPRESS)
     parser.set_defaults(func=run)
 
 
@@ -54,7 +61,9 @@ def run(args: argparse.Namespace) -> int:
         v = getattr(args, spec.key, None)
         if v is not None:
             values[spec.key] = v
-    request = request_from_options(resolve_options(values))
+    options = resolve_options(values)
+    _check_options(options, args)
+    request = request_from_options(options)
     if args.scheduler:
         from dronecal_field.cluster import dask_client
 
@@ -68,6 +77,19 @@ def run(args: argparse.Namespace) -> int:
         print(f"warning: {w}", file=sys.stderr)
     print(f"wrote {', '.join(p.name for p in paths)} to {args.out}")
     return 0
+
+
+def _check_options(options: dict, args: argparse.Namespace) -> None:
+    """What the site parser leaves open, before any design work: coordinates, the marker id, --out, --scheduler."""
+    from dronecal_field.cli import check_address, check_marker, check_number, check_out_dir
+
+    check_number("--lat", options.get("lat"), -90, 90, hint="give the pole's WGS84 latitude in degrees")
+    check_number("--lon", options.get("lon"), -180, 180, hint="give the pole's WGS84 longitude in degrees")
+    check_number("--focal-px", options.get("focal_px"), 0, 1e6, low_open=True, hint="give the focal length in pixels, or --focal-mm/--hfov")
+    check_marker(options["aruco_dict"], options["marker_id"])
+    if args.scheduler:
+        check_address("--scheduler", args.scheduler, ("tcp", "tls", "inproc", "ucx"))
+    check_out_dir("--out", args.out)
 
 
 def format_report(result, out: str) -> str:
