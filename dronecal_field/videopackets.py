@@ -770,3 +770,68 @@ def decode_keyframe_gray(data: bytes, fmt: str):
     f = frames[0]
     plane = f.planes[0]
     return np.ascontiguousarray(np.frombuffer(plane, np.uint8).reshape(f.height, plane.line_size)[:, : f.width])
+
+
+def read_video_packets(path: str, start_ns: int) -> Iterator[tuple[int, VideoFrame, tuple[int, int]]]:
+    """Access units of an H.264/H.265 file (MP4, MKV, TS...) as recorded, stamped by position.
+
+    Yields
+    ------
+    (index, frame, (width, height)) : ``frame.timestamp_ns`` = ``start_ns`` +
+        the presentation time since the first frame; Annex B with the
+        parameter sets in front of every keyframe.
+
+    Raises
+    ------
+    VideoError
+        when the file cannot be opened, is not H.264/H.265, or has B-frames
+        (frames out of presentation order cannot be a ``/camera/video`` run).
+    """
+    import av
+
+    try:
+        container = av.open(str(path))
+    except (av.FFmpegError, OSError) as exc:
+        raise VideoError(f"video file {path}: cannot open it ({exc}); check the file") from exc
+    try:
+        if not container.streams.video:
+            raise VideoError(f"video file {path}: no video stream in it")
+        stream = container.streams.video[0]
+        fmt = video_format(stream.codec_context.name)
+        params, length_size = parameter_sets(stream.codec_context.extradata, fmt)
+        size = (int(stream.codec_context.width), int(stream.codec_context.height))
+        tb = stream.time_base
+        first: int | None = None
+        last: int | None = None
+        index = 0
+        for packet in container.demux(stream):
+            if packet.size == 0 or packet.pts is None:
+                continue
+            if (packet.dts is not None and packet.pts != packet.dts) or (last is not None and packet.pts <= last):
+                raise VideoError(
+                    f"video file {path}: frames out of order at frame {index} (B-frames); "
+                    "/camera/video needs a stream without B-frames: import with --video-reencode (JPEG frames)"
+                )
+            last = packet.pts
+            first = packet.pts if first is None else first
+            data = bytes(packet)
+            key = bool(packet.is_keyframe) or (length_size is None and is_keyframe(data, fmt))
+            au = access_unit(data, fmt, key, params, length_size)
+            t_ns = int(start_ns) + int((packet.pts - first) * tb * 1_000_000_000)
+            yield index, VideoFrame(timestamp_ns=t_ns, format=fmt, data=au, keyframe=key, pts_ns=t_ns - int(start_ns)), size
+            index += 1
+    finally:
+        container.close()
+
+
+def probe_video_format(path: str) -> str | None:
+    """``h264`` / ``h265`` when the file's first video stream is one of them, else None (or unreadable)."""
+    import av
+
+    try:
+        with av.open(str(path)) as container:
+            if not container.streams.video:
+                return None
+            return _FORMAT_OF_CODEC.get(container.streams.video[0].codec_context.name.lower())
+    except (av.FFmpegError, OSError):
+        return None

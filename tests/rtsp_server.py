@@ -104,9 +104,12 @@ def main() -> int:
     p.add_argument("--pause-for", type=float, default=0.0, metavar="S")
     p.add_argument("--drop-every", type=int, default=0, metavar="N")
     p.add_argument("--log", default=None)
+    p.add_argument("--file", default=None, help="stream this Matroska file (H.264/H.265, encoded beforehand) in real time instead of encoding live")
     args = p.parse_args()
 
     Gst.init(None)
+    log = open(args.log, "w", buffering=1) if args.log else None
+    h265 = args.codec == "h265"
     config = -1 if not args.params_out_of_band else 0
     if args.codec == "h264":
         enc = (
@@ -121,13 +124,15 @@ def main() -> int:
             f"rtph265pay name=pay0 pt=96 config-interval={config}"
         )
     overlay = "timeoverlay halignment=left valignment=top font-desc=\"Sans 24\" time-mode=running-time ! "
-    launch = (
-        f"( videotestsrc name=src is-live=true pattern={args.pattern} ! "
-        f"video/x-raw,width={args.width},height={args.height},framerate={args.fps}/1,format=I420 ! {overlay}{enc} )"
-    )
-
-    log = open(args.log, "w", buffering=1) if args.log else None
-    h265 = args.codec == "h265"
+    if args.file:
+        parse = "h265parse" if h265 else "h264parse"
+        pay = "rtph265pay" if h265 else "rtph264pay"
+        launch = f"( filesrc location={args.file} ! matroskademux ! {parse} name=src ! {pay} name=pay0 pt=96 config-interval={config} )"
+    else:
+        launch = (
+            f"( videotestsrc name=src is-live=true pattern={args.pattern} ! "
+            f"video/x-raw,width={args.width},height={args.height},framerate={args.fps}/1,format=I420 ! {overlay}{enc} )"
+        )
 
     def rtcp_at_capture(_bin, _sub, element):
         # A camera's sender reports tie RTP time to its (NTP) wall clock at capture: the pipeline

@@ -312,3 +312,44 @@ def test_parse_iso8601():
     assert parse_iso8601_ns("1970-01-01T02:00:00+02:00") == 0
     with pytest.raises(InputError, match="not ISO 8601"):
         parse_iso8601_ns("yesterday")
+
+
+@pytest.mark.parametrize("fmt,ext", [("h265", "mkv")])  # H.264 in MP4 (avcC): tests/test_video_packets.py
+def test_import_of_an_nvr_export_writes_camera_video_without_reencoding(tmp_path, capsys, fmt, ext):
+    from test_video_packets import encode_clip
+
+    from dronecal_field.videopackets import open_packet_source
+
+    video = tmp_path / f"nvr.{ext}"
+    encode_clip(video, fmt, n=25, size=(160, 128), gop=10, fps=25)
+    source = open_packet_source(str(video))
+    expected = []
+    while (f := source.read(timeout_s=5.0)) is not None:
+        expected.append(f.data)
+    source.close()
+    out = tmp_path / "run.mcap"
+    code = main([
+        "import", "--tlog", str(REPLAYS / "calib-grid-gpsloss.tlog"), "--video", str(video), "--max-fps", "5",
+        "--video-start", "2026-11-22T03:20:00.500Z", "--marker-dictionary", "DICT_4X4_50",
+        "--marker-id", "3", "--marker-size", "0.3", "--out", str(out),
+    ])
+    assert code == 0
+    assert "frames   25 of 160x128" in capsys.readouterr().out
+    start = parse_iso8601_ns("2026-11-22T03:20:00.500Z")
+    with open_run(out) as run:
+        assert run.video and "/camera/image" not in run.topics and run.metadata.extra["camera.clock"] == "file"
+        frames = list(run.iter_frames())
+        report = json.loads(run.attachment("import_report.json"))
+    assert [f.format for f in frames] == [fmt] * 25
+    assert [f.data for f in frames] == expected  # the stream as it was, access unit by access unit
+    assert [f.timestamp_ns - start for f in frames] == [i * 40_000_000 for i in range(25)]
+    assert any("--max-fps 5 ignored" in w for w in report["warnings"])
+    # --video-reencode stores JPEG frames instead.
+    out2 = tmp_path / "jpeg.mcap"
+    assert main([
+        "import", "--tlog", str(REPLAYS / "calib-grid-gpsloss.tlog"), "--video", str(video), "--video-reencode",
+        "--video-start", "2026-11-22T03:20:00.500Z", "--marker-dictionary", "DICT_4X4_50", "--marker-id", "3",
+        "--marker-size", "0.3", "--out", str(out2),
+    ]) == 0
+    with open_run(out2) as run:
+        assert not run.video and {f.format for f in run.iter_frames()} == {"jpeg"}

@@ -24,7 +24,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     log = parser.add_mutually_exclusive_group(required=True)
     log.add_argument("--tlog", metavar="FILE", help="MAVLink telemetry log written by the ground station")
     log.add_argument("--bin", metavar="FILE", help="ArduPilot DataFlash log (.BIN) from the vehicle")
-    parser.add_argument("--video", metavar="FILE", help="the camera's video file (any format OpenCV reads)")
+    parser.add_argument("--video", metavar="FILE", help="the camera's video file: H.264/H.265 (an NVR's MP4/MKV export) goes to /camera/video as recorded, never re-encoded; other formats OpenCV reads are stored as JPEG")
     parser.add_argument(
         "--video-start",
         metavar="ISO8601",
@@ -49,6 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="tlog only: GPS_RAW_INT (receiver) or GLOBAL_POSITION_INT (EKF); auto prefers the receiver",
     )
     parser.add_argument("--max-fps", type=float, metavar="HZ", help="keep at most this many video frames per second")
+    parser.add_argument("--video-reencode", action="store_true", help="decode an H.264/H.265 --video and store JPEG frames (/camera/image) instead of the stream itself")
     parser.add_argument("--jpeg-quality", type=int, default=95, metavar="Q", help="JPEG quality of stored frames (default 95)")
     parser.add_argument("--out", required=True, metavar="FILE", help="the run file to write (.mcap)")
     parser.set_defaults(func=run)
@@ -81,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
         video_start_ns=video_start_ns,
         max_fps=args.max_fps,
         jpeg_quality=args.jpeg_quality,
+        reencode=args.video_reencode,
         image_size=image_size,
     )
     clock = report.clocks[0] if report.clocks else {}

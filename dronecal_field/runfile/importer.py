@@ -764,6 +764,7 @@ def import_run(
     jpeg_quality: int = 95,
     image_size: tuple[int, int] | None = None,
     compression: str = "zstd",
+    reencode: bool = False,
 ) -> ImportReport:
     """Write a contract run from a flight log and a video file.
 
@@ -772,14 +773,18 @@ def import_run(
     out : the .mcap to write.
     log : from :func:`read_tlog` or :func:`read_dataflash`.
     marker : the marker flown.
-    video : video file whose frames go to ``/camera/image``; None writes no
-        frames (then ``image_size`` is required).
+    video : video file; an H.264/H.265 one (an NVR's MP4/MKV export) goes to
+        ``/camera/video`` as it is, access unit by access unit, never
+        re-encoded; other codecs (or ``reencode``) to ``/camera/image`` as
+        JPEG. None writes no frames (then ``image_size`` is required).
     video_start_ns : UTC ns of the video's first frame; None takes the MP4
         creation time, else the first GNSS fix (with a warning).
-    max_fps : keep at most this many frames per second of video.
+    max_fps : keep at most this many frames per second of video (JPEG only:
+        a compressed stream keeps every frame, each refers to the one before).
     jpeg_quality : JPEG quality of the re-encoded frames.
     image_size : (width, height) when there is no video.
     compression : MCAP chunk compression.
+    reencode : decode an H.264/H.265 file and write JPEG frames instead of passing it through.
 
     Returns
     -------
@@ -791,6 +796,7 @@ def import_run(
 
     from dronecal_field.runfile.writer import RunWriter
     from dronecal_field.video import read_video_file, video_creation_time_ns
+    from dronecal_field.videopackets import probe_video_format, read_video_packets
 
     warnings = list(log.warnings)
     start_source = None
@@ -811,7 +817,13 @@ def import_run(
                     "the video has no creation time: its first frame is placed at the first GNSS fix; "
                     "pass --video-start for a real alignment"
                 )
-        frames_iter = read_video_file(video, video_start_ns, jpeg_quality=jpeg_quality, max_fps=max_fps)
+        passthrough = not reencode and probe_video_format(str(video)) is not None
+        if passthrough:
+            frames_iter = read_video_packets(str(video), video_start_ns)
+            if max_fps:
+                warnings.append(f"--max-fps {max_fps:g} ignored: an H.264/H.265 video is imported whole (each frame refers to the one before)")
+        else:
+            frames_iter = read_video_file(video, video_start_ns, jpeg_quality=jpeg_quality, max_fps=max_fps)
         first = next(frames_iter, None)
         if first is None:
             raise InputError(f"video {video} has no readable frame; check the file and its codec")
@@ -829,6 +841,11 @@ def import_run(
         camera_latency_s=None,
         extra={"import.log": Path(log.path).name, "import.log_kind": log.kind},
     )
+    camera = "video" if first is not None and first[1].format in ("h264", "h265") else "image"
+    if camera == "video":
+        from dataclasses import replace
+
+        metadata = replace(metadata, extra={**metadata.extra, "camera.clock": "file"})
     n_frames = 0
     t_min: int | None = None
     t_max: int | None = None
@@ -838,7 +855,7 @@ def import_run(
         t_min = t if t_min is None else min(t_min, t)
         t_max = t if t_max is None else max(t_max, t)
 
-    with RunWriter(out, metadata, compression=compression, background_flush=False) as writer:
+    with RunWriter(out, metadata, compression=compression, background_flush=False, camera=camera) as writer:
         if log.mission:
             writer.attach("mission.waypoints", mission_to_waypoints(log.mission).encode(), "text/plain")
         for fix in log.fixes:

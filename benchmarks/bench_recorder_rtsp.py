@@ -1,0 +1,212 @@
+"""Recorder benchmark against a real RTSP server on loopback: 1080p30 and 4K25, H.264 and H.265.
+
+Run by hand (``make rtsp-deps`` first)::
+
+    .venv/bin/python benchmarks/bench_recorder_rtsp.py                  # the four streams, 30 s each
+    .venv/bin/python benchmarks/bench_recorder_rtsp.py --seconds 20 --only 4k25-h265
+
+For each stream a clip is encoded once beforehand (GStreamer: a moving zone
+plate with the running time burnt in, no B-frames, a keyframe every 2 s, at
+NVR bitrates) and GStreamer's RTSP server (tests/rtsp_server.py) streams it in
+real time, logging each frame it sends. A separate recorder process does what
+``fly`` does with an RTSP camera: PacketSource (PyAV, packets only) -> the
+recorder's queue -> RunWriter on ``/camera/video``, plus the live marker probe
+(one keyframe decoded a second). Reported per stream:
+
+- frames the server sent vs frames recorded, frames lost (pts gaps), drops;
+- CPU of the recorder process (user + system over its wall time, % of one
+  core), its peak RSS, MB/s written;
+- stamp error: recorded stamp minus the frame's time on the server's clock
+  (base time + running time: when its RTSP sink, synchronised to the clock,
+  sends it; a live camera's capture instant), median, spread, first vs last
+  third (growth); and minus the moment it passed the payloader (which runs
+  ahead of the sink's clock when streaming a file).
+
+The machine is shared: the server's own CPU (demux + payload) runs beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+STREAMS = {
+    "1080p30-h264": dict(codec="h264", width=1920, height=1080, fps=30, kbps=4000),
+    "1080p30-h265": dict(codec="h265", width=1920, height=1080, fps=30, kbps=4000),
+    "4k25-h264": dict(codec="h264", width=3840, height=2160, fps=25, kbps=8000),
+    "4k25-h265": dict(codec="h265", width=3840, height=2160, fps=25, kbps=10000),
+}
+
+
+def encode_clip(path: Path, codec: str, width: int, height: int, fps: int, kbps: int, seconds: float) -> None:
+    if path.exists():
+        return
+    n = int(seconds * fps)
+    if codec == "h264":
+        enc = f"x264enc speed-preset=ultrafast bframes=0 key-int-max={2 * fps} bitrate={kbps} ! h264parse"
+    else:
+        enc = f'x265enc speed-preset=ultrafast key-int-max={2 * fps} bitrate={kbps} option-string="bframes=0" ! h265parse'
+    pipeline = (
+        f"videotestsrc num-buffers={n} pattern=zone-plate kx2=20 ky2=20 kt=1 ! "
+        f"video/x-raw,width={width},height={height},framerate={fps}/1,format=I420 ! "
+        f'timeoverlay font-desc="Sans 60" time-mode=running-time ! {enc} ! matroskamux ! filesink location={path}.part'
+    )
+    subprocess.run(["gst-launch-1.0", "-q", *_split(pipeline)], check=True)
+    os.replace(f"{path}.part", path)
+
+
+def _split(pipeline: str) -> list[str]:
+    import shlex
+
+    return shlex.split(pipeline)
+
+
+def record(url: str, seconds: float, out: str) -> None:
+    """The recorder process: fly's video path for ``seconds``; prints one JSON line."""
+    import threading
+
+    from dronecal_field.recording.marker_check import MarkerCheck
+    from dronecal_field.runfile.records import FORMAT_VERSION, GnssFix, MarkerSpec, RunMetadata
+    from dronecal_field.runfile.writer import RunWriter
+    from dronecal_field.videopackets import open_packet_source
+
+    source = open_packet_source(url)
+    waited = time.monotonic()
+    while source.clock != "rtcp" and time.monotonic() - waited < 6.0:  # as fly's probe: wait for the first RTCP report
+        source.read(timeout_s=0.5)
+    source.lock_clock()
+    md = RunMetadata(format_version=FORMAT_VERSION, width=source.width, height=source.height,
+                     marker=MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.5))
+    check = MarkerCheck("DICT_4X4_50", 0)
+    frames = []
+    latest = {"key": None}
+    t_start = time.monotonic()
+    cpu0 = time.process_time()
+    with RunWriter(out, md, camera="video") as writer:
+        writer.write_fix(GnssFix(timestamp_ns=time.time_ns(), lat_deg=0.0, lon_deg=0.0, alt_m=0.0))
+        stop = threading.Event()
+
+        def probe() -> None:  # the recorder's monitor thread: one keyframe a second
+            while not stop.wait(1.0):
+                if latest["key"] is not None:
+                    check.seen(latest["key"].data, latest["key"].format)
+
+        thread = threading.Thread(target=probe, daemon=True)
+        thread.start()
+        while time.monotonic() - t_start < seconds:
+            f = source.read(timeout_s=1.0)
+            if f is None:
+                continue
+            writer.write_frame(f)
+            if f.keyframe:
+                latest["key"] = f
+            frames.append((f.pts_ns, f.timestamp_ns, f.data))
+        stop.set()
+    wall = time.monotonic() - t_start
+    cpu = time.process_time() - cpu0
+    source.close()
+    from rtsp_server import payload_bytes
+
+    h265 = source.format == "h265"
+    print(json.dumps({
+        "frames": len(frames), "lost": source.monitor.frames_lost, "corrupt": source.monitor.corrupt,
+        "dropped": source.frames_dropped, "lag_events": source.monitor.lag_events, "max_lag_ms": source.monitor.max_lag_ns / 1e6,
+        "clock": source.clock, "wall_s": wall, "cpu_s": cpu, "bytes": os.path.getsize(out),
+        "rss_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
+        "recorded": [(p, t, payload_bytes(d, h265)) for p, t, d in frames],
+    }))
+
+
+def errors_ms(sent, recorded, at: str) -> list[float]:
+    from collections import Counter
+
+    by_size = {}
+    for line in sent:
+        by_size.setdefault(line[3], []).append(line[1])
+    votes = Counter()
+    for pts, _, size in recorded:
+        for spts in by_size.get(size, ()):
+            votes[spts - pts] += 1
+    if not votes:
+        return []
+    offset = votes.most_common(1)[0][0]
+    column = 2 if at == "send" else 5
+    wall_of = {line[1]: line[column] for line in sent}
+    return [(t - wall_of[p + offset]) / 1e6 for p, t, _ in recorded if p + offset in wall_of]
+
+
+def run_stream(name: str, spec: dict, seconds: float, workdir: Path) -> dict:
+    clip = workdir / f"{name}.mkv"
+    t0 = time.monotonic()
+    encode_clip(clip, spec["codec"], spec["width"], spec["height"], spec["fps"], spec["kbps"], seconds + 8.0)
+    encode_s = time.monotonic() - t0
+    log = workdir / f"{name}.log"
+    server = subprocess.Popen(
+        ["/usr/bin/python3", str(ROOT / "tests" / "rtsp_server.py"), "--codec", spec["codec"], "--file", str(clip), "--log", str(log)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )
+    try:
+        url = server.stdout.readline().split()[1]
+        out = workdir / f"{name}.mcap"
+        child = subprocess.Popen([sys.executable, __file__, "--record", url, "--seconds", str(seconds), "--out", str(out)], stdout=subprocess.PIPE, text=True)
+        stdout = child.communicate()[0]
+        result = json.loads(stdout.strip().splitlines()[-1])
+    finally:
+        server.stdin.close()
+        server.wait(timeout=10)
+    sent = [tuple(int(v) for v in line.split()) for line in log.read_text().splitlines() if line.strip()]
+    rec = result.pop("recorded")
+    # Frames the server sent while the recorder was reading: from the first recorded to the last.
+    err_send = errors_ms(sent, rec, "send")
+    err_cap = errors_ms(sent, rec, "capture")
+    third = max(1, len(err_send) // 3)
+
+    def med(xs):
+        xs = sorted(xs)
+        return xs[len(xs) // 2] if xs else float("nan")
+
+    span_frames = round((rec[-1][0] - rec[0][0]) * spec["fps"] / 1e9) + 1 if rec else 0
+    return {
+        "stream": name, "clip_encode_s": round(encode_s, 1),
+        "frames_sent_in_span": span_frames, "frames_recorded": result["frames"], "lost": result["lost"], "dropped": result["dropped"],
+        "corrupt": result["corrupt"], "lag_events": result["lag_events"], "max_lag_ms": round(result["max_lag_ms"], 1), "clock": result["clock"],
+        "cpu_pct_core": round(100 * result["cpu_s"] / result["wall_s"], 1), "rss_mb": round(result["rss_kb"] / 1024, 1),
+        "mb_per_s": round(result["bytes"] / 1e6 / result["wall_s"], 2),
+        "stamp_vs_payloader_ms": {"median": round(med(err_send), 2), "min": round(min(err_send), 2) if err_send else None, "max": round(max(err_send), 2) if err_send else None,
+                             "first_third": round(med(err_send[:third]), 2), "last_third": round(med(err_send[-third:]), 2), "matched": len(err_send)},
+        "stamp_vs_send_ms": {"median": round(med(err_cap), 3), "max_abs": round(max(abs(e) for e in err_cap), 3) if err_cap else None,
+                             "first_third": round(med(err_cap[:third]), 3), "last_third": round(med(err_cap[-third:]), 3)},
+    }
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seconds", type=float, default=30.0)
+    p.add_argument("--only", choices=sorted(STREAMS), action="append")
+    p.add_argument("--workdir", default=None, help="keep clips here between runs (default: a temporary folder)")
+    p.add_argument("--record", help=argparse.SUPPRESS)
+    p.add_argument("--out", help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.record:
+        record(args.record, args.seconds, args.out)
+        return 0
+    workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="bench-rtsp-"))
+    workdir.mkdir(parents=True, exist_ok=True)
+    for name in args.only or list(STREAMS):
+        print(json.dumps(run_stream(name, STREAMS[name], args.seconds, workdir)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
