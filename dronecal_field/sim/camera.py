@@ -13,6 +13,12 @@ Three threads around the pure parts (render.py, camera_track.py):
   else at the EKF's (GLOBAL_POSITION_INT, ATTITUDE);
 * a frame loop that, while anyone watches, renders the vehicle as it was at
   ``frame time - latency`` through the true camera and JPEG-encodes it;
+* a sender that puts each frame out ``delivery_s`` after its frame time, as a
+  real camera's pipeline does at a constant delay: a recorder that stamps
+  arrival then sees one constant latency, not the render time's 30-100 ms
+  jitter (which, on a leg flown at 0.4 m/s, is centimetres of fake track
+  error); a frame that is ready later goes out at once and is counted
+  (``frames_late``);
 * an HTTP server (ThreadingHTTPServer) that streams the frames as
   ``multipart/x-mixed-replace`` to any number of clients, and serves single
   frames at ``/snapshot.jpg``.
@@ -25,6 +31,7 @@ a recorder must not use them, as no real camera sends them.
 
 from __future__ import annotations
 
+import queue
 import threading
 import time
 from dataclasses import dataclass
@@ -224,6 +231,7 @@ class SimCamera:
     serve_url : ``http://HOST:PORT/PATH``; port 0 picks a free port (see ``url``).
     fps : frames per second while a client watches.
     latency_s : the image shows the vehicle as it was this long before the frame time.
+    delivery_s : each frame is sent this long after its frame time (the camera's constant pipeline delay).
     noise_sigma_dn : Gaussian pixel noise, grey levels.
     jpeg_quality : 0..100.
     seed : background and noise seed.
@@ -250,6 +258,7 @@ class SimCamera:
         use_ellipsoid: bool = True,
         vehicle_sysid: int | None = None,
         hide_marker_at: frozenset[int] | set[int] | tuple[int, ...] = frozenset(),
+        delivery_s: float = 0.15,
     ) -> None:
         if camera.enu_origin is None:
             raise InputError("the truth camera has no enu_origin: the simulator needs it to place the vehicle (write it with make_truth_camera)")
@@ -257,11 +266,16 @@ class SimCamera:
             raise InputError(f"--fps {fps} must be positive")
         if latency_s < 0:
             raise InputError(f"--latency-s {latency_s} must be zero or positive")
+        if not 0 <= delivery_s <= 5:
+            raise InputError(f"delivery_s {delivery_s} must be within 0-5 s")
         self.camera = camera
         self.marker = marker
         self.connect = connect
         self.fps = float(fps)
         self.latency_ns = int(round(latency_s * 1e9))
+        self.delivery_ns = int(round(delivery_s * 1e9))
+        self.frames_late = 0  # frames ready after their delivery time, sent at once
+        self._outbox: queue.Queue = queue.Queue(maxsize=max(4, int(2 * fps * (delivery_s + 0.5))))
         self.jpeg_quality = int(jpeg_quality)
         self.vehicle_sysid = vehicle_sysid
         self.hide_marker_at = frozenset(int(s) for s in hide_marker_at)
@@ -295,7 +309,8 @@ class SimCamera:
             raise InputError(f"cannot serve on {self.serve.host}:{self.serve.port}: {exc.strerror}; pick a free port (0 = any)") from None
         server.daemon_threads = True
         self._server = server
-        for name, target in (("sim-camera-mavlink", self._listen), ("sim-camera-frames", self._frames), ("sim-camera-http", server.serve_forever)):
+        for name, target in (("sim-camera-mavlink", self._listen), ("sim-camera-frames", self._frames), ("sim-camera-sender", self._send),
+                             ("sim-camera-http", server.serve_forever)):
             th = threading.Thread(target=target, name=name, daemon=True)
             th.start()
             self._threads.append(th)
@@ -459,8 +474,33 @@ class SimCamera:
                     v, g = pose
                     headers["X-Dronecal-Antenna-Enu-M"] = ",".join(f"{x:.4f}" for x in v.antenna_enu_m)
                     headers["X-Dronecal-Altitude-Datum"] = g.altitude_datum
-                self.hub.publish(buf.tobytes(), headers)
                 self.frames_rendered += 1
+                while not self._stop.is_set():
+                    try:
+                        self._outbox.put((tick, buf.tobytes(), headers), timeout=0.5)
+                        break
+                    except queue.Full:
+                        continue
+        except Exception as exc:
+            if not self._stop.is_set():
+                self._error = exc
+                self.hub.close()
+
+    def _send(self) -> None:
+        """Publish each frame at its frame time + ``delivery_s`` (at once, counted late, when it is ready after that)."""
+        try:
+            while not self._stop.is_set():
+                try:
+                    tick, jpeg, headers = self._outbox.get(timeout=0.5)
+                except queue.Empty:
+                    continue
+                wait_ns = tick + self.delivery_ns - time.time_ns()
+                if wait_ns > 0:
+                    if self._stop.wait(wait_ns / 1e9):
+                        break
+                elif wait_ns < -1_000_000:
+                    self.frames_late += 1
+                self.hub.publish(jpeg, headers)
         except Exception as exc:
             if not self._stop.is_set():
                 self._error = exc
