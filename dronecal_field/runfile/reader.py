@@ -23,6 +23,7 @@ import json
 import math
 import os
 import struct
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
@@ -328,8 +329,21 @@ class Run:
             body = self._read_record_body(offset)
             if body is None:
                 return None
-            return Attachment.read(ReadDataStream(io.BytesIO(body))).data
+            # MCAP closes an attachment with a CRC-32 of all its other fields (0: not computed).
+            stored = int.from_bytes(body[-4:], "little") if len(body) >= 4 else 0
+            if stored and zlib.crc32(body[:-4]) != stored:
+                self._warn_once(f"attachment {name} at byte {offset} is damaged (CRC mismatch): ignored")
+                return None
+            try:
+                return Attachment.read(ReadDataStream(io.BytesIO(body))).data
+            except Exception:  # noqa: BLE001 - a damaged record, as a damaged chunk
+                self._warn_once(f"attachment {name} at byte {offset} is damaged: ignored")
+                return None
         return None
+
+    def _warn_once(self, text: str) -> None:
+        if text not in self.warnings:
+            self.warnings.append(text)
 
     # -- opening -----------------------------------------------------------
 
