@@ -169,3 +169,36 @@ def test_a_consumer_slower_than_the_stream_drops_frames_counted(server):
         source.close()
     assert len(frames) == 10
     assert source.frames_dropped >= 10  # ~50 frames arrived for a queue of 4
+
+
+def test_fly_records_an_rtsp_camera_as_camera_video_stamped_through_rtcp(server, tmp_path, capsys):
+    """The unmodified ``fly --start`` against the simulated vehicle and an RTSP camera."""
+    import re
+
+    from dronecal_field.cli import main
+    from dronecal_field.runfile.reader import open_run
+    from test_mavlink_support import start_sim, write_plan
+
+    srv = server("--gop", "25")
+    sim = start_sim(speedup=10.0, boot_s=1.0)
+    plan = write_plan(tmp_path / "mission.plan", [(-1.0, 4.0, 1.5), (0.0, 4.0, 1.5)], hold_s=1.0)
+    out = tmp_path / "run.mcap"
+    try:
+        rc = main(["fly", "--connect", sim.addresses()[0], "--mission", str(plan), "--video", srv.url, "--out", str(out),
+                   "--marker-size", "0.3", "--start", "--no-live"])
+    finally:
+        sim.stop()
+    printed = capsys.readouterr().out
+    assert rc == 0, printed[-2000:]
+    written = int(re.search(r"(\d+) frames \((\d+) dropped\)", printed).group(1))
+    assert "VIDEO FELL BEHIND" not in printed and "VIDEO LOST" not in printed
+    with open_run(out) as run:
+        md = run.metadata
+        frames = list(run.iter_frames())
+        events = [e.type for e in run.iter_events()]
+    assert run.video and (md.width, md.height) == (320, 240)
+    assert md.extra["camera.clock"] == "rtcp" and md.camera_latency_s == 0.0
+    assert len(frames) == written > 25 and {f.format for f in frames} == {"h264"}
+    steps = {b.timestamp_ns - a.timestamp_ns for a, b in zip(frames, frames[1:])}
+    assert steps == {40_000_000}  # the camera's own 25 fps clock: no arrival jitter in the stamps
+    assert not {"video_lag", "video_lost", "video_corrupt"} & set(events)
