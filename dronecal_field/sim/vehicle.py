@@ -333,7 +333,12 @@ class SimVehicle:
                 self.params[f"MAV{index + 1}_{group}"] = 0.0
         for name, value in config.stream_params:
             if self._set_param(name, float(value)) is None:
-                raise InputError(f"stream parameter {name!r} unknown; ArduPilot 4.7 names them MAVn_<group> (n = link number + 1), e.g. MAV2_POSITION")
+                for conn in self.links:
+                    conn.close()
+                raise InputError(
+                    f"stream parameter {name!r} unknown: ArduPilot 4.7 names them MAVn_<group> (n = link number + 1, here MAV1..MAV{len(self.links)}; "
+                    f"groups {', '.join(STREAM_GROUPS)}), e.g. MAV2_POSITION; the older SRn_* names do nothing"
+                )
         self._last_fix: tuple[float, np.ndarray] | None = None  # the fix GPS_RAW_INT carries now
         self._next_fix_s = 0.0
         self._history: list[tuple[float, np.ndarray]] = []  # (time s, true ENU) of the last ticks
