@@ -34,6 +34,13 @@ class OneLineParser(argparse.ArgumentParser):
     Sub-parsers inherit the class, so every command answers the same way.
     """
 
+    def __init__(self, *args, **kwargs) -> None:
+        # Command docstrings double as --help: drop their RST literal quotes (``x``), which a terminal shows as is.
+        for key in ("description", "epilog"):
+            if kwargs.get(key):
+                kwargs[key] = kwargs[key].replace("``", "")
+        super().__init__(*args, **kwargs)
+
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 

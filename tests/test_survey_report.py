@@ -111,3 +111,17 @@ def test_report_refuses_what_is_not_a_survey(tmp_path):
         load_results(bad)
     proc = run_cli("survey", "report", str(tmp_path / "missing.parquet"))
     assert proc.returncode == 2 and "do not exist" in proc.stderr
+
+
+@pytest.mark.parametrize("action, own, foreign", [("report", "--report-dir", "--cameras"), ("export", "--to", "--cameras"), ("run", "--cameras", "--report-dir DIR")])
+def test_each_survey_action_prints_its_own_help(capsys, action, own, foreign) -> None:
+    from dronecal_field.cli import main
+
+    argv = ["survey", "--help"] if action == "run" else ["survey", action, "--help"]
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    text = capsys.readouterr().out
+    assert exit_.value.code == 0
+    assert own in text and foreign not in text
+    assert text.startswith("usage: dronecal-field survey" + ("" if action == "run" else f" {action}"))
+    assert "``" not in text

@@ -1,6 +1,6 @@
 """``dronecal-field sim vehicle``: a SITL-style simulated ArduCopter speaking MAVLink 2.
 
-It behaves like ArduCopter 4.7 SITL as recorded in shared/replays/arducopter-sitl
+It behaves like ArduCopter 4.7 SITL as recorded from a real SITL session
 (mission protocol, modes, arming rules, takeoff, holds, ROI yaw, RTL), with
 RTK-fixed GNSS noise and a centimetre of hover wander. Like ArduPilot 4.7, every
 link streams only HEARTBEAT until its client asks for telemetry (or --param

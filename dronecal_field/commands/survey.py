@@ -35,7 +35,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="the paper's camera-by-path study on Dask; 'survey report' for its findings and figures",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
+        add_help=False,
     )
+    p.add_argument("-h", "--help", action=_ActionHelp, help="show this help (after report or export: that action's help) and exit")
     p.add_argument("action", nargs="?", choices=("run", "report", "export"), default="run",
                    help="run (default) the survey, report on results, or export results to one parquet file")
     p.add_argument("results", nargs="?", help="results directory or file (report, export)")
@@ -61,6 +63,41 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     r.add_argument("--fig10-trials", type=int, help="Monte-Carlo trials for Figure 10 (default: the survey's)")
     r.add_argument("--to", help="export: the single parquet file to write")
     p.set_defaults(func=run)
+
+
+REPORT_HELP = """Read a survey's results (a results folder or an exported .parquet file),
+print its findings and write the paper's figures 8-10 and index.html into
+--report-dir (default: <results>-report)."""
+EXPORT_HELP = """Write every row of a survey's results folder into one parquet file
+(--to), with the survey's configuration in its metadata. An existing file
+is never replaced."""
+
+
+class _ActionHelp(argparse.Action):
+    """-h: the help of the action given before it (`survey report --help`), else the survey's."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        action = getattr(namespace, "action", None)
+        if action in ("report", "export"):
+            parser = _action_parser(parser.prog, action)
+        parser.print_help()
+        parser.exit()
+
+
+def _action_parser(prog: str, action: str) -> argparse.ArgumentParser:
+    """A parser used only for the help text of `survey report` / `survey export`."""
+    sub = argparse.ArgumentParser(prog=f"{prog} {action}", description=REPORT_HELP if action == "report" else EXPORT_HELP)
+    sub.add_argument("results", help="the survey's results folder (its --out) or an exported .parquet file")
+    if action == "report":
+        sub.add_argument("--report-dir", metavar="DIR", help="where the figures and index.html go (default: <results>-report)")
+        sub.add_argument("--fig10-trials", type=int, metavar="N", help="Monte-Carlo trials for Figure 10 (default: the survey's)")
+        sub.add_argument("--json", action="store_true", help="print the findings as one JSON object")
+    else:
+        sub.add_argument("--to", required=True, metavar="FILE.parquet", help="the single parquet file to write (must not exist)")
+    return sub
 
 
 def run(args: argparse.Namespace) -> int:

@@ -490,7 +490,7 @@ class Run:
         if run_md is None:
             raise ContractError(
                 f"{self._name}: no metadata record '{RUN_METADATA_NAME}'{cut}; the writer must store "
-                "format_version, camera.width/height and marker.* (shared/contracts/run-format.md)"
+                "format_version, camera.width/height and marker.* (docs/runfile.md)"
             )
         metadata = RunMetadata.from_mcap_metadata(run_md, self._metadata.get(SITE_METADATA_NAME), source=self._name)
         if not self._has_camera() or not self._has_topic(pm.FIX_TOPIC):

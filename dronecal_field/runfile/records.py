@@ -145,7 +145,7 @@ class RunMetadata:
             value = run.get(key)
             if value is None or str(value).strip() == "":
                 raise ContractError(
-                    f"{where} has no '{key}': write {what} (shared/contracts/run-format.md)"
+                    f"{where} has no '{key}': write {what} (docs/runfile.md)"
                 )
             return str(value).strip()
 
