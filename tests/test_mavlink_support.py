@@ -61,6 +61,7 @@ def ask_telemetry(link, rates_hz=None) -> None:
     link.wait_heartbeat(5)
     results = request_telemetry(link, rates_hz or TELEMETRY_RATES_HZ)
     assert all(r == 0 for r in results.values()), results
+    link.asked_telemetry = True  # wait_ready must not ask again over this client's own choice
 
 
 def ask_like_recorded_gcs(link) -> None:
@@ -75,7 +76,7 @@ def ask_like_recorded_gcs(link) -> None:
 
 def wait_ready(link, timeout_s: float = 20.0) -> None:
     """Until SYS_STATUS says the vehicle is ready to arm (asks for the telemetry first, as a GCS does)."""
-    if link.latest("SYS_STATUS") is None:
+    if not getattr(link, "asked_telemetry", False):
         ask_telemetry(link)
 
     def ready():
