@@ -104,6 +104,15 @@ def environment_message(exc: BaseException) -> str:
     return f"{what}: check the paths, the network address and the free disk space"
 
 
+def announce_first_compile() -> None:
+    """One line on stderr when the numerical kernels are about to be compiled (else the first run sits silent)."""
+    from dronecal_field.core.kernels import cache_is_cold
+
+    if cache_is_cold():
+        print("dronecal-field: compiling the numerical kernels once (first run after install: about 15-45 s on 2 cores; cached afterwards)",
+              file=sys.stderr, flush=True)
+
+
 # --------------------------------------------------------------------------
 # Flag checks shared by the commands: each raises InputError with one line
 # naming the flag, the value and what to give instead. 0 is a value, never

@@ -125,3 +125,18 @@ def test_environment_errors_are_one_line(table1_files, case):
     assert "Traceback" not in r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("dronecal-field uncertainty: error:")
+
+
+def test_a_cold_numba_cache_is_announced_in_one_line(tmp_path) -> None:
+    """An empty numba cache (the first run after install) is seen without compiling, and said on stderr."""
+    import os
+    import subprocess
+    import sys
+
+    code = "from dronecal_field.cli import announce_first_compile; announce_first_compile()"
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "empty-cache"))
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "compiling the numerical kernels once" in lines[0] and "45 s" in lines[0]
+    assert not (tmp_path / "empty-cache").exists() or not any((tmp_path / "empty-cache").rglob("*.nbc"))  # nothing compiled

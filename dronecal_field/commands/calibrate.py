@@ -114,7 +114,10 @@ def run_single(args: argparse.Namespace, run_path: Path) -> int:
     from dronecal_field.pipeline.report import all_warnings
     from dronecal_field.pipeline.run import calibrate_run
 
+    from dronecal_field.cli import announce_first_compile
+
     out = args.out if args.out is not None else run_path.with_name(run_path.stem + "-calibration")
+    announce_first_compile()
     report = calibrate_run(run_path, _options(args, out))
     cam = report.camera
     i = cam.intrinsics

@@ -38,6 +38,9 @@ def run(args: argparse.Namespace) -> int:
     if args.trials == 1 or not 0 <= args.trials <= 100_000:
         raise InputError(f"--trials {args.trials}: give 0 to skip the Monte-Carlo, or 2..100000 (500 is the default)")
     check_out_dir("--out", args.out)
+    from dronecal_field.cli import announce_first_compile
+
+    announce_first_compile()  # plan and calibrate compile in their own processes, into the shared cache
 
     print(f"dronecal-field demo: a {TRUTH['width']}x{TRUTH['height']} camera on a {SITE['mount_height']:g} m pole "
           f"at {SITE['lat']}, {SITE['lon']} looking {SITE['azimuth']:g} deg, tilted {SITE['tilt']:g} deg down")

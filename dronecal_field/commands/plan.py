@@ -64,6 +64,9 @@ def run(args: argparse.Namespace) -> int:
     options = resolve_options(values)
     _check_options(options, args)
     request = request_from_options(options)
+    from dronecal_field.cli import announce_first_compile
+
+    announce_first_compile()
     if args.scheduler:
         from dronecal_field.cluster import dask_client
 

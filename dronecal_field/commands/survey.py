@@ -149,6 +149,9 @@ def _run(args: argparse.Namespace) -> int:
         settings=MonteCarloSettings(trials=args.trials, sigma_3d=parse_sigma_3d(args.sigma_3d), sigma_2d=args.sigma_2d, model=args.model, seed=args.seed),
     )
     strategies = catalogue(args.strategies)
+    from dronecal_field.cli import announce_first_compile
+
+    announce_first_compile()  # the workers share the cache folder: one compile, said once
     with dask_client(args.scheduler, args.workers) as client:
         report = run_survey(config, strategies, args.out, client, batch_size=args.batch_size, progress=not args.no_progress)
     if args.json:

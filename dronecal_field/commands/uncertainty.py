@@ -121,6 +121,9 @@ def run(args: argparse.Namespace) -> int:
     behind = camera.depth(points) <= 0
     if behind.any():
         raise InputError(f"{int(behind.sum())} point(s) lie behind the camera (first: line {int(behind.argmax()) + 2}): the points must be in the camera's world frame")
+    from dronecal_field.cli import announce_first_compile
+
+    announce_first_compile()
     mc = monte_carlo(camera, points, trials=args.trials, sigma_3d=sigma_3d, sigma_2d=args.sigma_2d, seed=args.seed, model=model)
     lin = linearised(camera, points, sigma_3d=sigma_3d, sigma_2d=args.sigma_2d, model=model) if args.linearised else None
     if args.plot_convergence:

@@ -286,3 +286,16 @@ def normal_equations(
     shared = X.shape[0] == 1
     for k in range(R.shape[0]):
         _accumulate(intr[k], dist[k], R[k], t[k], X[0] if shared else X[k], y[k], w[k], sel, fx_col, aspect, JtJ[k], g[k], sq[k])
+
+
+def cache_is_cold() -> bool:
+    """True when numba's on-disk cache lacks the compiled kernels (first run after install or upgrade).
+
+    The next solve then compiles them: 10-15 s of CPU, 15-45 s of wall time on
+    a busy 2-core machine; later runs load them in a fraction of a second.
+    Reads numba's cache index only (no compilation), so it is cheap to ask.
+    """
+    try:
+        return not solve_batch._cache._cache_file._load_index()
+    except Exception:  # noqa: BLE001 - a numba without this internal: say nothing rather than fail
+        return False
