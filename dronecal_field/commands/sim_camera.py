@@ -90,11 +90,15 @@ def _check_flags(args: argparse.Namespace) -> None:
     """Numbers, names, addresses and the truth file's folder, before anything is served."""
     from urllib.parse import urlsplit
 
-    from dronecal_field.cli import check_marker, check_number, check_numbers, check_out_file, check_seed
+    from dronecal_field.cli import check_address, check_marker, check_number, check_numbers, check_out_file, check_seed
     from dronecal_field.errors import InputError
-    from dronecal_field.mavlink.link import parse_endpoint
+    from dronecal_field.sim.camera import MAVLINK_SCHEMES
 
-    parse_endpoint(args.connect)
+    scheme, sep, rest = args.connect.partition(":")
+    if not sep or scheme not in MAVLINK_SCHEMES or not rest:
+        raise InputError(f"--connect {args.connect!r} needs an explicit scheme: one of {', '.join(s + ':' for s in MAVLINK_SCHEMES)} (e.g. udpin:127.0.0.1:14551)")
+    if scheme != "serial":
+        check_address("--connect", args.connect, MAVLINK_SCHEMES)
     try:
         parts = urlsplit(args.serve)
         parts.port  # noqa: B018 - raises ValueError for a port outside 0-65535
