@@ -84,6 +84,7 @@ def test_a_listen_only_client_on_a_second_link_gets_only_heartbeat_and_co_until_
         gcs.close()
         listener.close()
         sim.stop()
+    print(f"listen-only second link, {t1:.1f} vehicle s from boot: {dict(counts)}")
     assert set(counts) == UNASKED, counts  # no GLOBAL_POSITION_INT, ATTITUDE, GPS_RAW_INT, STATUSTEXT
     assert 0.9 * t1 <= counts["HEARTBEAT"] <= 1.1 * t1 + 1  # 1 Hz
     assert counts["GPS_GLOBAL_ORIGIN"] == 1 and counts["HOME_POSITION"] == 1
@@ -114,6 +115,8 @@ def test_after_asking_a_link_gets_the_asked_rates_and_the_other_link_keeps_its_o
         second.close()
         sim.stop()
     span = t1 - t0
+    print(f"asked on link 2 (GPI 4 Hz, EXTRA1 5 Hz): {', '.join(f'{k} {n2[k] / span:.2f} Hz' for k in ('GLOBAL_POSITION_INT', 'ATTITUDE', 'SIMSTATE'))}; "
+          f"link 1 (fly's set): {', '.join(f'{k} {n1[k] / span:.2f} Hz' for k in ('GLOBAL_POSITION_INT', 'ATTITUDE', 'GPS_RAW_INT', 'SIMSTATE'))}")
     assert n2["GLOBAL_POSITION_INT"] / span == pytest.approx(4.0, rel=0.1)
     assert n2["ATTITUDE"] / span == pytest.approx(5.0, rel=0.1) and n2["SIMSTATE"] / span == pytest.approx(5.0, rel=0.1)
     assert n2["GPS_RAW_INT"] == 0 and n2["SYS_STATUS"] == 0  # not asked on this link
@@ -151,6 +154,7 @@ def test_stream_rate_parameters_are_mavn_and_srn_does_nothing():
         listener.close()
         sim.stop()
     span = t1 - t0 - 1.0
+    print(f"MAV2_POSITION 10, MAV2_EXTRA1 10, MAV2_EXT_STAT 2: {', '.join(f'{k} {counts[k] / span:.2f} Hz' for k in ('GLOBAL_POSITION_INT', 'ATTITUDE', 'SIMSTATE', 'GPS_RAW_INT', 'SYS_STATUS'))}")
     for name, hz in (("GLOBAL_POSITION_INT", 10), ("ATTITUDE", 10), ("SIMSTATE", 10), ("GPS_RAW_INT", 2), ("SYS_STATUS", 2)):
         assert counts[name] / span == pytest.approx(hz, rel=0.12), name
     assert not gcs_saw  # MAV2_* is the second link's: the first still streams nothing
@@ -208,6 +212,7 @@ def test_gps_fixes_at_5_hz_104_ms_old_with_300_mm_as_recorded():
     finally:
         link.close()
         sim.stop()
+    print(f"GPS recorded {want}\nGPS simulated {got}")
     assert want["interval_ms"] == 200.0 and got["interval_ms"] == pytest.approx(200.0, abs=1.0)
     assert want["new_fraction"] == pytest.approx(0.5, abs=0.03) and got["new_fraction"] == pytest.approx(0.5, abs=0.03)  # 10 Hz stream, 5 Hz fixes
     assert want["lag_new_ms"] == pytest.approx(104.0, abs=1.0) and got["lag_new_ms"] == pytest.approx(want["lag_new_ms"], abs=2.0)
@@ -250,6 +255,7 @@ def test_sim_camera_asks_for_its_telemetry_and_draws_the_true_position():
         gcs.close()
         sim.stop()
         camera.stop()
+    print(f"sim camera: {camera.stream_requests} request rounds, drawn {np.median(errors_camera) * 100:.1f} cm from the truth (median), EKF {np.median(errors_ekf) * 100:.1f} cm off")
     assert camera.stream_requests >= 1 and camera.error is None
     assert camera_link["SIMSTATE"] == pytest.approx(0.1) and camera_link["GLOBAL_POSITION_INT"] == pytest.approx(0.1)
     assert camera_link["ATTITUDE"] == pytest.approx(0.1)
