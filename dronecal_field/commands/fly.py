@@ -196,6 +196,23 @@ def _probe_video(url: str, first_timeout_s: float = 5.0, probe_s: float = 1.0, r
     return source, first, VideoStatus(url=url, frames=frames, fps=fps, width=width, height=height)
 
 
+def _judge_video(status, plan_json: dict | None, args: argparse.Namespace):
+    """Fail the video check for a still image or a stalled stream, or a size other than the plan's camera."""
+    from dataclasses import replace
+
+    if status.error or not status.frames:
+        return status
+    if status.frames < 2 or status.fps < 1.0:
+        return replace(status, error=f"{status.url} sent {status.frames} frame(s) in the probe ({status.fps:.1f} fps): "
+                                     "a still image or a stalled stream; give the camera's live stream")
+    guess = (plan_json or {}).get("camera_guess") or {}
+    w, h = guess.get("width"), guess.get("height")
+    if args.camera_width is None and args.camera_height is None and w and h and (w, h) != (status.width, status.height):
+        return replace(status, error=f"{status.url} sends {status.width}x{status.height} but the plan's camera is {w}x{h} (plan.json): "
+                                     f"re-plan with --image-size {status.width}x{status.height} or set the camera's resolution")
+    return status
+
+
 def _wait_for_gnss_rate(meter, timeout_s: float) -> None:
     """Give the GNSS stream up to ``timeout_s`` to show its rate (a second of fixes at the asked rate)."""
     deadline = time.monotonic() + timeout_s
@@ -276,6 +293,7 @@ def run(args: argparse.Namespace) -> int:
         gnss_meter = GnssRateMeter()
         link.add_listener(lambda direction, _stamp_ns, msg: gnss_meter.feed(msg) if direction == "in" else None)
         source, first, video_status = _probe_video(args.video, rtsp_transport=args.rtsp_transport)
+        video_status = _judge_video(video_status, plan_json, args)
         _wait_for_gnss_rate(gnss_meter, timeout_s=3.0)
         if first is not None:
             for flag, expected, actual in (("--camera-width", args.camera_width, video_status.width), ("--camera-height", args.camera_height, video_status.height)):
