@@ -365,3 +365,38 @@ def test_an_upload_while_another_ground_station_uploads_is_refused_in_one_line()
         gcs.close()
         sim.stop()
     assert "\n" not in str(err.value)
+
+
+def test_a_stream_the_vehicle_forgot_is_asked_for_again_on_this_link_only():
+    """A rebooted ArduPilot forgets every SET_MESSAGE_INTERVAL: fly's StreamKeeper asks again while
+    HEARTBEATs still come, and never while the streams flow."""
+    from dronecal_field.mavlink.control import StreamKeeper
+    from dronecal_field.sim.vehicle import LinkStreams
+
+    sim = _vehicle(listen=("udp:127.0.0.1:0", "udp:127.0.0.1:0"))
+    link, other = (open_link(url) for url in sim.addresses())
+    try:
+        ask_telemetry(link)
+        ask_telemetry(other, (("ATTITUDE", 2.0),))
+        keeper = StreamKeeper(link, min_silence_s=1.0)
+        link.add_listener(keeper.feed)
+        quiet = []
+        for _ in range(8):  # streams flowing: nothing to ask
+            time.sleep(0.25)
+            quiet += keeper.check()
+        with sim._lock:
+            sim.streams[id(sim.links[0])] = LinkStreams()  # the vehicle forgot what this link asked for
+        asked_again: list[str] = []
+        assert wait_until(lambda: asked_again.extend(keeper.check()) or "GPS_RAW_INT" in asked_again, 5.0)
+        t0 = sim.time_s
+        assert wait_until(lambda: sim.time_s > t0 + 5.0, 5.0)
+        restored = dict(sim.streams[id(sim.links[0])].streamed())
+        other_streams = dict(sim.streams[id(sim.links[1])].streamed())
+    finally:
+        link.close()
+        other.close()
+        sim.stop()
+    assert quiet == []
+    assert {"GPS_RAW_INT", "GLOBAL_POSITION_INT", "ATTITUDE"} <= set(asked_again)
+    assert restored["GPS_RAW_INT"] == pytest.approx(0.1) and restored["GLOBAL_POSITION_INT"] == pytest.approx(0.1)
+    assert other_streams == {"ATTITUDE": pytest.approx(0.5)}  # the other link's choice untouched

@@ -236,7 +236,7 @@ def run(args: argparse.Namespace) -> int:
 
     from dronecal_field import __version__
     from dronecal_field.errors import InputError, LinkError
-    from dronecal_field.mavlink.control import arm_and_start_mission, describe_heartbeat, request_telemetry
+    from dronecal_field.mavlink.control import StreamKeeper, arm_and_start_mission, describe_heartbeat, request_telemetry
     from dronecal_field.mavlink.link import open_link
     from dronecal_field.mavlink.mission import MissionWatch, upload_and_verify
     from dronecal_field.mavlink.missionfile import read_mission
@@ -285,11 +285,14 @@ def run(args: argparse.Namespace) -> int:
     recorder = None
     live = None
     watch = None
+    keeper = None
     closed_mono = None
     try:
         hb = link.wait_heartbeat(args.heartbeat_timeout)
         print(f"vehicle: {describe_heartbeat(hb)} (sysid {link.target_system}) on {link.endpoint}", flush=True)
-        request_telemetry(link)
+        request_telemetry(link)  # on this link only: ArduPilot 4.7 streams nothing on a link until asked
+        keeper = StreamKeeper(link)  # asks again if a stream stops (a rebooted vehicle forgets)
+        link.add_listener(keeper.feed)
         gnss_meter = GnssRateMeter()
         link.add_listener(lambda direction, _stamp_ns, msg: gnss_meter.feed(msg) if direction == "in" else None)
         source, first, video_status = _probe_video(args.video, rtsp_transport=args.rtsp_transport)
@@ -337,7 +340,7 @@ def run(args: argparse.Namespace) -> int:
             print("started: GUIDED, armed, MISSION_START sent", flush=True)
         else:
             print("waiting for the pilot to arm and switch to AUTO (Ctrl-C ends the recording; nothing is commanded)", flush=True)
-        if not _record_until_done(recorder, mission, args.timeout_s, live, watch):
+        if not _record_until_done(recorder, mission, args.timeout_s, live, watch, keeper):
             summary = recorder.stop().summary()
             recorder = None
             closed_mono = time.monotonic()
@@ -452,10 +455,11 @@ def _video_metadata(metadata, source, args):
     return replace(metadata, camera_latency_s=latency, extra=extra)
 
 
-def _record_until_done(recorder, mission, timeout_s: float | None = None, live=None, watch=None) -> bool:
+def _record_until_done(recorder, mission, timeout_s: float | None = None, live=None, watch=None, keeper=None) -> bool:
     """Print the status line each second until the mission is over (True) or ``timeout_s`` passed (False).
 
     A mission changed by another client (``watch``, a MissionWatch) is said once, loudly; recording goes on.
+    A stream that stopped while the vehicle talks is asked for again (``keeper``, a StreamKeeper).
 
     With the live pipeline, its part joins the status line and its summaries get lines of their own.
     """
@@ -476,6 +480,8 @@ def _record_until_done(recorder, mission, timeout_s: float | None = None, live=N
             print(f"\nWARNING: {watch.describe()}", file=sys.stderr, flush=True)
         if now - last_print >= 1.0:
             last_print = now
+            if keeper is not None and (again := keeper.check()):
+                print(f"\nnote: asked the vehicle again for {', '.join(again)} (it had stopped sending them: rebooted, or a request lost)", flush=True)
             line = format_status(recorder.status(), color=tty)
             if live is not None:
                 for summary in live.new_summaries():

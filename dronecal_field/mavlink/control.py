@@ -77,6 +77,61 @@ def request_telemetry(link: MavLink, rates_hz: tuple[tuple[str, float], ...] = T
     return results
 
 
+class StreamKeeper:
+    """Asks again for a requested stream that stopped while the vehicle still talks.
+
+    ArduPilot 4.7 streams nothing on a link until asked and forgets what was
+    asked when it reboots; a SET_MESSAGE_INTERVAL lost on a radio link leaves
+    that stream silent for good. Feed it every message (a :class:`MavLink`
+    listener) and call :meth:`check` now and then (``fly``'s status loop, once
+    a second): a message of ``rates_hz`` unseen for ``max(3 periods,
+    min_silence_s)`` while HEARTBEATs arrive is asked for again (without
+    waiting for the ACK, at most once per ``min_silence_s``), on this link only.
+
+    Parameters
+    ----------
+    link : MavLink
+        The link the streams were asked on.
+    rates_hz : tuple of (str, float)
+        What was asked, Hz.
+    min_silence_s : float
+        Shortest silence (host seconds) that counts as a stopped stream.
+    """
+
+    def __init__(self, link: MavLink, rates_hz: tuple[tuple[str, float], ...] = TELEMETRY_RATES_HZ, min_silence_s: float = 3.0) -> None:
+        self.link = link
+        self.rates_hz = tuple(rates_hz)
+        self.min_silence_s = float(min_silence_s)
+        now = time.monotonic()
+        self._last_seen = {name: now for name, _hz in self.rates_hz}
+        self._last_ask = {name: now for name, _hz in self.rates_hz}
+        self.re_requests = 0  # SET_MESSAGE_INTERVAL sent again, all messages counted
+
+    def feed(self, direction: str, _stamp_ns: int, msg: Any) -> None:
+        """A message in or out (a :class:`MavLink` listener)."""
+        if direction == "in" and msg.get_srcSystem() == self.link.target_system:
+            name = msg.get_type()
+            if name in self._last_seen:
+                self._last_seen[name] = time.monotonic()
+
+    def check(self) -> list[str]:
+        """Ask again for the streams that stopped; returns their names."""
+        now = time.monotonic()
+        if self.link.last_heartbeat_monotonic is None or now - self.link.last_heartbeat_monotonic > self.min_silence_s:
+            return []  # the vehicle itself is silent: a lost link, not a forgotten request
+        asked = []
+        for name, hz in self.rates_hz:
+            silence = max(3.0 / hz, self.min_silence_s)
+            if now - self._last_seen[name] > silence and now - self._last_ask[name] > self.min_silence_s:
+                msgid = getattr(self.link.dialect, f"MAVLINK_MSG_ID_{name}")
+                self.link.send(self.link.dialect.MAVLink_command_long_message(
+                    self.link.target_system, self.link.target_component, ap.CMD_SET_MESSAGE_INTERVAL, 0, msgid, 1e6 / hz, 0, 0, 0, 0, 0))
+                self._last_ask[name] = now
+                asked.append(name)
+        self.re_requests += len(asked)
+        return asked
+
+
 def _last_statustext(link: MavLink) -> str:
     msg = link.latest("STATUSTEXT")
     return "" if msg is None else f" ({msg.text})"
