@@ -140,3 +140,32 @@ def test_a_cold_numba_cache_is_announced_in_one_line(tmp_path) -> None:
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "compiling the numerical kernels once" in lines[0] and "45 s" in lines[0]
     assert not (tmp_path / "empty-cache").exists() or not any((tmp_path / "empty-cache").rglob("*.nbc"))  # nothing compiled
+
+
+def test_monte_carlo_memory_is_bounded_for_many_points() -> None:
+    """The trials solved together shrink with the point count: ~300 bytes per (trial, point) stay under ~300 MB."""
+    import resource
+
+    import numpy as np
+
+    from dronecal_field.core.synthetic import paper_camera
+    from dronecal_field.core.uncertainty import MAX_TRIAL_POINTS_PER_CHUNK, monte_carlo, trials_per_chunk
+
+    assert trials_per_chunk(2000, 60) == 2000  # the paper's grids: all 500 trials in one go, as before
+    assert trials_per_chunk(2000, 20_000) == 50 and trials_per_chunk(2000, 100_000) == 10
+    assert trials_per_chunk(2000, 5_000_000) == 1
+    assert all(trials_per_chunk(2000, n) * n <= max(MAX_TRIAL_POINTS_PER_CHUNK, n) for n in (1, 7, 999, 12_345, 10**6, 10**7))
+    # 20,000 points x 100 trials in chunks of 50: the peak is one chunk (~300 MB), not 100 x 20,000 x 300 B (600 MB)
+    cam = paper_camera(distorted=True)
+    rng = np.random.default_rng(1)
+    i = cam.intrinsics
+    uv = rng.uniform([20, 20], [i.width - 20, i.height - 20], (20_000, 2))
+    depth = rng.uniform(4.0, 12.0, 20_000)
+    rays = np.column_stack([(uv[:, 0] - i.cx) / i.fx, (uv[:, 1] - i.cy) / i.fy, np.ones(len(uv))])
+    X = cam.pose.position_world + (depth[:, None] * rays) @ cam.pose.R_cam_from_world
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    mc = monte_carlo(cam, X, trials=100, seed=3)
+    grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+    assert mc.trials == 100 and mc.failed_trials == 0
+    assert 2.0 < mc.rms_mean < 6.0  # 2 px per axis plus 1-1.5 cm of 3D noise, on 20,000 points
+    assert grown_mb < 450

@@ -212,6 +212,15 @@ def _nan_stat(fn, values: np.ndarray) -> float:
     return float(fn(values)) if values.size else float("nan")
 
 
+# A chunk holds ~300 bytes per (trial, point): 1e6 of them is ~300 MB, however many points there are.
+MAX_TRIAL_POINTS_PER_CHUNK = 1_000_000
+
+
+def trials_per_chunk(chunk_size: int, n_points: int) -> int:
+    """Trials solved together: at most ``chunk_size``, fewer for many points so memory stays O(N), not O(trials x N)."""
+    return max(1, min(chunk_size, MAX_TRIAL_POINTS_PER_CHUNK // max(n_points, 1)))
+
+
 def monte_carlo(
     camera: Camera,
     points_world: np.ndarray,
@@ -237,7 +246,8 @@ def monte_carlo(
     sigma_2d : scalar or (N,) pixel standard deviation per axis
     seed : seeds numpy's Generator: the same seed gives the same statistics
     model : calibration model re-estimated in each trial ('default' = OpenCV's CALIB_FIX_K3)
-    chunk_size : trials solved together; bounds memory (~ chunk_size * N * 240 bytes)
+    chunk_size : trials solved together at most; fewer when N is large, so that memory
+        (~ chunk_size * N * 300 bytes) stays under ~300 MB
     observed_pixels : (N, 2) p_i; default the reference camera's projection of P_i
     mc_tolerance : a trial stops when its cost drops by less than this fraction in an
         iteration; 1e-6 leaves the RMS within about 1e-6 of the converged value (the
@@ -258,6 +268,7 @@ def monte_carlo(
     probes = _make_probes(camera, P, ground_z)
     rng = np.random.default_rng(seed)
 
+    chunk_size = trials_per_chunk(chunk_size, P.shape[0])
     rms_all, metrics_all, params_all, failed = [], [], [], 0
     for start in range(0, trials, chunk_size):
         k = min(chunk_size, trials - start)
