@@ -415,7 +415,7 @@ def test_image_plan_prints_the_prediction_and_paper_far(tmp_path, capsys):
     assert s["samples"]["pass_through_points"] > 0 and s["samples"]["leg_samples"] > 0 and s["samples"]["leg_speed_m_s"] > 0
     plan = json.loads((out / "mission.plan").read_text())
     holds = [it["params"][0] for it in nav_items(plan, 16)]
-    assert 0.0 in holds and max(holds) >= 2.0  # fly-through items (hold 0) and holds where legs end
+    assert 0.0 in holds and max(holds) == 1.0  # fly-through items (hold 0) and one-second stops where legs end
     wps = parse_waypoints((out / "mission.waypoints").read_text())
     assert sum(1 for w in wps if w["command"] == 16 and w["params"][0] == 0.0) >= s["samples"]["pass_through_points"]
 

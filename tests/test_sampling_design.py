@@ -175,6 +175,9 @@ def test_leg_samples_are_spaced_by_speed_over_gnss_rate():
     d = design_sampling(cam, roi, DesignParams(sampling="through"), Limits(max_search_height_m=6.5), timing)
     legs = d.samples_site[~d.samples_is_hold]
     assert len(legs) > 10 * d.n_points
+    # every leg starts and ends with a one-second stop (not a full hover: 11.0 instead of 12.2 min for camera (a))
+    ends = np.r_[True, d.leg[1:] != d.leg[:-1]] | np.r_[d.leg[1:] != d.leg[:-1], True]
+    assert np.all(d.hold_s[ends] == 1.0) and np.all(d.hold_s[~ends] == 0.0)
     # the leg speed keeps motion blur under a pixel at the nearest point
     nearest = float(cam.depth(d.marker_site).min())
     assert d.speed_m_s * timing.exposure_s * cam.intrinsics.fx / nearest <= 1.0 + 1e-6
