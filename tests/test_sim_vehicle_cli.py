@@ -55,3 +55,15 @@ def test_sim_vehicle_command_listens_sends_out_and_stops():
     assert proc.returncode == 0 and "stopped at vehicle time" in err
     stopped_at_s = float(err.split("vehicle time ")[1].split(" s")[0])
     assert stopped_at_s > 6.0  # 3 wall seconds at 10x, less start-up and any slow-down on a busy machine
+
+
+def test_sim_vehicle_refuses_the_old_stream_parameter_names_in_one_line():
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.run(
+        [sys.executable, "-m", "dronecal_field", "sim", "vehicle", "--listen", "udp:127.0.0.1:0", "--home", "-35.363261,149.165230,584",
+         "--duration-s", "1", "--param", "SR1_POSITION=10"],
+        capture_output=True, text=True, env=env, timeout=60,
+    )
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "SR1_POSITION" in lines[0] and "MAVn_" in lines[0] and "Traceback" not in proc.stderr

@@ -114,6 +114,9 @@ def run(args: argparse.Namespace) -> int:
     )
     sim = SimVehicle(config, listen=args.listen, out=args.out)
     print(f"sim vehicle: {', '.join(sim.addresses())}; home {lat:.7f},{lon:.7f},{alt:g} m AMSL; speedup {args.speedup:g}", flush=True)
+    links = "; ".join(f"MAV{n}_* {address}" for n, address in enumerate(sim.addresses(), start=1))
+    print(f"sim vehicle: links (stream-rate parameters): {links}; each streams only HEARTBEAT until its client asks; "
+          f"GPS {1000.0 / args.gps_rate_ms:g} fixes/s (GPS_RATE_MS {args.gps_rate_ms:g})", flush=True)
     stop = threading.Event()
     if args.duration is not None:
         timer = threading.Timer(args.duration, stop.set)
