@@ -570,15 +570,21 @@ class ValidityRegion:
 
 def visible_ground(camera: Camera, ranges_m: tuple[float, float] = VISIBLE_GROUND_M, step_m: float = GROUND_STEP_M, ground_z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Ground points (N, 3) on a ``step_m`` grid between ``ranges_m`` of the pole's foot that the camera sees, and their pixels (N, 2)."""
-    c = camera.pose.position_world
-    r0, r1 = ranges_m
-    g = np.arange(-r1, r1 + 1e-9, step_m)
-    E, N = np.meshgrid(c[0] + g, c[1] + g)
-    rho = np.hypot(E - c[0], N - c[1])
-    keep = (rho >= r0) & (rho <= r1)
-    pts = np.c_[E[keep], N[keep], np.full(int(keep.sum()), ground_z)]
+    pts, _ = ground_ring(camera.pose.position_world[:2], ranges_m, step_m, ground_z)
     seen, uv = seen_on_ground(camera, pts, ground_z)
     return pts[seen], uv[seen]
+
+
+def ground_ring(foot_xy: np.ndarray, ranges_m: tuple[float, float], step_m: float, ground_z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 3) of a ``step_m`` grid on z = ``ground_z`` whose horizontal distance from ``foot_xy`` lies in
+    ``ranges_m``, and those distances (N,): the region users measure in, for the report and the simulator's check."""
+    r0, r1 = ranges_m
+    g = np.arange(-r1, r1 + 1e-9, step_m)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    rho = np.hypot(X, Y).ravel()
+    keep = (rho >= r0) & (rho <= r1)
+    pts = np.c_[X.ravel()[keep] + foot_xy[0], Y.ravel()[keep] + foot_xy[1], np.full(int(keep.sum()), ground_z)]
+    return pts, rho[keep]
 
 
 def seen_on_ground(camera: Camera, points: np.ndarray, ground_z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -193,16 +193,18 @@ def fold_radius(distortion: np.ndarray, min_slope: float = 0.0) -> float:
 
     Returns
     -------
-    float : normalised radius (x^2 + y^2)^0.5 on the z = 1 plane, resolution 0.001
+    float : normalised radius (x^2 + y^2)^0.5 on the z = 1 plane (exact: the
+        smallest positive root, in x = r^2, of 1 - min_slope + 3 k1 x + 5 k2 x^2 + 7 k3 x^3)
     """
     k1, k2, _, _, k3 = np.asarray(distortion, float)
-    if k1 >= 0 and k2 >= 0 and k3 >= 0 and min_slope < 1.0:
+    if min_slope >= 1.0:
+        return 0.0
+    if k1 >= 0 and k2 >= 0 and k3 >= 0:
         return math.inf
-    r = np.linspace(0.0, 10.0, 10001)
-    r2 = r * r
-    slope = 1.0 + 3.0 * k1 * r2 + 5.0 * k2 * r2 * r2 + 7.0 * k3 * r2 * r2 * r2
-    bad = np.flatnonzero(slope <= min_slope)
-    return float(r[bad[0]]) if bad.size else math.inf
+    coeffs = np.trim_zeros(np.array([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0 - min_slope]), "f")
+    x = np.roots(coeffs)
+    x = x.real[(np.abs(x.imag) <= 1e-9 * np.maximum(1.0, np.abs(x.real))) & (x.real > 0.0) & (x.real <= 100.0)]
+    return float(math.sqrt(x.min())) if x.size else math.inf
 
 
 # plan keeps lattice points inside 97 % of the radius where the slope falls to 5 %

@@ -25,6 +25,8 @@ import numpy as np
 
 from dronecal_field.core.camera import Camera, intersect_plane_z, pixel_rays_batch
 from dronecal_field.errors import InputError
+from dronecal_field.pipeline.validity import ground_ring
+from dronecal_field.sampling.lattice import fold_radius as lattice_fold_radius
 
 GROUND_RANGES_M: tuple[float, ...] = (5.0, 15.0, 30.0)
 
@@ -80,14 +82,10 @@ def fold_radius(camera: Camera) -> float:
     """Undistorted normalised radius where the radial distortion stops growing (inf if it never does).
 
     Beyond it r_d = r (1 + k1 r^2 + k2 r^4 + k3 r^6) decreases again, so two
-    rays share one pixel and the model is meaningless there.
+    rays share one pixel and the model is meaningless there
+    (``sampling.lattice.fold_radius``, the one definition).
     """
-    d = camera.distortion
-    r = np.linspace(0.0, 10.0, 200_001)[1:]
-    r2 = r * r
-    slope = 1.0 + 3.0 * d.k1 * r2 + 5.0 * d.k2 * r2 * r2 + 7.0 * d.k3 * r2**3
-    bad = np.flatnonzero(slope <= 0.0)
-    return float(r[bad[0]]) if bad.size else float("inf")
+    return lattice_fold_radius(camera.distortion.as_array())
 
 
 def _in_view(camera: Camera, points: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
@@ -119,13 +117,7 @@ def visible_ground_grid(
     lo, hi = range_m
     if not 0.0 <= lo < hi or not step_m > 0:
         raise InputError(f"ground range {range_m} m / step {step_m} m: give 0 <= MIN < MAX and a positive step")
-    foot = truth.pose.position_world[:2]
-    axis = np.arange(-hi, hi + 1e-9, step_m)
-    X, Y = np.meshgrid(axis, axis, indexing="ij")
-    pts = np.stack([X.ravel() + foot[0], Y.ravel() + foot[1], np.zeros(X.size)], axis=1)
-    ranges = np.hypot(X.ravel(), Y.ravel())
-    keep = (ranges >= lo) & (ranges <= hi)
-    pts, ranges = pts[keep], ranges[keep]
+    pts, ranges = ground_ring(truth.pose.position_world[:2], (lo, hi), step_m)
     seen = _in_view(truth, pts)
     return pts[seen], ranges[seen]
 
