@@ -162,7 +162,12 @@ BAD_NUMBERS = ("0", "-1", "nan", "inf", "1e300")
 
 def _numeric(prefix: list[str], flag: str, values: tuple[str, ...] = BAD_NUMBERS, suffix: tuple[str, ...] = ()) -> list:
     command = " ".join(prefix[:2]) if prefix[0] == "sim" else prefix[0]
-    return [(f"{command} {flag} {v}", [*prefix, f"{flag}={v}", *suffix], flag) for v in values]
+    named = RENAMED.get(flag, flag)  # an old name is answered with the new one
+    return [(f"{command} {flag} {v}", [*prefix, f"{flag}={v}", *suffix], named) for v in values]
+
+
+# Old flag names kept hidden for one release -> the name the error line uses.
+RENAMED = {"--sigma-2d": "--sigma-px", "--duration": "--duration-s", "--geoid-sep": "--geoid-separation"}
 
 
 FILE_KINDS = ("missing", "dir", "empty", "garbage", "binary", "latin1")
@@ -194,7 +199,8 @@ def _cases() -> list[tuple[str, list[str], str]]:
     for pts, needle in (("points_nan", "nan"), ("points_behind", "behind"), ("points_flat", "coplanar"), ("points_few", "points"), ("points_huge", "100000 points")):
         c.append((f"uncertainty --points {pts}", ["uncertainty", "--camera", "{camera}", "--points", "{" + pts + "}"], needle))
     c += _numeric(UNC, "--trials", ("0", "1", "-1", "100000000"))
-    c += _numeric(UNC, "--sigma-2d", ("-1", "nan", "inf", "1e300"))
+    c += _numeric(UNC, "--sigma-px", ("-1", "nan", "inf", "1e300"))
+    c += _numeric(UNC, "--sigma-2d", ("-1",))
     c += _numeric(UNC, "--sigma-3d", ("-1", "nan", "inf", "1e300", "1,2", "a,b,c"))
     c += _numeric(UNC, "--seed", ("-1",))
     c.append(("uncertainty --model bogus", [*UNC, "--model", "bogus"], "bogus"))
@@ -256,7 +262,7 @@ def _cases() -> list[tuple[str, list[str], str]]:
     c.append(("import --out folder", [*IMP, "--out", "{dir}"], "--out"))
     # ---- survey and its sub-commands
     for flag, values in (("--cameras", ("0", "-1", "1000000000000")), ("--trials", ("0", "1", "-1", "100000000")),
-                         ("--sigma-2d", ("-1", "nan", "inf")), ("--sigma-3d", ("-1", "nan", "1,2")), ("--pixel-pitch-um", ("0", "-1", "nan", "inf")),
+                         ("--sigma-px", ("-1", "nan", "inf")), ("--sigma-2d", ("nan",)), ("--sigma-3d", ("-1", "nan", "1,2")), ("--pixel-pitch-um", ("0", "-1", "nan", "inf")),
                          ("--batch-size", ("0", "-1")), ("--workers", ("-1",)), ("--seed", ("-1",))):
         c += _numeric(SUR, flag, values)
     c.append(("survey --strategies bogus", [*SUR, "--strategies", "bogus"], "bogus"))

@@ -48,7 +48,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     g.add_argument("--out", default="results.parquet", help="results directory (parquet dataset; resumed if it exists)")
     g.add_argument("--seed", type=int, default=0, help="seed of the camera design and of the Monte-Carlo (default 0)")
     g.add_argument("--sigma-3d", default="0.01,0.01,0.015", help="GNSS/altimeter sigma X,Y,Z in m (default 0.01,0.01,0.015)")
-    g.add_argument("--sigma-2d", type=float, default=2.0, help="detection sigma in px (default 2)")
+    g.add_argument("--sigma-px", dest="sigma_2d", type=float, default=2.0, help="marker detection noise, pixels per axis (default 2, as plan's --sigma-px)")
+    g.add_argument("--sigma-2d", dest="sigma_2d", type=float, help=argparse.SUPPRESS)  # the old name, for one release
     g.add_argument("--model", default="default", help="calibration model re-estimated per trial (default: k3 fixed)")
     g.add_argument("--pixel-pitch-um", type=float, default=7.5, help="sensor pixel size turning focal mm into px (default 7.5 um)")
     g.add_argument("--heights", default="paper", choices=("paper", "plan"),
@@ -128,7 +129,7 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError(f"--cameras {args.cameras} is outside 1..{MAX_CAMERAS}: the paper uses 5000")
     if not 2 <= args.trials <= MAX_TRIALS:
         raise InputError(f"--trials {args.trials} is outside 2..{MAX_TRIALS}: the paper uses 500")
-    check_number("--sigma-2d", args.sigma_2d, 0, 1000, hint="give a pixel standard deviation, e.g. 2")
+    check_number("--sigma-px", args.sigma_2d, 0, 1000, hint="give a pixel standard deviation, e.g. 2")
     parse_sigma_3d(args.sigma_3d)
     check_number("--pixel-pitch-um", args.pixel_pitch_um, 0, 100, low_open=True, hint="give the sensor's pixel size in micrometres, e.g. 7.5")
     if args.batch_size < 1:

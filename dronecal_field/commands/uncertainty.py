@@ -24,7 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--points", required=True, help="CSV with header x,y,z (metres, the camera's world frame)")
     p.add_argument("--trials", type=int, default=500, help="Monte-Carlo trials k (default 500, as the paper)")
     p.add_argument("--sigma-3d", default="0.01,0.01,0.015", help="3D sigma X,Y,Z in metres (default 0.01,0.01,0.015)")
-    p.add_argument("--sigma-2d", type=float, default=2.0, help="2D sigma in pixels (default 2)")
+    p.add_argument("--sigma-px", dest="sigma_2d", type=float, default=2.0, help="marker detection noise, pixels per axis (default 2, as plan's --sigma-px)")
+    p.add_argument("--sigma-2d", dest="sigma_2d", type=float, help=argparse.SUPPRESS)  # the old name, for one release
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same numbers)")
     p.add_argument(
         "--model",
@@ -107,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
 
     # Every flag is checked before the (slow) Monte-Carlo, so a typo costs nothing.
     sigma_3d = parse_sigma_3d(args.sigma_3d)
-    check_number("--sigma-2d", args.sigma_2d, 0, 1000, hint="give a pixel standard deviation, e.g. 2")
+    check_number("--sigma-px", args.sigma_2d, 0, 1000, hint="give a pixel standard deviation, e.g. 2")
     if not 2 <= args.trials <= MAX_TRIALS:
         raise InputError(f"--trials {args.trials} is outside 2..{MAX_TRIALS}: the paper uses 500")
     check_seed("--seed", args.seed)

@@ -133,7 +133,7 @@ def _sigmas(points: np.ndarray, sigma_3d, sigma_2d) -> tuple[np.ndarray, np.ndar
     s3 = np.broadcast_to(np.asarray(sigma_3d, float), (n, 3)).copy()
     s2 = np.broadcast_to(np.asarray(sigma_2d, float).reshape(-1), (n,)).copy() if np.ndim(sigma_2d) else np.full(n, float(sigma_2d))
     if np.any(s3 < 0) or np.any(s2 < 0) or not (np.all(np.isfinite(s3)) and np.all(np.isfinite(s2))):
-        raise InputError("noise sigmas must be finite and non-negative: check --sigma-3d and --sigma-2d")
+        raise InputError("noise sigmas must be finite and non-negative: check --sigma-3d and --sigma-px")
     return s3, s2
 
 
