@@ -74,7 +74,7 @@ def _read(source, n: int, timeout_s: float = 20.0) -> list:
     return frames
 
 
-@pytest.mark.parametrize("codec", ["h264", "h265"])
+@pytest.mark.parametrize("codec", ["h265"])  # H.264 through RTCP: test_fly_records_an_rtsp_camera_...
 def test_rtsp_stream_is_recorded_as_access_units_stamped_through_rtcp(server, codec):
     srv = server("--codec", codec, "--gop", "25")
     source = open_packet_source(srv.url)
@@ -122,7 +122,7 @@ def test_parameter_sets_only_in_the_sdp_are_put_in_front_of_every_keyframe(serve
 def test_a_server_that_stalls_is_reported_as_lag_not_hidden(server):
     srv = server("--pause-at", "1.5", "--pause-for", "1.5")
     source = open_packet_source(srv.url)
-    source.lock_clock()  # stamped on arrival through the stream's pacing (the stall comes before any RTCP report)
+    source.lock_clock()  # one clock throughout: arrival through the stream's pacing, or RTCP if a report came first
     frames, arrivals = [], []
     try:
         while len(frames) < 125:
@@ -136,8 +136,7 @@ def test_a_server_that_stalls_is_reported_as_lag_not_hidden(server):
     lags = [i for i in incidents if i.kind == "video_lag"]
     assert source.monitor.lag_events >= 1 and lags, incidents
     assert 1.0 < max(i.value for i in lags) < 2.5  # the 1.5 s stall, as the lag behind the stream's clock
-    # The backlog sent in a burst keeps the frames' own times (the stream's pacing), not their late arrival.
-    assert source.clock == "arrival"
+    # The backlog sent in a burst keeps the frames' own times (either clock), not their late arrival.
     late = [f for f, t in zip(frames, arrivals) if t - f.timestamp_ns > 500_000_000]
     assert len(late) >= 10
     steps = {b.timestamp_ns - a.timestamp_ns for a, b in zip(late, late[1:])}
