@@ -400,3 +400,29 @@ def test_a_stream_the_vehicle_forgot_is_asked_for_again_on_this_link_only():
     assert {"GPS_RAW_INT", "GLOBAL_POSITION_INT", "ATTITUDE"} <= set(asked_again)
     assert restored["GPS_RAW_INT"] == pytest.approx(0.1) and restored["GLOBAL_POSITION_INT"] == pytest.approx(0.1)
     assert other_streams == {"ATTITUDE": pytest.approx(0.5)}  # the other link's choice untouched
+
+
+def test_mission_watch_expects_our_own_flight_plan_text_once_whenever_it_comes():
+    from dronecal_field.mavlink.link import mavlink_dialect
+    from dronecal_field.mavlink.mission import MissionWatch
+
+    d = mavlink_dialect()
+    mav = d.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def from_vehicle(msg):
+        return d.MAVLink(None).parse_char(msg.pack(mav))
+
+    text = from_vehicle(d.MAVLink_statustext_message(6, b"Flight plan received"))
+    old_mission = from_vehicle(d.MAVLink_mission_current_message(0, 3, 2, 0))  # before our upload: 4 items
+    ours = from_vehicle(d.MAVLink_mission_current_message(0, 9, 2, 0))  # ours: 10 items
+    theirs = from_vehicle(d.MAVLink_mission_current_message(2, 11, 3, 1))
+    watch = MissionWatch(10, vehicle_system=1)
+    watch.feed("in", 0, old_mission)  # the vehicle's previous mission, seen during our upload: expected
+    watch.uploaded()
+    watch.feed("in", 0, text)  # our own text, arriving after the read-back (a fast simulator does that)
+    watch.feed("in", 0, ours)
+    assert not watch.changed and watch.describe() == ""
+    watch.feed("in", 0, text)  # a second plan: someone else's
+    watch.feed("in", 0, theirs)
+    assert watch.changed and len(watch.changes) == 2
+    assert "12 items, ours 10" in watch.describe() and "did not re-upload" in watch.describe()

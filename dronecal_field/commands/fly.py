@@ -318,10 +318,11 @@ def run(args: argparse.Namespace) -> int:
             print("dry run: nothing uploaded, nothing recorded")
             return 0
 
-        report = upload_and_verify(link, mission.items)
-        print(f"mission: {report.items} items uploaded and read back identical in {report.duration_s:.1f} s", flush=True)
-        watch = MissionWatch(report.items, link.target_system)  # a ground station on another link may change it
+        watch = MissionWatch(len(mission.items), link.target_system)  # a ground station on another link may change it
         link.add_listener(watch.feed)
+        report = upload_and_verify(link, mission.items)
+        watch.uploaded()
+        print(f"mission: {report.items} items uploaded and read back identical in {report.duration_s:.1f} s", flush=True)
         if report.storage_changes:
             more = f" (+{len(report.storage_changes) - 3} more)" if len(report.storage_changes) > 3 else ""
             print(f"note: ArduCopter keeps some values differently, as expected: {'; '.join(report.storage_changes[:3])}{more}")

@@ -298,13 +298,18 @@ class MissionWatch:
     while ``fly`` records; ArduPilot then announces "Flight plan received"
     on every active link and MISSION_CURRENT.total follows the new mission.
     ``fly`` never answers by uploading again (that would fight the pilot's
-    ground station); it says so and records on. Feed it every message
-    (``link.add_listener(watch.feed)``) from after our own upload.
+    ground station); it says so and records on.
+
+    Start feeding it (``link.add_listener(watch.feed)``) before our own
+    upload and call :meth:`uploaded` when that upload is verified: our own
+    "Flight plan received" is expected once, whenever it arrives (a
+    simulator or a busy link may deliver it after the read-back), and
+    MISSION_CURRENT.total is compared from then on.
 
     Parameters
     ----------
     items : int
-        Items of our uploaded mission, home included.
+        Items of our mission, home included.
     vehicle_system : int
         The vehicle's system id (messages from others are ignored).
     """
@@ -313,6 +318,12 @@ class MissionWatch:
         self.expected_total = int(items) - 1  # MISSION_CURRENT.total counts the items after home
         self.vehicle_system = int(vehicle_system)
         self.changes: list[str] = []
+        self._own_texts_left = 1  # our upload's own "Flight plan received"
+        self._uploaded = False
+
+    def uploaded(self) -> None:
+        """Our upload is done and verified: from now on the vehicle's mission must stay ours."""
+        self._uploaded = True
 
     @property
     def changed(self) -> bool:
@@ -325,8 +336,11 @@ class MissionWatch:
             return
         mtype = msg.get_type()
         if mtype == "STATUSTEXT" and str(msg.text).startswith("Flight plan received"):
-            self.changes.append("the vehicle received another flight plan")
-        elif mtype == "MISSION_CURRENT" and int(getattr(msg, "total", 0) or 0) not in (0, self.expected_total):
+            if self._own_texts_left > 0:
+                self._own_texts_left -= 1
+            else:
+                self.changes.append("the vehicle received another flight plan")
+        elif self._uploaded and mtype == "MISSION_CURRENT" and int(getattr(msg, "total", 0) or 0) not in (0, self.expected_total):
             # total 0 = not reported (MAVLink 1 or an old firmware); it never goes back to 0 with a mission
             self.changes.append(f"the vehicle's mission now has {int(msg.total) + 1} items, ours {self.expected_total + 1}")
             self.expected_total = int(msg.total)  # said once per change
