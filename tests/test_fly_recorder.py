@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import time
 
@@ -17,7 +19,7 @@ from dronecal_field.runfile.reader import open_run
 from dronecal_field.runfile.records import FORMAT_VERSION, MarkerSpec, RunMetadata
 from dronecal_field.runfile.writer import RunWriter
 from dronecal_field.video import open_video
-from test_mavlink_support import MjpegServer, plan_document, start_sim, wait_ready
+from test_mavlink_support import FAST_PARAMS, MjpegServer, plan_document, start_sim, wait_ready
 
 MISSION = parse_qgc_plan(json.dumps(plan_document([(0.0, 4.0, 1.5), (1.0, 4.0, 1.5)], hold_s=3.0)))
 
@@ -180,7 +182,8 @@ def test_fly_records_leg_events_and_fixes_at_their_own_time(tmp_path, capsys):
     navs[-1]["params"][0] = 2.0
     plan = tmp_path / "legs.plan"
     plan.write_text(json.dumps(doc))
-    sim = start_sim(speedup=5.0, boot_s=0.5)
+    # a snappy copter (1 m/s^2, no settle): the legs reach their 2 m/s, so their durations follow from length / speed
+    sim = start_sim(speedup=5.0, boot_s=0.5, params=dataclasses.replace(FAST_PARAMS, wp_accel_mps2=1.0, wp_settle_s=0.0))
     camera = MjpegServer(fps=15)
     out = tmp_path / "legs.mcap"
     try:
