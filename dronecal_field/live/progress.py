@@ -217,25 +217,29 @@ def leg_outcome(seq: int, end_ns: int, frames: int, detections: list[Detection],
 def solve(points: list[WaypointPoint], width: int, height: int, waypoints: int, previous: LiveEstimate | None = None) -> LiveEstimate | None:
     """The camera from the used hold points (None below 6 points or on degenerate geometry), with its linearised uncertainty.
 
-    ``previous`` starts the solver from the last estimate (one short fit per hold).
+    The model is chosen as calibrate chooses it (``maps.select_model``: the
+    richest the points support, by F-test), so a handful of points never
+    gets a 14-parameter lens. The uncertainty is taken from the fit's own
+    residuals (sigma_2d = the residual sigma corrected for the free
+    parameters, sigma_3d = 0): the receiver's reported accuracy is often far
+    from the RTK noise (the simulator reports 30 cm), and calibrate too
+    replaces it by the noise it measures on the residuals.
+    ``previous`` is returned when the new solve fails.
     """
-    from dronecal_field.core.calibrate import calibrate
     from dronecal_field.core.uncertainty import linearised
     from dronecal_field.errors import DronecalError
+    from dronecal_field.pipeline.maps import select_model
 
     used = [p for p in points if p.used]
     if len(used) < MIN_SOLVE_POINTS:
         return None
     X = np.array([p.marker_enu_m for p in used])  # (N, 3) ENU metres
     uv = np.array([p.uv_px for p in used])  # (N, 2) px
-    s3 = np.array([p.sigma_enu_m for p in used])
-    s2 = np.array([p.sigma_px for p in used])
     try:
-        initial = previous.camera if previous is not None and previous.n_points >= MIN_SOLVE_POINTS else None
-        result = calibrate(X, uv, width, height, model="auto", loss="huber", loss_scale_px=2.0, initial=initial)
-        if initial is not None and result.rms_px > 5.0 * max(previous.rms_px, 0.5):
-            result = calibrate(X, uv, width, height, model="auto", loss="huber", loss_scale_px=2.0)  # a bad start: from DLT
-        lin = linearised(result.camera, X, sigma_3d=s3, sigma_2d=s2, model=result.model)
+        result, _reason = select_model(X, uv, width, height, loss="huber", loss_scale_px=2.0)
+        n_eq = 2 * len(used)
+        sigma_px = max(float(result.residual_sigma_px) * float(np.sqrt(n_eq / max(n_eq - result.model.n_free, 1))), 0.05)
+        lin = linearised(result.camera, X, sigma_3d=0.0, sigma_2d=sigma_px, model=result.model)
     except (DronecalError, ValueError, np.linalg.LinAlgError):
         return previous  # coplanar so far, or a failed fit: keep what we had
     i = result.camera.intrinsics
@@ -244,6 +248,12 @@ def solve(points: list[WaypointPoint], width: int, height: int, waypoints: int, 
         waypoints=int(waypoints), n_points=len(used), camera=result.camera, model=result.model.name, rms_px=float(result.rms_px),
         focal_px=0.5 * (i.fx + i.fy), focal_std_px=focal_std, ground_error_15m_cm=float(lin.ground_error_15m_cm),
     )
+
+
+def constrained(estimate: LiveEstimate | None, max_focal_rel_std: float = 0.05) -> bool:
+    """The running calibration means something yet: its focal length known to ``max_focal_rel_std`` (1 sigma)."""
+    return (estimate is not None and np.isfinite(estimate.focal_std_px) and np.isfinite(estimate.ground_error_15m_cm)
+            and estimate.focal_std_px <= max_focal_rel_std * estimate.focal_px)
 
 
 # ----------------------------------------------------------------------------
@@ -332,8 +342,10 @@ def verdict(outcomes: list[WaypointOutcome], expected: list[int], estimate: Live
     tail = []
     if cover is not None:
         tail.append(f"coverage {100 * cover:.0f} % of the plan's ROI")
-    if estimate is not None:
+    if constrained(estimate):
         tail.append(f"predicted ground error {estimate.ground_error_15m_cm:.1f} cm at 15 m ({estimate.n_points} points)")
+    elif estimate is not None:
+        tail.append(f"the calibration is not constrained yet (focal ± {100 * estimate.focal_std_px / estimate.focal_px:.0f} % from {estimate.n_points} points)")
     elif detected < MIN_SOLVE_POINTS:
         tail.append(f"only {detected} points: calibrate needs {MIN_SOLVE_POINTS}")
     if not refly:
@@ -352,8 +364,10 @@ def summary_line(outcomes: list[WaypointOutcome], expected: list[int], estimate:
              + (f" (seq {', '.join(map(str, missed[:8]))}{'...' if len(missed) > 8 else ''})" if missed else "")]
     if cover is not None:
         parts.append(f"coverage {100 * cover:.0f} %")
-    if estimate is not None:
+    if constrained(estimate):
         parts.append(f"f {estimate.focal_px:.1f} ± {estimate.focal_std_px:.1f} px, ground {estimate.ground_error_15m_cm:.1f} cm at 15 m")
+    elif estimate is not None:
+        parts.append(f"calibration: not constrained yet ({estimate.n_points} points, model {estimate.model})")
     else:
         parts.append("calibration: waiting for 6 points")
     if offset is not None and offset.method != "none":

@@ -32,6 +32,7 @@ from dronecal_field.live.progress import (
     LiveOptions,
     Verdict,
     WaypointOutcome,
+    constrained,
     coverage,
     detect_in_frames,
     expected_seqs,
@@ -209,7 +210,7 @@ class LiveCalibration:
             missed = len({o.seq for o in self.outcomes if not o.good} - {o.seq for o in self.outcomes if o.good})
             est = self.estimate
         text = f"live {good} ok {missed} missed"
-        if est is not None:
+        if constrained(est):
             text += f" | {est.ground_error_15m_cm:.1f} cm@15m"
         if self.jobs_dropped:
             text += f" | {self.jobs_dropped} unchecked"
@@ -306,7 +307,8 @@ class LiveCalibration:
         every = max(1, self.options.summary_every)
         offset = self.offset
         if len(outcomes) % every == 0:
-            dets = [d for o in outcomes for d in o.detections] + list(self.leg_detections)
+            # The marker moving across the image (legs) shows the offset; still holds do not (they only add noise to it).
+            dets = list(self.leg_detections)
             if len(dets) >= 12 and len(track.t_ns) >= 4:
                 t = np.array([d.timestamp_ns for d in dets], np.int64)
                 uv = np.array([[d.u_px, d.v_px] for d in dets], float)
