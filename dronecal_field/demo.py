@@ -153,7 +153,7 @@ def start_simulators(
     ), stdout=(logs / "sim-vehicle.log").open("w"), stderr=subprocess.STDOUT)
     camera = subprocess.Popen(cli_argv(
         "sim", "camera", "--connect", f"udpin:127.0.0.1:{camera_link_port}", "--camera", truth_path, "--serve", video_url,
-        "--fps", fps, "--latency-s", latency_s, "--noise-px", noise_px, "--marker-dictionary", marker["dictionary"],
+        "--fps", fps, "--latency-s", latency_s, "--noise-dn", noise_px, "--marker-dictionary", marker["dictionary"],
         "--marker-id", marker["marker_id"], "--marker-size", marker["size_m"],
         "--marker-offset", ",".join(str(v) for v in marker["offset_frd_m"]),
     ), stdout=(logs / "sim-camera.log").open("w"), stderr=subprocess.STDOUT)

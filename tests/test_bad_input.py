@@ -162,7 +162,7 @@ def _numeric(prefix: list[str], flag: str, values: tuple[str, ...] = BAD_NUMBERS
 
 
 # Old flag names kept hidden for one release -> the name the error line uses.
-RENAMED = {"--sigma-2d": "--sigma-px", "--duration": "--duration-s", "--geoid-sep": "--geoid-separation"}
+RENAMED = {"--sigma-2d": "--sigma-px", "--noise-px": "--noise-dn", "--duration": "--duration-s", "--geoid-sep": "--geoid-separation"}
 
 
 FILE_KINDS = ("missing", "dir", "empty", "garbage", "binary", "latin1")
@@ -297,7 +297,7 @@ def _cases() -> list[tuple[str, list[str], str]]:
     for cam in ("cam_focal0", "cam_negfocal", "cam_nan", "cam_rot", "cam_size0"):
         c.append((f"sim camera --camera {cam}", ["sim", "camera", "--connect", "udpin:127.0.0.1:0", "--camera", "{" + cam + "}",
                                                  "--serve", "http://127.0.0.1:0/s.mjpg", "--duration-s", "1"], "{" + cam + "}"))
-    for flag, values in (("--fps", BAD_NUMBERS), ("--latency-s", ("-1", "nan", "inf")), ("--noise-px", ("-1", "nan", "inf")),
+    for flag, values in (("--fps", BAD_NUMBERS), ("--latency-s", ("-1", "nan", "inf")), ("--noise-dn", ("-1", "nan", "inf")), ("--noise-px", ("-1",)),
                          ("--jpeg-quality", ("-1", "101")), ("--marker-id", ("-1", "999")), ("--marker-size", ("0", "-1", "nan", "inf")),
                          ("--marker-offset", ("nan,0,0", "1,2")), ("--duration-s", ("-1", "nan")), ("--vehicle-sysid", ("0", "-1", "256"))):
         c += _numeric(SC, flag, values)

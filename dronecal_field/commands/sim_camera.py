@@ -8,7 +8,7 @@ with --write-truth. See docs/simulators.md.
 
 Example:
   dronecal-field sim camera --connect udpin:127.0.0.1:14551 --camera truth.yaml \\
-      --serve http://127.0.0.1:8554/stream.mjpg --fps 10 --noise-px 2
+      --serve http://127.0.0.1:8554/stream.mjpg --fps 10 --noise-dn 2
 """
 
 from __future__ import annotations
@@ -57,7 +57,9 @@ def register(sims: argparse._SubParsersAction) -> None:
     parser.add_argument("--serve", default="http://127.0.0.1:8554/stream.mjpg", help="MJPEG URL to serve; port 0 picks a free one (default %(default)s)")
     parser.add_argument("--fps", type=float, default=10.0, help="frames per second (default %(default)s)")
     parser.add_argument("--latency-s", type=float, default=0.0, help="frames show the vehicle this many seconds late (default %(default)s)")
-    parser.add_argument("--noise-px", type=float, default=2.0, help="Gaussian pixel-value noise, standard deviation in 8-bit grey levels (default %(default)s)")
+    parser.add_argument("--noise-dn", dest="noise_px", type=float, default=2.0, metavar="DN",
+                        help="Gaussian image noise, standard deviation in 8-bit grey levels (default %(default)s)")
+    parser.add_argument("--noise-px", dest="noise_px", type=float, help=argparse.SUPPRESS)  # the old name (it is not pixels), for one release
     parser.add_argument("--jpeg-quality", type=int, default=90, help="JPEG quality 0..100 (default %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="background and noise seed (default %(default)s)")
     parser.add_argument("--marker-dictionary", default="DICT_4X4_50", help="OpenCV ArUco dictionary (default %(default)s)")
@@ -108,7 +110,7 @@ def _check_flags(args: argparse.Namespace) -> None:
         raise InputError(f"--serve {args.serve!r}: the simulated camera serves MJPEG over http: write e.g. http://127.0.0.1:8554/stream.mjpg")
     check_number("--fps", args.fps, 0, 240, low_open=True, hint="give frames per second, e.g. 10")
     check_number("--latency-s", args.latency_s, 0, 10, hint="give seconds, e.g. 0.2")
-    check_number("--noise-px", args.noise_px, 0, 255, hint="give a grey-level standard deviation, e.g. 2")
+    check_number("--noise-dn", args.noise_px, 0, 255, hint="give a grey-level standard deviation, e.g. 2")
     check_number("--jpeg-quality", args.jpeg_quality, 0, 100, hint="give 0..100, e.g. 90")
     check_marker(args.marker_dictionary, args.marker_id)
     check_number("--marker-size", args.marker_size, 0, 10, low_open=True, hint="give the side of the black square in metres, e.g. 0.3")
