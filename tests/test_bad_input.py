@@ -390,3 +390,39 @@ def test_the_table_covers_every_command() -> None:
     for command in ("plan", "fly", "calibrate", "uncertainty", "import", "survey", "survey report", "survey export", "sim vehicle", "sim camera", "demo"):
         assert per_command.get(command, 0) >= 5, (command, per_command)
     assert len(CASES) >= 200
+
+
+def _subparser(parser, *names: str):
+    for name in names:
+        action = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+        parser = action.choices[name]
+    return parser
+
+
+def test_one_vocabulary_across_commands() -> None:
+    """The same thing has the same flag, unit and default everywhere; old names parse but are not listed."""
+    from dronecal_field.cli import build_parser
+
+    root = build_parser()
+    parsers = {name: _subparser(root, *name.split()) for name in ("plan", "fly", "import", "sim camera", "sim vehicle", "uncertainty", "survey")}
+    options = {name: {s: a for a in p._actions for s in a.option_strings} for name, p in parsers.items()}
+    for name in ("plan", "fly", "import", "sim camera"):
+        for flag in ("--marker-dictionary", "--marker-id", "--marker-size", "--marker-offset"):
+            assert flag in options[name] and options[name][flag].help != "==SUPPRESS==", (name, flag)
+        assert options[name]["--marker-offset"].metavar == "F,R,D", name
+    assert options["import"]["--marker-offset"].default == options["sim camera"]["--marker-offset"].default == "0,0,0"
+    assert options["sim camera"]["--marker-size"].default == 0.3
+    for name in ("uncertainty", "survey"):
+        assert options[name]["--sigma-px"].default == 2.0
+    assert "--duration-s" in options["sim vehicle"] and "--duration-s" in options["sim camera"]
+    assert "--geoid-separation" in options["sim vehicle"] and "--geoid-separation" in options["plan"]
+    hidden = {"plan": "--aruco-dict", "sim vehicle": ("--duration", "--geoid-sep"), "uncertainty": "--sigma-2d", "survey": "--sigma-2d", "sim camera": "--noise-px"}
+    for name, flags in hidden.items():
+        help_text = parsers[name].format_help()
+        for flag in (flags,) if isinstance(flags, str) else flags:
+            assert options[name][flag].help == "==SUPPRESS==" and f"{flag} " not in help_text, (name, flag)
+    # an old name lands where the new one does
+    args = root.parse_args(["sim", "vehicle", "--home", "0,0,0", "--duration", "3", "--geoid-sep", "1.5"])
+    assert (args.duration, args.geoid_sep) == (3.0, 1.5)
+    args = root.parse_args(["plan", "--out", "x", "--aruco-dict", "DICT_5X5_50"])
+    assert args.aruco_dict == "DICT_5X5_50"
