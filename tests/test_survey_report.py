@@ -125,3 +125,19 @@ def test_each_survey_action_prints_its_own_help(capsys, action, own, foreign) ->
     assert own in text and foreign not in text
     assert text.startswith("usage: dronecal-field survey" + ("" if action == "run" else f" {action}"))
     assert "``" not in text
+
+
+def test_report_folder_is_replaced_as_a_set_keeping_other_files(tmp_path) -> None:
+    """A re-run replaces the report's own files at once (no half-new folder) and keeps what the user put there."""
+    from dronecal_field.survey.report import REPORT_FILES, write_report
+
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "notes.txt").write_text("reviewed with the team\n")
+    (out / "figure8.png").write_bytes(b"stale")
+    files = write_report(DATA, out, fig10_trials=20)
+    assert files.html == out / "index.html" and files.html.is_file()
+    assert sorted(p.name for p in out.iterdir()) == sorted([*REPORT_FILES, "notes.txt"])
+    assert (out / "notes.txt").read_text() == "reviewed with the team\n"
+    assert (out / "figure8.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".report.")]  # no temporary sibling left

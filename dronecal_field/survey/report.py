@@ -82,24 +82,38 @@ def write_report(results: str | os.PathLike, out_dir: str | os.PathLike, fig10_t
     ----------
     results : survey results directory or exported parquet file
     out_dir : created if needed; receives figure8.png, figure9.png,
-        figure10.png, findings.json and index.html
+        figure10.png, findings.json and index.html as one set (written into a
+        temporary sibling that replaces the folder; other files in it are kept)
     fig10_trials : Monte-Carlo trials of Figure 10 (default: the survey's)
     """
-    from dronecal_field.survey import figures
+    from dronecal_field.outfolder import replace_folder, staged_folder
     from dronecal_field.survey.store import load_results, read_config
 
     table = load_results(results)
     config = read_config(results) or {}
     mc_cfg = config.get("monte_carlo", {})
     settings = MonteCarloSettings(
-        trials=int(fig10_trials or mc_cfg.get("trials", 500)),
+        trials=int(fig10_trials if fig10_trials is not None else mc_cfg.get("trials", 500)),
         sigma_3d=tuple(mc_cfg.get("sigma_3d", (0.01, 0.01, 0.015))),  # type: ignore[arg-type]
         sigma_2d=float(mc_cfg.get("sigma_2d", 2.0)),
         model=str(mc_cfg.get("model", "default")),
         seed=int(mc_cfg.get("seed", 0)),
     )
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    final = Path(out_dir)
+    with staged_folder(final) as out:
+        files = _write_report_files(table, config, settings, results, out)
+        replace_folder(out, final, ours=lambda name: name in REPORT_FILES)
+    return replace(files, html=final / files.html.name, json=final / files.json.name,
+                   figures={k: final / p.name for k, p in files.figures.items()})
+
+
+REPORT_FILES = ("figure8.png", "figure9.png", "figure10.png", "findings.json", "index.html")
+
+
+def _write_report_files(table, config: dict, settings: MonteCarloSettings, results, out: Path) -> ReportFiles:
+    """The figures, findings.json and index.html of a survey, into the folder ``out``."""
+    from dronecal_field.survey import figures
+
     found = paper_findings(table)
     near = near_winners_fov(table)
     counts = status_counts(table)
