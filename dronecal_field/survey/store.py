@@ -240,5 +240,10 @@ def export_results(source: str | os.PathLike, dest: str | os.PathLike) -> Path:
     if manifest is not None:
         table = table.replace_schema_metadata({b"dronecal_survey": json.dumps(manifest).encode()})
     dest = Path(dest)
-    pq.write_table(table, dest, compression="zstd")
+    tmp = dest.with_name(f".{dest.name}.tmp-{uuid.uuid4().hex[:8]}")
+    try:  # a hidden file renamed into place: an interrupted export leaves no half file under the name
+        pq.write_table(table, tmp, compression="zstd")
+        os.replace(tmp, dest)
+    finally:
+        tmp.unlink(missing_ok=True)
     return dest
