@@ -214,7 +214,8 @@ def leg_outcome(seq: int, end_ns: int, frames: int, detections: list[Detection],
 # the running calibration
 
 
-def solve(points: list[WaypointPoint], width: int, height: int, waypoints: int, previous: LiveEstimate | None = None) -> LiveEstimate | None:
+def solve(points: list[WaypointPoint], width: int, height: int, waypoints: int, previous: LiveEstimate | None = None,
+          prior: Camera | None = None) -> LiveEstimate | None:
     """The camera from the used hold points (None below 6 points or on degenerate geometry), with its linearised uncertainty.
 
     The model is chosen as calibrate chooses it (``maps.select_model``: the
@@ -224,7 +225,10 @@ def solve(points: list[WaypointPoint], width: int, height: int, waypoints: int, 
     parameters, sigma_3d = 0): the receiver's reported accuracy is often far
     from the RTK noise (the simulator reports 30 cm), and calibrate too
     replaces it by the noise it measures on the residuals.
-    ``previous`` is returned when the new solve fails.
+    ``previous`` is returned when the new solve fails. ``prior`` (the plan's
+    guessed camera, same ENU frame) is a second start for the chosen model:
+    the lower-RMS fit is kept (on the first, nearly one-layer holds the DLT
+    start can land in a basin at twice the focal length).
     """
     from dronecal_field.core.uncertainty import linearised
     from dronecal_field.errors import DronecalError
@@ -237,6 +241,15 @@ def solve(points: list[WaypointPoint], width: int, height: int, waypoints: int, 
     uv = np.array([p.uv_px for p in used])  # (N, 2) px
     try:
         result, _reason = select_model(X, uv, width, height, loss="huber", loss_scale_px=2.0)
+        if prior is not None:
+            from dronecal_field.core.calibrate import calibrate
+
+            try:
+                alt = calibrate(X, uv, width, height, model=result.model, loss="huber", loss_scale_px=2.0, initial=prior)
+                if alt.rms_px < result.rms_px:
+                    result = alt
+            except (DronecalError, ValueError, np.linalg.LinAlgError):
+                pass
         n_eq = 2 * len(used)
         sigma_px = max(float(result.residual_sigma_px) * float(np.sqrt(n_eq / max(n_eq - result.model.n_free, 1))), 0.05)
         lin = linearised(result.camera, X, sigma_3d=0.0, sigma_2d=sigma_px, model=result.model)
@@ -250,10 +263,30 @@ def solve(points: list[WaypointPoint], width: int, height: int, waypoints: int, 
     )
 
 
-def constrained(estimate: LiveEstimate | None, max_focal_rel_std: float = 0.05) -> bool:
-    """The running calibration means something yet: its focal length known to ``max_focal_rel_std`` (1 sigma)."""
-    return (estimate is not None and np.isfinite(estimate.focal_std_px) and np.isfinite(estimate.ground_error_15m_cm)
-            and estimate.focal_std_px <= max_focal_rel_std * estimate.focal_px)
+def constrained(estimate: LiveEstimate | None, prior: Camera | None = None, max_focal_rel_std: float = 0.05, max_shift_m: float = 2.0) -> bool:
+    """The running calibration means something yet: its focal length known to ``max_focal_rel_std`` (1 sigma) and,
+    with the plan's guessed camera ``prior``, the camera within ``max_shift_m`` of where the plan put it (the pole
+    is surveyed to a metre or two; a camera metres away is a wrong solution whatever its sigma says)."""
+    if estimate is None or not (np.isfinite(estimate.focal_std_px) and np.isfinite(estimate.ground_error_15m_cm)):
+        return False
+    if estimate.focal_std_px > max_focal_rel_std * estimate.focal_px:
+        return False
+    if prior is not None and np.linalg.norm(estimate.camera.pose.position_world - prior.pose.position_world) > max_shift_m:
+        return False
+    return True
+
+
+def guessed_camera(plan: dict | None) -> Camera | None:
+    """The plan's guessed camera in its ENU frame (``plan.json`` ``camera_guess``), None without one."""
+    try:
+        g = plan["camera_guess"]
+        R = np.asarray(g["rotation_world_to_camera"], float)
+        c = np.asarray(g["position_enu_m"], float)
+        f = float(g["focal_px"])
+        return Camera.from_arrays([f, f, float(g["cx"]), float(g["cy"])], g.get("distortion_k1_k2_p1_p2_k3") or [0.0] * 5, R, -R @ c,
+                                  int(g["width"]), int(g["height"]))
+    except (KeyError, TypeError, ValueError):
+        return None
 
 
 # ----------------------------------------------------------------------------
@@ -321,7 +354,8 @@ class Verdict:
     refly_seqs: tuple[int, ...]
 
 
-def verdict(outcomes: list[WaypointOutcome], expected: list[int], estimate: LiveEstimate | None, cover: float | None) -> Verdict:
+def verdict(outcomes: list[WaypointOutcome], expected: list[int], estimate: LiveEstimate | None, cover: float | None,
+            prior: Camera | None = None) -> Verdict:
     """``good: ...`` or ``re-fly waypoints 12, 17, 31 (marker not detected)``; unflown expected waypoints are re-flown too."""
     by_seq: dict[int, WaypointOutcome] = {}
     for o in outcomes:
@@ -342,7 +376,7 @@ def verdict(outcomes: list[WaypointOutcome], expected: list[int], estimate: Live
     tail = []
     if cover is not None:
         tail.append(f"coverage {100 * cover:.0f} % of the plan's ROI")
-    if constrained(estimate):
+    if constrained(estimate, prior):
         tail.append(f"predicted ground error {estimate.ground_error_15m_cm:.1f} cm at 15 m ({estimate.n_points} points)")
     elif estimate is not None:
         tail.append(f"the calibration is not constrained yet (focal ± {100 * estimate.focal_std_px / estimate.focal_px:.0f} % from {estimate.n_points} points)")
@@ -356,15 +390,21 @@ def verdict(outcomes: list[WaypointOutcome], expected: list[int], estimate: Live
 
 
 def summary_line(outcomes: list[WaypointOutcome], expected: list[int], estimate: LiveEstimate | None, cover: float | None,
-                 offset: Any | None) -> str:
-    """``live: 9/24 waypoints, 8 detected, 1 missed (seq 12) | coverage 41 % | ground 3.2 cm at 15 m | camera offset +0.12 s``."""
-    missed = sorted({o.seq for o in outcomes if not o.good} - {o.seq for o in outcomes if o.good})
-    detected = len({o.seq for o in outcomes if o.good})
-    parts = [f"live: {len({o.seq for o in outcomes})}/{len(expected)} waypoints, {detected} detected, {len(missed)} missed"
+                 offset: Any | None, prior: Camera | None = None) -> str:
+    """``live: 9/24 waypoints, 8 detected, 1 missed (seq 12) | coverage 41 % | ground 3.2 cm at 15 m | camera offset +0.12 s``.
+
+    The counts are of the measurement waypoints (``expected``).
+    """
+    want = set(expected)
+    good = {o.seq for o in outcomes if o.good and o.seq in want}
+    flown = {o.seq for o in outcomes if o.seq in want}
+    missed = sorted(flown - good)
+    detected = len(good)
+    parts = [f"live: {len(flown)}/{len(expected)} waypoints, {detected} detected, {len(missed)} missed"
              + (f" (seq {', '.join(map(str, missed[:8]))}{'...' if len(missed) > 8 else ''})" if missed else "")]
     if cover is not None:
         parts.append(f"coverage {100 * cover:.0f} %")
-    if constrained(estimate):
+    if constrained(estimate, prior):
         parts.append(f"f {estimate.focal_px:.1f} ± {estimate.focal_std_px:.1f} px, ground {estimate.ground_error_15m_cm:.1f} cm at 15 m")
     elif estimate is not None:
         parts.append(f"calibration: not constrained yet ({estimate.n_points} points, model {estimate.model})")

@@ -37,6 +37,7 @@ from dronecal_field.live.progress import (
     detect_in_frames,
     expected_seqs,
     fix_track,
+    guessed_camera,
     hold_outcome,
     image_roi,
     leg_outcome,
@@ -70,6 +71,7 @@ class LiveResult:
     cpu_s: float
     wall_s: float
     summaries: list[str] = field(default_factory=list)
+    constrained: bool = False  # the estimate passed progress.constrained (focal to 5 %, camera where the plan put it)
 
     def to_dict(self) -> dict:
         return {
@@ -82,6 +84,7 @@ class LiveResult:
             ],
             "expected_seqs": self.expected,
             "estimate": None if self.estimate is None else self.estimate.to_dict(),
+            "estimate_constrained": self.constrained,
             "history": self.history,
             "coverage": self.coverage,
             "camera_offset": None if self.offset is None else self.offset.to_dict(),
@@ -121,6 +124,8 @@ class LiveCalibration:
         self.view = view
         self.camera_offset_ns = int(round((camera_latency_s or 0.0) * 1e9))
         self.expected = expected_seqs(mission, plan)
+        # The plan's guess is in the plan's ENU frame: a start and a sanity check only when the live frame is that one.
+        self.prior = guessed_camera(plan) if plan is not None and origin is not None else None
         self._frames: collections.deque = collections.deque()
         self._ring_bytes = 0
         self._last_kept_ns = 0
@@ -182,12 +187,12 @@ class LiveCalibration:
         if self._thread is not None:
             self._thread.join(timeout=timeout_s)
         with self._lock:
-            v = verdict(self.outcomes, [s for s in self.expected if s not in self.unchecked], self.estimate, self.coverage)
+            v = verdict(self.outcomes, [s for s in self.expected if s not in self.unchecked], self.estimate, self.coverage, self.prior)
             result = LiveResult(
                 outcomes=list(self.outcomes), expected=list(self.expected), estimate=self.estimate, history=list(self.history),
                 verdict=v, coverage=self.coverage, offset=self.offset, jobs_dropped=self.jobs_dropped,
                 unchecked=sorted(set(self.unchecked)), cpu_s=self._cpu_s, wall_s=time.monotonic() - self._started,
-                summaries=list(self.summaries),
+                summaries=list(self.summaries), constrained=constrained(self.estimate, self.prior),
             )
         if self.view is not None:
             try:
@@ -210,7 +215,7 @@ class LiveCalibration:
             missed = len({o.seq for o in self.outcomes if not o.good} - {o.seq for o in self.outcomes if o.good})
             est = self.estimate
         text = f"live {good} ok {missed} missed"
-        if constrained(est):
+        if constrained(est, self.prior):
             text += f" | {est.ground_error_15m_cm:.1f} cm@15m"
         if self.jobs_dropped:
             text += f" | {self.jobs_dropped} unchecked"
@@ -303,7 +308,7 @@ class LiveCalibration:
             self.outcomes.append(outcome)
             outcomes = list(self.outcomes)
         points = [o.point for o in outcomes if o.point is not None]
-        estimate = solve(points, self.width, self.height, waypoints=len(outcomes), previous=self.estimate)
+        estimate = solve(points, self.width, self.height, waypoints=len(outcomes), previous=self.estimate, prior=self.prior)
         every = max(1, self.options.summary_every)
         offset = self.offset
         if len(outcomes) % every == 0:
@@ -324,7 +329,7 @@ class LiveCalibration:
                 entry.update(estimate.to_dict())
             self.history.append(entry)
             if len(outcomes) % every == 0:
-                self.summaries.append(summary_line(outcomes, self.expected, estimate, cover, offset))
+                self.summaries.append(summary_line(outcomes, self.expected, estimate, cover, offset, self.prior))
 
     # ----- the Foxglove view -----
     def _publish_waypoint_frame(self, picked: list, dets: list) -> None:
