@@ -38,3 +38,50 @@ def test_a_sped_up_one_second_hold_decodes_every_frame_it_has():
     assert len(taken) == 15  # every frame of the hold, not a 24-frame budget spread over its margins
     # A real 3 s hold keeps its budget (frames about 0.23 s apart).
     assert len(_decoded_in(HoverWindow(index=0, start_ns=10 * S, end_ns=13 * S, source="event", seq=1), fps=15.0)) <= 14
+
+
+def _video_cost(options: SamplingOptions, gop: int, fps: float = 25.0, hold_s: float = 6.0, legs=None) -> tuple[int, int, np.ndarray]:
+    """(frames wanted, access units decoded, wanted stamps) of a /camera/video stream with a keyframe every ``gop`` frames.
+
+    A wanted frame costs the access units since the last one decoded in its GOP
+    (the decoder runs on from there) or since its keyframe (VideoFrameDecoder).
+    """
+    window = HoverWindow(index=0, start_ns=10 * S, end_ns=int((10 + hold_s) * S), source="event", seq=1)
+    selector = FrameSelector([window], options, legs=legs, video=True)
+    stamps = (np.arange(int(40 * fps)) * S / fps).astype(np.int64)
+    wanted, units, pending = [], 0, 0
+    for i, t in enumerate(stamps):
+        key = i % gop == 0
+        pending = 1 if key else pending + 1
+        if selector.wants(int(t), keyframe=key)[0]:
+            wanted.append(int(t))
+            units, pending = units + pending, 0
+    return len(wanted), units, np.array(wanted, np.int64)
+
+
+def test_video_windows_take_keyframes_and_a_burst_not_frames_spread_over_each_gop():
+    """A 6 s hold at 25 fps, 2 s GOP: the old choice (a frame every 0.4 s) decodes nearly every access unit of
+    the widened window (8.4 s, 210 frames); keyframes + 2 frames after each decode 12, 17x fewer."""
+    old_wanted, old_units, _ = _video_cost(SamplingOptions(video_bursts=False), gop=50)
+    new_wanted, new_units, stamps = _video_cost(SamplingOptions(), gop=50)
+    assert old_wanted == 24 and old_units >= 200
+    assert new_units == new_wanted == 12  # 4 keyframes in [8.8 s, 17.2 s], each with the 2 frames after it
+    assert np.count_nonzero(stamps % (2 * S) == 0) == 4 and np.diff(stamps).max() <= 2 * S
+    # A 4 s GOP: its keyframes alone (no frame is worth decoding half a GOP for); a 10 s GOP still gets a
+    # frame every 4.5 s, decoded from its keyframe (the cost such a camera imposes, counted).
+    assert _video_cost(SamplingOptions(), gop=100)[1] == 6
+    wanted, units, stamps = _video_cost(SamplingOptions(), gop=250)
+    assert wanted >= 2 and units > 100 and np.diff(stamps).max() <= 4.5 * S + S // 25
+    # An image run (video=False) keeps the clock-spaced choice whatever keyframe says.
+    plain = FrameSelector([HoverWindow(index=0, start_ns=10 * S, end_ns=16 * S, source="event", seq=1)])
+    assert sum(plain.wants(int(t), keyframe=True)[0] for t in np.arange(8 * S, 18 * S, S // 25)) == 24
+
+
+def test_video_legs_get_motion_bursts_at_the_leg_period():
+    """A 6 s leg: a burst of 8 frames after each keyframe, thinned to the leg's period: 2 wanted per GOP, 8 units."""
+    legs = [(20 * S, 26 * S)]
+    wanted, units, stamps = _video_cost(SamplingOptions(), gop=50, legs=legs)
+    on_leg = stamps[(stamps >= 18 * S) & (stamps <= 28 * S)]
+    assert list(np.diff(on_leg)[::2]) == [int(0.28 * S)] * (len(on_leg) // 2)  # keyframe, then 7 frames later (0.28 s >= 0.25 s)
+    _, old_units, _ = _video_cost(SamplingOptions(video_bursts=False), gop=50, legs=legs)
+    assert units * 4 < old_units

@@ -126,6 +126,7 @@ class PointOptions:
     paired: bool = True  # 3D and 2D over the same instants (False: separate medians of fixes and detections)
     pair_at: str = "fixes"  # "fixes": the image track at each fix; "detections": the GNSS track at each detection
     pair_max_gap_s: float = 0.5  # a sample pairs only when the other stream has samples this close on both sides
+    pair_across_gaps: bool = False  # "fixes": every fix pairs with the image track interpolated across its gaps (sparse frames: keyframe bursts of /camera/video)
 
     def __post_init__(self) -> None:
         if self.pair_at not in ("fixes", "detections"):
@@ -339,6 +340,9 @@ def window_point(
         gap = int(options.pair_max_gap_s * 1e9)
         near = (det_t >= a - gap) & (det_t <= b + gap)
         uv_at, bracketed = track_at(fix_t_ns[fix_idx], det_t[near], np.asarray(det_uv_px, float)[near], options.pair_max_gap_s)
+        if options.pair_across_gaps:
+            # A hold is still: between bursts 2 s apart the track is interpolated, beyond its ends held (np.interp).
+            bracketed = np.ones_like(bracketed)
         if bracketed.sum() >= max(options.min_fixes, options.min_detections):
             xyz, uv = paired_centre(np.asarray(marker_enu_m, float)[fix_idx[bracketed]], uv_at[bracketed])
             _, scatter_uv = robust_centre(np.asarray(det_uv_px, float)[in_det])

@@ -109,6 +109,7 @@ class FrameStats:
     other_ids: tuple[int, ...]
     transitions_dense: int
     formats: tuple[str, ...]
+    video_units_decoded: int | None = None  # /camera/video: access units the decoder ran through (the real cost), None for images
 
     def to_dict(self) -> dict:
         return {
@@ -119,6 +120,7 @@ class FrameStats:
             "other_marker_ids_seen": list(self.other_ids),
             "transitions_decoded_densely": self.transitions_dense,
             "formats": list(self.formats),
+            "video_units_decoded": self.video_units_decoded,
         }
 
 
@@ -451,7 +453,7 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
     from dronecal_field.pipeline.sampling import FrameSelector
 
     marker = md.marker
-    selector = FrameSelector(windows, sampling, legs=[(g.start_ns, g.end_ns) for g in legs])
+    selector = FrameSelector(windows, sampling, legs=[(g.start_ns, g.end_ns) for g in legs], video=run.video)
     detector = None
     if marker.kind == "aruco":
         try:
@@ -474,7 +476,7 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
         read += 1
         decoder.push(frame)
         # Decisions use what was detected so far (a transition is decoded once its hold showed the marker).
-        decode, group = selector.wants(frame.timestamp_ns)
+        decode, group = selector.wants(frame.timestamp_ns, keyframe=bool(getattr(frame, "keyframe", False)))
         if not decode:
             continue
         decoded += 1
@@ -512,6 +514,7 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
         other_ids=tuple(sorted(others)),
         transitions_dense=len(selector.transitions_taken),
         formats=tuple(sorted(formats)),
+        video_units_decoded=decoder.video_stats[0] if decoder.video_stats is not None else None,
     )
     return Detections(
         items=detections,
@@ -569,6 +572,8 @@ def _points(
     With ``noise`` (measured after a first solve) each point's sigma follows it.
     """
     po = replace(options.points, min_fix=options.min_fix)
+    if dets.stats.video_units_decoded is not None and options.sampling.video_bursts:
+        po = replace(po, pair_across_gaps=True)  # keyframe bursts leave 1-4 s between a hold's frames (pipeline.sampling)
     # Each detection at the instant its marker row was read out.
     det_t = dets.t_ns + np.round(centres_px[:, 1] * timing.line_time_s * 1e9).astype(np.int64) if len(dets.t_ns) else dets.t_ns
     det_marker = None  # pairing at the fixes interpolates the image track instead

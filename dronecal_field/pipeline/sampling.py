@@ -19,6 +19,19 @@ decodes:
   to ``leg_period_s`` apart: each fix on a leg is paired with the image track
   around it, so the track must be dense there.
 
+For a ``/camera/video`` run (``video=True``) a frame costs a decode of every
+access unit from the keyframe before it, so the choice follows the GOP
+instead of the clock: in a window, where the marker is still, the keyframes
+and a short burst of ``video_burst_frames`` after each (decoded in sequence
+from the keyframe: a few access units each) instead of frames every
+``max_period_s`` (each of which would decode most of its GOP); on
+transitions and legs, where the marker moves, a longer burst of
+``video_motion_burst_frames`` after each keyframe, at the zone's period. A
+stream whose keyframes are further apart than ``video_max_period_s`` still
+gets a frame that often (from its keyframe: the cost the GOP imposes).
+Pairing then interpolates a hold's image track across the gaps between
+bursts (``PointOptions.pair_across_gaps``): the marker is still there.
+
 Decisions use only what was already seen, so the pass stays single and the
 memory bounded. Times are frame stamps (camera clock), ns.
 """
@@ -42,6 +55,11 @@ class SamplingOptions:
     dense_period_s: float = 1.0 / 15.0  # but no faster than this (15 Hz resolves a 1 s offset to ms)
     max_transitions: int = 10
     leg_period_s: float = 0.25  # frames on a leg at most this often (every third frame at 10 fps: a smooth path, a cubic through 4)
+    # /camera/video: frames follow the keyframes (a frame costs the access units since its keyframe).
+    video_bursts: bool = True  # False: the clock-spaced choice above, each frame decoded from its keyframe
+    video_burst_frames: int = 3  # in a window: the keyframe and the next two (a still marker: detector noise averages)
+    video_motion_burst_frames: int = 8  # on transitions and legs: the keyframe and the next 7, at the zone's period
+    video_max_period_s: float = 4.5  # a GOP longer than this still gets a frame this often (from its keyframe: a long GOP costs)
 
 
 @dataclass
@@ -71,9 +89,13 @@ class FrameSelector:
         windows: list[HoverWindow],
         options: SamplingOptions = SamplingOptions(),
         legs: list[tuple[int, int]] | None = None,
+        video: bool = False,
     ) -> None:
-        """``legs``: (start_ns, end_ns) of fly-through legs (GNSS clock); their groups follow the windows'."""
+        """``legs``: (start_ns, end_ns) of fly-through legs (GNSS clock); their groups follow the windows'.
+        ``video``: the frames are a ``/camera/video`` stream; pass each frame's ``keyframe`` to :meth:`wants`."""
         self.options = options
+        self.video = bool(video) and options.video_bursts
+        self._burst_left = 0  # /camera/video: frames of the current keyframe's burst still to come
         self.windows = sorted(windows, key=lambda w: w.start_ns)
         self.legs = sorted((int(a), int(b)) for a, b in (legs or []))
         m = int(options.margin_s * 1e9)
@@ -139,8 +161,15 @@ class FrameSelector:
             self._next_allowed = k + self._stride
             self._zones.extend(self._transition_zones(k))
 
-    def wants(self, t_ns: int) -> tuple[bool, int | None]:
-        """(decode?, group) for a frame stamped ``t_ns``; frames arrive in time order."""
+    def wants(self, t_ns: int, keyframe: bool = False) -> tuple[bool, int | None]:
+        """(decode?, group) for a frame stamped ``t_ns``; frames arrive in time order.
+
+        ``keyframe``: the frame starts a GOP (a ``/camera/video`` run; ignored otherwise).
+        """
+        in_burst = False  # /camera/video: this frame follows a burst's keyframe (whatever zone it is in now)
+        if self.video:
+            in_burst = not keyframe and self._burst_left > 0
+            self._burst_left = max(0, self._burst_left - 1) if not keyframe else 0  # a burst never runs into the next GOP
         self._maybe_take_transitions(t_ns)
         # Frames come in time order: zones that ended are done.
         self._zones = [z for z in self._zones if z.end_ns >= t_ns]
@@ -155,11 +184,31 @@ class FrameSelector:
                 best = best or z
         if best is None:
             return False, None
+        if self.video and not every:
+            return self._wants_video(best, t_ns, keyframe, in_burst)
         if not every and best.last_ns is not None and t_ns - best.last_ns < best.period_ns:
             return False, best.group
         best.last_ns = t_ns
         self.n_decoded += 1
         return True, best.group
+
+    def _wants_video(self, zone: _Zone, t_ns: int, keyframe: bool, in_burst: bool) -> tuple[bool, int | None]:
+        """The GOP-following choice: a keyframe starts a burst; a long GOP still gets a frame every video_max_period_s."""
+        o = self.options
+        if keyframe:
+            self._burst_left = max(1, o.video_motion_burst_frames if zone.dense else o.video_burst_frames) - 1
+            take = True
+        elif in_burst:
+            # Inside a burst the access units decode in sequence anyway; a moving zone's period thins what is detected.
+            take = not zone.dense or zone.last_ns is None or t_ns - zone.last_ns >= zone.period_ns
+        else:
+            since = t_ns - (zone.last_ns if zone.last_ns is not None else zone.start_ns)
+            take = since >= int(o.video_max_period_s * 1e9)
+        if not take:
+            return False, zone.group
+        zone.last_ns = t_ns
+        self.n_decoded += 1
+        return True, zone.group
 
     def record(self, group: int | None, detected: bool) -> None:
         """Feed back whether a decoded frame of ``group`` showed the marker."""
