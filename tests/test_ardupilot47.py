@@ -282,7 +282,7 @@ def test_fly_beside_a_ground_station_on_another_link(tmp_path, capsys):
     sim = _vehicle(listen=("udp:127.0.0.1:0", "udp:127.0.0.1:0"), gps_rate_ms=100.0)
     fly_url, gcs_url = sim.addresses()
     camera = MjpegServer(fps=10)
-    gcs = open_link(gcs_url)
+    gcs = open_link(gcs_url, source_component=230)  # another ground station (MAVProxy's component id)
     out = tmp_path / "run.mcap"
     result: dict = {}
     try:
@@ -323,7 +323,12 @@ def test_fly_beside_a_ground_station_on_another_link(tmp_path, capsys):
     with open_run(out) as run:
         reached_fly = sorted({int(e.metadata["seq"]) for e in run.iter_events() if e.type == "hover"})
         fixes = list(run.iter_fixes())
-    sent = [m for m in mavutil_tlog(out.with_suffix(".tlog")) if m.get_srcSystem() == 255]
+        vehicle_sysid = run.metadata_record("dronecal.run")["vehicle.sysid"]
+    tlog = mavutil_tlog(out.with_suffix(".tlog"))
+    sent = [m for m in tlog if m.get_srcSystem() == 255 and m.get_srcComponent() == 190]
+    # ArduPilot routes the GCS's HEARTBEAT to fly's link: fly hears it and still follows the vehicle
+    assert any(m.get_type() == "HEARTBEAT" and (m.get_srcSystem(), m.get_srcComponent()) == (255, 230) for m in tlog)
+    assert vehicle_sysid == "1"
     assert sum(m.get_type() == "MISSION_COUNT" for m in sent) == 1  # fly's one upload, before the flight
     assert {4, 5, 6} <= set(reached_fly) and {4, 5, 6, 7} <= set(reached_gcs)  # seq 7: the GCS's extra point, flown
     assert len(fixes) > 0.8 * 10 * (t_end - t_start)  # 10 Hz GNSS on fly's link

@@ -13,7 +13,9 @@ and MISSION_ITEM_REACHED go to links a client has spoken on): SET_MESSAGE_INTERV
 REQUEST_DATA_STREAM for a stream group, or the link's stream-rate parameters
 ``MAVn_*`` (n = link number + 1: ``MAV1_*`` for the first ``--listen``,
 ``MAV2_*`` for the second...; the older ``SRn_*`` names do nothing in 4.7).
-What one client asks changes its own link only. GPS fixes come every
+What one client asks changes its own link only. A client's untargeted
+messages (its HEARTBEAT) are routed to the other active links, as
+ArduPilot's MAVLink routing does. GPS fixes come every
 ``gps_rate_ms`` (GPS_RATE_MS, ArduPilot's default 200), each about 104 ms old
 when it goes out, with h_acc = v_acc = 300 mm whatever the scatter; a faster
 GPS_RAW_INT stream repeats the last fix (same ``time_usec``). SIMSTATE (in
@@ -462,6 +464,8 @@ class SimVehicle:
     def _handle(self, link: Any, msg: Any) -> None:
         self._active.add(id(link))
         target = getattr(msg, "target_system", 0)
+        if target == 0 and msg.get_srcSystem() != self.config.sysid:
+            self._route(link, msg)
         if target not in (0, self.config.sysid):
             return
         now = self.model.time_s
@@ -592,6 +596,17 @@ class SimVehicle:
     def _broadcast(self, msg: Any) -> None:
         for conn in self.links:
             self._send_to(conn, msg)
+
+    def _route(self, source: Any, msg: Any) -> None:
+        """ArduPilot's MAVLink routing of a client's broadcast (a HEARTBEAT, untargeted): to every other
+        active link, byte for byte, so a ground station and fly hear of each other."""
+        buf = msg.get_msgbuf()
+        for conn in self.links:
+            if conn is not source and id(conn) in self._active:
+                try:
+                    conn.write(buf)
+                except (OSError, ValueError):
+                    pass
 
     def _broadcast_active(self, msg: Any) -> None:
         """To the links a client has spoken on: ArduPilot sends STATUSTEXT and MISSION_ITEM_REACHED to
