@@ -40,13 +40,13 @@ def test_a_sped_up_one_second_hold_decodes_every_frame_it_has():
     assert len(_decoded_in(HoverWindow(index=0, start_ns=10 * S, end_ns=13 * S, source="event", seq=1), fps=15.0)) <= 14
 
 
-def _video_cost(options: SamplingOptions, gop: int, fps: float = 25.0, hold_s: float = 6.0, legs=None) -> tuple[int, int, np.ndarray]:
+def _video_cost(options: SamplingOptions, gop: int, fps: float = 25.0, hold_s: float = 6.0, legs=None, start_s: float = 10.0) -> tuple[int, int, np.ndarray]:
     """(frames wanted, access units decoded, wanted stamps) of a /camera/video stream with a keyframe every ``gop`` frames.
 
     A wanted frame costs the access units since the last one decoded in its GOP
     (the decoder runs on from there) or since its keyframe (VideoFrameDecoder).
     """
-    window = HoverWindow(index=0, start_ns=10 * S, end_ns=int((10 + hold_s) * S), source="event", seq=1)
+    window = HoverWindow(index=0, start_ns=int(start_s * S), end_ns=int((start_s + hold_s) * S), source="event", seq=1)
     selector = FrameSelector([window], options, legs=legs, video=True)
     stamps = (np.arange(int(40 * fps)) * S / fps).astype(np.int64)
     wanted, units, pending = [], 0, 0
@@ -68,13 +68,23 @@ def test_video_windows_take_keyframes_and_a_burst_not_frames_spread_over_each_go
     assert new_units == new_wanted == 12  # 4 keyframes in [8.8 s, 17.2 s], each with the 2 frames after it
     assert np.count_nonzero(stamps % (2 * S) == 0) == 4 and np.diff(stamps).max() <= 2 * S
     # A 4 s GOP: its keyframes alone (no frame is worth decoding half a GOP for); a 10 s GOP still gets a
-    # frame every 4.5 s, decoded from its keyframe (the cost such a camera imposes, counted).
+    # burst in the hold's middle, decoded from its keyframe (the cost such a camera imposes, counted).
     assert _video_cost(SamplingOptions(), gop=100)[1] == 6
     wanted, units, stamps = _video_cost(SamplingOptions(), gop=250)
-    assert wanted >= 2 and units > 100 and np.diff(stamps).max() <= 4.5 * S + S // 25
+    assert np.count_nonzero((stamps >= 13 * S) & (stamps <= 13 * S + 3 * S // 25)) == 3 and 60 < units < 100
     # An image run (video=False) keeps the clock-spaced choice whatever keyframe says.
     plain = FrameSelector([HoverWindow(index=0, start_ns=10 * S, end_ns=16 * S, source="event", seq=1)])
     assert sum(plain.wants(int(t), keyframe=True)[0] for t in np.arange(8 * S, 18 * S, S // 25)) == 24
+
+
+def test_a_video_hold_shorter_than_its_gop_still_gets_a_burst_in_its_settled_part():
+    """plan's default hold at 25 fps is 2.6 s (1 s to settle + 40 frames): with a 2 s GOP its settled part
+    (1.4 s) may hold no keyframe. Whatever the phase, it gets 3 frames there, at most one GOP decoded for them."""
+    for phase in np.arange(0.0, 2.0, 0.1):
+        wanted, units, stamps = _video_cost(SamplingOptions(), gop=50, hold_s=2.6, start_s=10.0 + phase)
+        settled = stamps[(stamps >= (11.0 + phase) * S) & (stamps <= (12.4 + phase) * S)]
+        assert len(settled) >= 3, phase
+        assert units <= 2 * 3 + 50 + 3, phase  # keyframe bursts in the margins, plus at most one GOP's run-up
 
 
 def test_video_legs_get_motion_bursts_at_the_leg_period():

@@ -60,6 +60,7 @@ class SamplingOptions:
     video_burst_frames: int = 3  # in a window: the keyframe and the next two (a still marker: detector noise averages)
     video_motion_burst_frames: int = 8  # on transitions and legs: the keyframe and the next 7, at the zone's period
     video_max_period_s: float = 4.5  # a GOP longer than this still gets a frame this often (from its keyframe: a long GOP costs)
+    video_settle_s: float = 1.0  # a hold's first second (PointOptions.settle_s): past its middle with no frame since, a burst anyway
 
 
 @dataclass
@@ -72,6 +73,8 @@ class _Zone:
     last_ns: int | None = None
     every_from_ns: int | None = None  # every frame in [every_from_ns, every_to_ns] (a short hold)
     every_to_ns: int | None = None
+    settled_ns: int | None = None  # a hold: its settled part starts here (camera clock, offset unknown) ...
+    mid_ns: int | None = None  # ... and a video hold with no frame since then gets a burst from here
 
     def covers_every(self, t_ns: int) -> bool:
         return self.every_from_ns is not None and self.every_from_ns <= t_ns <= self.every_to_ns  # type: ignore[operator]
@@ -104,6 +107,8 @@ class FrameSelector:
             a, b = w.start_ns - m, w.end_ns + m
             period = min(max(1, (b - a) // max(1, options.max_frames_per_window)), int(options.max_period_s * 1e9))
             zone = _Zone(a, b, int(period), group=k, dense=False)
+            half = (w.end_ns - w.start_ns) // 2
+            zone.settled_ns, zone.mid_ns = w.start_ns + min(int(options.video_settle_s * 1e9), half), w.start_ns + half
             if w.end_ns - w.start_ns < options.short_hold_s * 1e9:
                 # The budget follows the frames the window has: a short hold's settled part holds a handful of
                 # frames, and skipping any leaves it without the three detections a point needs.
@@ -204,6 +209,12 @@ class FrameSelector:
         else:
             since = t_ns - (zone.last_ns if zone.last_ns is not None else zone.start_ns)
             take = since >= int(o.video_max_period_s * 1e9)
+            if not take and zone.mid_ns is not None and t_ns >= zone.mid_ns:
+                # A hold shorter than the GOP may have no keyframe in its settled part: a burst in its middle
+                # (decoded from the keyframe before: at most one GOP), so it still gets its detections.
+                take = zone.last_ns is None or zone.last_ns < zone.settled_ns  # type: ignore[operator]
+            if take:
+                self._burst_left = max(1, o.video_burst_frames) - 1 if not zone.dense else 0
         if not take:
             return False, zone.group
         zone.last_ns = t_ns
