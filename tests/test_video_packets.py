@@ -301,3 +301,25 @@ def test_held_video_run_decodes_keyframe_bursts_and_stays_within_the_truth_bands
             if old.wants(frame.timestamp_ns, keyframe=frame.keyframe)[0]:
                 old_units, pending = old_units + pending, 0
     assert units * 3 < old_units, (units, old_units)
+
+
+def test_a_4k_frame_is_searched_at_half_size_then_in_a_box_at_full_size():
+    """A new window's first 4K frame: the half-size search boxes the marker; the full-size box finds the same
+    corners as a whole-frame search (to 1e-3 px) for about a quarter of its cost (0.11 + 0.04 s vs 0.69 s CPU here)."""
+    import cv2
+
+    from dronecal_field.pipeline.detect import detect_aruco, make_aruco_detector
+    from dronecal_field.pipeline.run import COARSE_SEARCH_PX, _coarse_roi
+
+    image = np.random.default_rng(0).integers(60, 120, (2160, 3840), dtype=np.uint8)
+    image[900:1220, 1900:2220] = 255
+    image[1000:1120, 2000:2120] = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), 7, 120)
+    assert image.size >= COARSE_SEARCH_PX
+    detector = make_aruco_detector("DICT_4X4_50")
+    roi = _coarse_roi(image, detector, 7)
+    x0, y0, x1, y1 = roi
+    assert x0 < 2000 and x1 > 2120 and y0 < 1000 and y1 > 1120 and (x1 - x0) * (y1 - y0) < image.size / 20
+    boxed, whole = detect_aruco(image, detector, 7, 0, roi).detection, detect_aruco(image, detector, 7, 0).detection
+    assert abs(boxed.u_px - whole.u_px) < 1e-3 and abs(boxed.v_px - whole.v_px) < 1e-3 and abs(whole.u_px - 2059.5) < 1.0
+    # No marker at half size: None, and calibrate searches the whole frame.
+    assert _coarse_roi(np.full((2160, 3840), 90, np.uint8), detector, 7) is None

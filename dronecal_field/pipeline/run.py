@@ -472,6 +472,8 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
     background = None  # one frame showing the marker, for the report's figure
     size_warned = False
     decoder = FrameDecoder()  # /camera/video: access units kept from the keyframe on, decoded only up to a wanted frame
+    # /camera/video holds are decoded in keyframe bursts seconds apart: the last detection still boxes the search.
+    track_ns = int(max(0.5, sampling.video_max_period_s) * 1e9) if run.video else 500_000_000
     for frame in run.iter_frames(selector.read_windows()):
         read += 1
         decoder.push(frame)
@@ -490,12 +492,19 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
         roi = None
         if last is not None and abs(frame.timestamp_ns - last.timestamp_ns) < 500_000_000:
             roi = roi_around(_predicted(last, before_last, frame.timestamp_ns), image.shape)
+        elif last is not None and abs(frame.timestamp_ns - last.timestamp_ns) < track_ns:
+            roi = roi_around(last, image.shape)  # keyframe bursts seconds apart: a still hold's marker is where it was
+        coarse = marker.kind == "aruco" and image.size >= COARSE_SEARCH_PX
         while True:
+            if roi is None and coarse:
+                # A whole 4K frame costs ~0.7 s of ArUco; at half size a quarter, then the box at full size.
+                coarse = False
+                roi = _coarse_roi(image, detector, int(marker.marker_id))
             if marker.kind == "aruco":
                 res = detect_aruco(image, detector, int(marker.marker_id), frame.timestamp_ns, roi)
             else:
                 res = detect_led(image, frame.timestamp_ns, roi)
-            if res.detection is not None or roi is None:
+            if res.detection is not None or (roi is None and not coarse):
                 break
             roi = None  # lost in the tracking box: search the whole frame
         others.update(res.other_ids)
@@ -526,6 +535,22 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
         size_mismatch=size_warned,
         background=background,
     )
+
+
+COARSE_SEARCH_PX = 4_000_000  # frames this large (4K) are searched at half size first
+
+
+def _coarse_roi(image: np.ndarray, detector, marker_id: int) -> tuple[int, int, int, int] | None:
+    """A search box (full-size pixels) around the marker found in the half-size ``image`` (H, W), or None."""
+    import cv2
+
+    from dronecal_field.pipeline.detect import detect_aruco, roi_around
+
+    half = cv2.resize(image, (image.shape[1] // 2, image.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    found = detect_aruco(half, detector, marker_id, 0, None).detection
+    if found is None:
+        return None
+    return roi_around(replace(found, u_px=2.0 * found.u_px + 0.5, v_px=2.0 * found.v_px + 0.5, size_px=2.0 * found.size_px), image.shape)
 
 
 def _predicted(last: Detection, before: Detection | None, t_ns: int) -> Detection:
