@@ -129,6 +129,10 @@ def legs_from_track(t_ns: np.ndarray, enu_m: np.ndarray, options: LegOptions = L
     return legs
 
 
+OVERSHOOT_FRACTION = 0.25  # a cubic may pass its bracketing samples by this share of its four samples' span ...
+OVERSHOOT_PX = 2.0  # ... plus this, else the instant is not paired
+
+
 def cubic_track_at(
     t_query_ns: np.ndarray,
     t_ns: np.ndarray,
@@ -143,6 +147,10 @@ def cubic_track_at(
     t_ns : (N,) int64 increasing (distinct), values : (N, D)
     max_gap_s : float
         The four samples must be consecutive gaps no longer than this.
+
+    An instant is also invalid when the cubic there leaves the span of the
+    two samples around it by more than ``OVERSHOOT_FRACTION`` of the four
+    samples' span plus ``OVERSHOOT_PX`` (a jumpy track, not a smooth one).
 
     Returns
     -------
@@ -188,6 +196,11 @@ def cubic_track_at(
     yy = y[idx]  # (M, 4, D)
     at = np.einsum("mi,mid->md", w, yy)
     rate = np.einsum("mi,mid->md", dw, yy)
+    # A smooth track stays near the span of its two bracketing samples; a cubic swinging far past it is fitting
+    # jitter or a jump (a marker close to the camera, a false detection), and its pair would be wrong by as much.
+    lo, hi = np.minimum(yy[:, 1], yy[:, 2]), np.maximum(yy[:, 1], yy[:, 2])
+    slack = OVERSHOOT_FRACTION * (yy.max(axis=1) - yy.min(axis=1)) + OVERSHOOT_PX
+    valid &= np.all((at >= lo - slack) & (at <= hi + slack), axis=1)
     at[~valid] = np.nan
     rate[~valid] = np.nan
     return at, rate, valid
