@@ -263,7 +263,7 @@ def solve(points: list[WaypointPoint], width: int, height: int, waypoints: int, 
     )
 
 
-def constrained(estimate: LiveEstimate | None, prior: Camera | None = None, max_focal_rel_std: float = 0.05, max_shift_m: float = 2.0) -> bool:
+def constrained(estimate: LiveEstimate | None, prior: Camera | None = None, max_focal_rel_std: float = 0.02, max_shift_m: float = 2.0) -> bool:
     """The running calibration means something yet: its focal length known to ``max_focal_rel_std`` (1 sigma) and,
     with the plan's guessed camera ``prior``, the camera within ``max_shift_m`` of where the plan put it (the pole
     is surveyed to a metre or two; a camera metres away is a wrong solution whatever its sigma says)."""

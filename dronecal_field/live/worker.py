@@ -71,7 +71,7 @@ class LiveResult:
     cpu_s: float
     wall_s: float
     summaries: list[str] = field(default_factory=list)
-    constrained: bool = False  # the estimate passed progress.constrained (focal to 5 %, camera where the plan put it)
+    constrained: bool = False  # the estimate passed progress.constrained (focal to 2 %, camera where the plan put it)
 
     def to_dict(self) -> dict:
         return {
