@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import re
+import socket
 
 import pytest
 
@@ -48,9 +49,13 @@ def _fly_with_camera(tmp_path, plan, out, hide=(), extra=()):
 def test_hidden_marker_waypoints_are_named_and_refly_plan_reaches_them(tmp_path, capsys):
     plan = write_plan(tmp_path / "mission.plan", WAYPOINTS, hold_s=3.0, takeoff_alt_m=2.0, speed_mps=3.0)
     out = tmp_path / "run.mcap"
-    rc, cam = _fly_with_camera(tmp_path, plan, out, hide=HIDDEN)
+    with socket.socket() as s:  # a free port for the live view
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    rc, cam = _fly_with_camera(tmp_path, plan, out, hide=HIDDEN, extra=("--live-port", str(port)))
     printed = capsys.readouterr().out
     assert rc == 0, printed[-3000:]
+    assert f"live view: Foxglove, open connection ws://127.0.0.1:{port}" in printed
     assert cam.frames_hidden > 0  # the premise: the camera did cover the marker
 
     verdict = re.search(r"verdict: (.*)", printed).group(1)

@@ -256,6 +256,8 @@ def run(args: argparse.Namespace) -> int:
         except (OSError, json.JSONDecodeError) as exc:
             raise InputError(f"{plan_json_path}: unreadable ({exc}); fix it or pass the --marker-* flags") from None
     marker = _marker_spec(args, plan_json)
+    if not 0 <= args.live_port <= 65535:
+        raise InputError(f"--live-port {args.live_port}: give a TCP port 1-65535 (8765 is Foxglove's usual one), or 0 for no live view")
     out = Path(args.out)
     if not out.parent.is_dir():
         raise InputError(f"--out {out}: directory {out.parent} does not exist; create it first")
@@ -317,6 +319,13 @@ def run(args: argparse.Namespace) -> int:
         if args.dry_run:
             print("dry run: nothing uploaded, nothing recorded")
             return 0
+        if not args.no_live:  # before the upload: a --live-port that cannot be served stops fly with nothing uploaded
+            from dronecal_field.live.session import start_live
+
+            live = start_live(mission, marker, video_status.width, video_status.height, plan_json, _site_origin(plan_json), args.min_fix,
+                              args.camera_latency, args.live_host, args.live_port)
+            if live.view is not None:
+                print(f"live view: Foxglove, open connection ws://{args.live_host}:{live.view.port} (layout docs/foxglove-layout.json)", flush=True)
 
         watch = MissionWatch(len(mission.items), link.target_system)  # a ground station on another link may change it
         link.add_listener(watch.feed)
@@ -328,13 +337,6 @@ def run(args: argparse.Namespace) -> int:
             print(f"note: ArduCopter keeps some values differently, as expected: {'; '.join(report.storage_changes[:3])}{more}")
 
         link.remove_listener(before_recording)  # the recorder takes over the clock and the tlog
-        if not args.no_live:
-            from dronecal_field.live.session import start_live
-
-            live = start_live(mission, marker, video_status.width, video_status.height, plan_json, _site_origin(plan_json), args.min_fix,
-                              args.camera_latency, args.live_host, args.live_port)
-            if live.view is not None:
-                print(f"live view: Foxglove, open connection ws://{args.live_host}:{live.view.port} (layout docs/foxglove-layout.json)", flush=True)
         recorder = _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, __version__, clock, backlog, live)
         if args.start:
             arm_and_start_mission(link)

@@ -20,18 +20,20 @@ def start_live(
     mission: Any, marker: Any, width: int, height: int, plan_json: dict | None, origin: Any, min_fix: str,
     camera_latency_s: float | None, live_host: str, live_port: int,
 ) -> LiveCalibration:
-    """The live calibration, started; with ``live_port`` > 0 (or -1: any free port) its Foxglove server too.
+    """The live calibration, started; with ``live_port`` > 0 its Foxglove server too.
 
     A port that cannot be bound is an InputError naming the flag: the pilot asked for the view.
     """
     from dronecal_field.errors import InputError
 
+    if not 0 <= int(live_port) <= 65535:
+        raise InputError(f"--live-port {live_port}: give a TCP port 1-65535 (8765 is Foxglove's usual one), or 0 for no live view")
     view = None
     if live_port != 0:
         from dronecal_field.live.view import LiveView
 
         try:
-            view = LiveView(host=live_host, port=max(0, live_port))
+            view = LiveView(host=live_host, port=int(live_port))
         except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types for a taken port
             raise InputError(f"--live-port {live_port}: cannot serve Foxglove on {live_host}:{live_port} ({exc}); choose a free port or 0 for none") from None
     return LiveCalibration(
