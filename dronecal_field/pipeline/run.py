@@ -779,6 +779,55 @@ def _points_and_solve(read: TrackRead, windows, legs, dets: Detections, offset: 
     )
 
 
+UNCERTAIN_OFFSET_S = 0.02  # an offset from the marker's motion this uncertain may be tried against its neighbours
+
+
+def _solve_at_offset(read: TrackRead, windows, legs, dets: Detections, offset: TimeOffset, md,
+                     options: CalibrateOptions) -> tuple[Solved, TimeOffset]:
+    """Stages 5-6 at the estimated offset; when that leaves too few usable holds and the estimate was uncertain,
+    at the candidates around it (and 0, and camera.latency_s) instead: the one whose calibration uses the most holds.
+
+    The motion-based estimate fits a projective map, which a distorted lens bends: with few moving detections
+    (a short or cut run) its minimum can sit 0.2 s off, where each hold's settled part loses its frames.
+    """
+    try:
+        return _points_and_solve(read, windows, legs, dets, offset, md, options), offset
+    except DegenerateGeometryError as exc:
+        if offset.std_s is not None and offset.std_s < UNCERTAIN_OFFSET_S:
+            raise
+        first = exc
+    spread = offset.std_s if offset.std_s is not None else options.max_offset_s / 4
+    candidates = [offset.offset_s + k * spread for k in (-2, -1, 1, 2)] + [0.0]
+    if md.camera_latency_s is not None:
+        candidates.append(float(md.camera_latency_s))
+    best = None
+    other: tuple[float, DegenerateGeometryError] | None = None
+    for c in candidates:
+        if abs(c) > options.max_offset_s:
+            continue
+        trial = replace(offset, offset_s=float(c), std_s=spread, method="image-vs-gnss, then calibration")
+        try:
+            solved = _points_and_solve(read, windows, legs, dets, trial, md, options)
+        except DegenerateGeometryError as exc:
+            if other is None and not str(exc).startswith(TOO_FEW):
+                other = (float(c), exc)  # enough holds at this offset, but their geometry says why no camera
+            continue
+        key = (sum(p.used for p in solved.points), -solved.result.rms_px)
+        if best is None or key > best[0]:
+            best = (key, solved, trial)
+    if best is None:
+        if other is None:
+            raise first
+        raise DegenerateGeometryError(
+            f"{other[1]} (at a time offset of {other[0]:+.3f} s: the one from the marker's motion, {offset.offset_s:+.3f} "
+            f"\u00b1 {spread:.3f} s, left too few usable holds)"
+        ) from None
+    _, solved, trial = best
+    note = (f"the time offset from the marker's motion ({offset.offset_s:+.3f} \u00b1 {spread:.3f} s) left too few usable holds; "
+            f"{trial.offset_s:+.3f} s, the candidate near it whose calibration used the most holds ({best[0][0]}), was taken")
+    return replace(solved, warnings=[*solved.warnings, note]), trial
+
+
 def _uncertainty(camera, points: list[WaypointPoint], result, options: CalibrateOptions, origin: EnuOrigin | None = None,
                  plan_roi=None) -> Uncertainty:
     """Stage 7: Monte-Carlo and linearised uncertainty, the region of validity, the maps and the ground homography."""
@@ -878,7 +927,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
         raise InputError(_no_marker_message(path, md.marker, windows, dets.stats))
     offset, notes = clock("time_alignment_s", _align, dets, read.track, md, options)
     warnings += notes
-    solved = clock("calibration_s", _points_and_solve, read, windows, legs, dets, offset, md, options)
+    solved, offset = clock("calibration_s", _solve_at_offset, read, windows, legs, dets, offset, md, options)
     warnings += solved.warnings
     camera = solved.result.camera.with_(enu_origin=tuple(read.origin.as_list()))
     result = _with_camera(solved.result, camera)
@@ -952,6 +1001,9 @@ def _no_marker_message(path: Path, marker, windows: list[HoverWindow], stats: Fr
     )
 
 
+TOO_FEW = "too few good waypoints"
+
+
 def _too_few_message(points: list[WaypointPoint], n_used: int) -> str:
     reasons: dict[str, int] = {}
     for p in points:
@@ -959,8 +1011,16 @@ def _too_few_message(points: list[WaypointPoint], n_used: int) -> str:
             key = p.dropped.split(" (")[0] if "worse than" not in p.dropped else p.dropped
             reasons[key] = reasons.get(key, 0) + 1
     top = "; ".join(f"{n}x {r}" for r, n in sorted(reasons.items(), key=lambda kv: -kv[1])[:3])
+    fix_drops = sum(n for r, n in reasons.items() if "worse than" in r or "GNSS fixes" in r)
+    seen_drops = sum(n for r, n in reasons.items() if "marker detections" in r)
+    if seen_drops > fix_drops:
+        advice = "hold longer at each waypoint (plan --hover) or record more frames a second, and check the marker faces the camera"
+    elif fix_drops:
+        advice = "fly with a better GNSS fix, or relax --min-fix"
+    else:
+        advice = "fly more waypoints in view of the camera"
     return (
-        f"too few good waypoints: {n_used} of {len(points)} hover windows are usable, {MIN_POINTS} needed"
+        f"{TOO_FEW}: {n_used} of {len(points)} hover windows are usable, {MIN_POINTS} needed"
         + (f" (dropped: {top})" if top else "")
-        + ": fly more waypoints in view of the camera, or relax --min-fix"
+        + f": {advice}"
     )
