@@ -113,3 +113,12 @@ def test_an_estimate_is_shown_only_when_tight_and_where_the_plan_put_the_camera(
     moved = cam.with_(pose=CameraPose.from_position(cam.pose.R_cam_from_world, cam.pose.position_world + [0.0, 3.0, 0.0]))
     assert constrained(LiveEstimate(**{**est.__dict__, "camera": moved})) and not constrained(LiveEstimate(**{**est.__dict__, "camera": moved}), cam)
     assert not constrained(None)
+
+
+@pytest.mark.parametrize("text", ["a,b", "0", "3,-1", ","])
+def test_sim_camera_refuses_bad_hide_marker_seqs_in_one_line(text, capsys):
+    from dronecal_field.cli import main
+
+    rc = main(["sim", "camera", "--connect", "udpin:127.0.0.1:0", "--hide-marker-at", text])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--hide-marker-at" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1

@@ -170,8 +170,8 @@ def run(args: argparse.Namespace) -> int:
     from dronecal_field.sim.scene import MarkerSpec
 
     _check_flags(args)
+    hide = _seqs(args.hide_marker_at)  # refused before any work
     camera = _truth_camera(args)
-    hide = _seqs(args.hide_marker_at)
     marker = MarkerSpec(
         dictionary=args.marker_dictionary,
         marker_id=args.marker_id,
