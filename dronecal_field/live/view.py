@@ -163,9 +163,8 @@ class LiveView:
 
 
 def _stamp(m: Any, t_ns: int):
-    from foxglove.messages import Timestamp  # noqa: F401 - re-exported by the SDK
-
-    return Timestamp(sec=int(t_ns) // 1_000_000_000, nsec=int(t_ns) % 1_000_000_000)
+    """foxglove.messages.Timestamp of UTC ``t_ns``."""
+    return m.Timestamp(sec=int(t_ns) // 1_000_000_000, nsec=int(t_ns) % 1_000_000_000)
 
 
 def layout_json() -> str:
