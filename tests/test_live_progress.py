@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -122,3 +123,35 @@ def test_sim_camera_refuses_bad_hide_marker_seqs_in_one_line(text, capsys):
     rc = main(["sim", "camera", "--connect", "udpin:127.0.0.1:0", "--hide-marker-at", text])
     err = capsys.readouterr().err
     assert rc == 2 and "--hide-marker-at" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_h264_access_units_are_decoded_from_their_keyframe_and_the_marker_found():
+    """A /camera/video stream (H.264, GOP of 10): the live detector decodes from the keyframe before the picked frames."""
+    import av
+    import cv2
+
+    from dronecal_field.live.progress import detect_in_frames, pick_frames
+    from dronecal_field.pipeline.detect import make_aruco_detector
+    from dronecal_field.videopackets import VideoFrame, is_keyframe
+    from test_mavlink_support import marker_jpeg
+
+    gray = cv2.imdecode(np.frombuffer(marker_jpeg(640, 480), np.uint8), cv2.IMREAD_GRAYSCALE)
+    enc = av.CodecContext.create("libx264", "w")
+    enc.width, enc.height, enc.pix_fmt, enc.gop_size = 640, 480, "yuv420p", 10
+    enc.options = {"bframes": "0", "repeat-headers": "1", "tune": "zerolatency"}
+    enc.time_base = Fraction(1, 30)
+    units = []
+    for k in range(25):
+        img = av.VideoFrame.from_ndarray(np.dstack([np.roll(gray, k, axis=1)] * 3), format="bgr24").reformat(format="yuv420p")
+        img.pts = k
+        units += [bytes(p) for p in enc.encode(img)]
+    units += [bytes(p) for p in enc.encode(None)]
+    stream = [VideoFrame(timestamp_ns=k * 33_333_333, format="h264", data=d, keyframe=is_keyframe(d, "h264")) for k, d in enumerate(units)]
+    assert [f.keyframe for f in stream].count(True) == 3
+    picked = pick_frames(stream, 13 * 33_333_333, 18 * 33_333_333, 3)  # inside the second GOP, after its keyframe
+    marker = MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.3)
+    dets = detect_in_frames(picked, marker, make_aruco_detector("DICT_4X4_50"), stream)
+    assert len(dets) == 3
+    jpeg = detect_in_frames([Frame(timestamp_ns=0, format="jpeg", data=marker_jpeg(640, 480))], marker, make_aruco_detector("DICT_4X4_50"))
+    # the marker moves 1 px a frame: the H.264 detections sit where the JPEG one does, shifted by the frame index
+    assert [d.u_px - jpeg[0].u_px for d in dets] == pytest.approx([13.0, 15.0, 18.0], abs=0.5)

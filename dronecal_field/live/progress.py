@@ -120,26 +120,66 @@ def pick_frames(frames: list[Any], start_ns: int, end_ns: int, n: int) -> list[A
     return [inside[k] for k in idx]
 
 
-def detect_in_frames(frames: list[Any], marker: Any, detector: Any) -> list[Detection]:
-    """The marker in each frame (JPEG/PNG bytes), calibrate's detector; the frames in time order.
+COMPRESSED = ("h264", "h265")
+
+
+def gray_images(picked: list[Any], stream: list[Any] | None = None) -> list[tuple[int, np.ndarray | None]]:
+    """(timestamp_ns, (H, W) uint8 or None) of the ``picked`` frames, in time order.
+
+    JPEG/PNG frames decode on their own. H.264/H.265 access units (a
+    ``/camera/video`` stream) decode from the keyframe before the first picked
+    one, through ``stream`` (every access unit around them, in order), with the
+    offline stage's ``videopackets.VideoFrameDecoder``.
+    """
+    from dronecal_field.pipeline.detect import decode_gray
+
+    picked = sorted(picked, key=lambda f: f.timestamp_ns)
+    if not picked:
+        return []
+    if picked[0].format not in COMPRESSED:
+        return [(f.timestamp_ns, decode_gray(f.data)) for f in picked]
+    from dronecal_field.videopackets import VideoFrameDecoder, video_frame_of
+
+    units = sorted(stream if stream is not None else picked, key=lambda f: f.timestamp_ns)
+    wanted = {f.timestamp_ns for f in picked}
+    first, last = min(wanted), max(wanted)
+    start = 0
+    for k, unit in enumerate(units):
+        if unit.timestamp_ns > first:
+            break
+        if video_frame_of(unit).keyframe:
+            start = k
+    decoder = VideoFrameDecoder(picked[0].format, threads=1)
+    out: list[tuple[int, np.ndarray | None]] = []
+    for unit in units[start:]:
+        if unit.timestamp_ns > last:
+            break
+        decoder.push(video_frame_of(unit))
+        if unit.timestamp_ns in wanted:
+            out.append((unit.timestamp_ns, decoder.gray()))
+    return out
+
+
+def detect_in_frames(frames: list[Any], marker: Any, detector: Any, stream: list[Any] | None = None) -> list[Detection]:
+    """The marker in each frame, calibrate's detector; the frames in time order.
 
     ``marker`` is the run's MarkerSpec; ``detector`` from
-    ``detect.make_aruco_detector`` (None for an LED marker).
+    ``detect.make_aruco_detector`` (None for an LED marker); ``stream`` every
+    access unit around the frames when they are H.264/H.265 (:func:`gray_images`).
     """
-    from dronecal_field.pipeline.detect import decode_gray, detect_aruco, detect_led, roi_around
+    from dronecal_field.pipeline.detect import detect_aruco, detect_led, roi_around
 
     found: list[Detection] = []
     last: Detection | None = None
-    for frame in sorted(frames, key=lambda f: f.timestamp_ns):
-        image = decode_gray(frame.data)
+    for timestamp_ns, image in gray_images(frames, stream):
         if image is None:
             continue
         roi = roi_around(last, image.shape) if last is not None else None
         while True:
             if marker.kind == "aruco":
-                res = detect_aruco(image, detector, int(marker.marker_id), frame.timestamp_ns, roi)
+                res = detect_aruco(image, detector, int(marker.marker_id), timestamp_ns, roi)
             else:
-                res = detect_led(image, frame.timestamp_ns, roi)
+                res = detect_led(image, timestamp_ns, roi)
             if res.detection is not None or roi is None:
                 break
             roi = None  # lost in the tracking box: the whole frame

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from dronecal_field.live.progress import (
+    COMPRESSED,
     FixTrack,
     LiveEstimate,
     LiveOptions,
@@ -49,8 +50,8 @@ from dronecal_field.live.progress import (
 from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT
 from dronecal_field.runfile.records import Attitude, GnssFix, RunEvent
 
-RING_HZ = 16.0  # frames a second kept for the worker: all of a 15 fps stream, every other of 30 fps
-RING_FRAMES = 1000  # and at most this many ...
+RING_HZ = 16.0  # JPEG frames a second kept for the worker: all of a 15 fps stream, every other of 30 fps
+RING_FRAMES = 4000  # and at most this many (H.264/H.265: every access unit, a decodable chain; ~2 min at 30 fps) ...
 RING_BYTES = 96 << 20  # ... or this many bytes of JPEG (1080p30: the last ~20 s, longer than a hold)
 GRACE_S = 0.3  # wait this long after a hold's end for its last frames to arrive
 
@@ -153,8 +154,10 @@ class LiveCalibration:
 
     # ----- observer (recorder threads): O(1), never waits -----
     def on_frame(self, frame: Any) -> None:
-        self._latest_frame = frame
-        if frame.timestamp_ns - self._last_kept_ns >= int(1e9 / RING_HZ):
+        compressed = frame.format in COMPRESSED
+        if not compressed:
+            self._latest_frame = frame
+        if compressed or frame.timestamp_ns - self._last_kept_ns >= int(1e9 / RING_HZ):
             self._last_kept_ns = frame.timestamp_ns
             self._frames.append(frame)
             self._ring_bytes += len(frame.data)
@@ -285,13 +288,13 @@ class LiveCalibration:
             po = self.options.points
             a, b = HoverWindow(0, start, end, "event", seq).stable(po.settle_s, po.tail_s)
             picked = pick_frames(frames, a + self.camera_offset_ns, b + self.camera_offset_ns, self.options.frames_per_hold)
-            dets = detect_in_frames(picked, self.marker, self._detector)
+            dets = detect_in_frames(picked, self.marker, self._detector, frames)
             size = self.marker.size_m if self.marker.kind == "aruco" else None
             outcome = hold_outcome(seq, len(self.outcomes), start, end, len(picked), dets, track, self.camera_offset_ns, size, self.options)
         else:
             seq = int(event.metadata.get("seq_to", -1))
             picked = pick_frames(frames, start + self.camera_offset_ns, end + self.camera_offset_ns, self.options.frames_per_leg)
-            dets = detect_in_frames(picked, self.marker, self._detector)
+            dets = detect_in_frames(picked, self.marker, self._detector, frames)
             item = self.mission.items[seq] if 0 <= seq < len(self.mission.items) else None
             self.leg_detections.extend(dets)
             if item is None or item.command != CMD_NAV_WAYPOINT or item.hold_s > 0:
@@ -337,7 +340,8 @@ class LiveCalibration:
         det = min(dets, key=lambda d: abs(d.timestamp_ns - frame.timestamp_ns)) if dets else None
         if det is not None:
             frame = next((f for f in picked if f.timestamp_ns == det.timestamp_ns), frame)
-        self.view.publish_image(frame, det, self._reprojection(frame.timestamp_ns), self._all_uv())
+        if frame.format not in COMPRESSED:  # an H.264 access unit is no CompressedImage: the view then shows no camera
+            self.view.publish_image(frame, det, self._reprojection(frame.timestamp_ns), self._all_uv())
         if self.estimate is not None:
             self.view.publish_calibration(self.estimate, frame.timestamp_ns)
 
