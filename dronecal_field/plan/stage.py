@@ -585,6 +585,9 @@ def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
                           alt_frame=req.alt_frame, yaw_mode=req.yaw_mode, geoid_separation_m=req.site.geoid_separation_m)
         for r in routes
     )
+    datum = msn.home_datum_warning(missions[0])
+    if datum is not None:
+        warnings.append(datum)
     fence = msn.fence_polygon(np.vstack([r.points for r in routes] + [routes[0].takeoff_site[None]]), FENCE_MARGIN_M)
     footprint = footprint_site(cam_site)
     longest = max(r.flight_time_s for r in routes)
