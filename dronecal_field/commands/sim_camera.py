@@ -1,7 +1,8 @@
 """``dronecal-field sim camera``: a simulated pole camera that watches a MAVLink vehicle.
 
-It follows any MAVLink vehicle's GLOBAL_POSITION_INT and ATTITUDE (it only
-listens), renders the ArUco marker the vehicle carries through the true
+It follows a MAVLink vehicle at its true position (SIMSTATE, else
+GLOBAL_POSITION_INT and ATTITUDE), asking for them on its own link as a ground
+station does, renders the ArUco marker the vehicle carries through the true
 camera model (distortion included) and serves the frames as MJPEG over HTTP.
 The true camera comes from --camera, or is made from --site-* flags and saved
 with --write-truth. See docs/simulators.md.
