@@ -90,7 +90,7 @@ def plan_argv(name: str, plan_dir: Path, camera_fps: float, strategy: str | None
         "plan", "--out", plan_dir, f"--lat={SITE['lat']}", f"--lon={SITE['lon']}", "--ground-alt", SITE["ground_h"],
         "--mount-height", c["mount_height"], "--azimuth", SITE["azimuth"], "--tilt", c["tilt"],
         "--image-size", f"{c['width']}x{c['height']}", "--focal-px", c["focal_px"], "--distortion", c["level"],
-        "--aruco-dict", MARKER["dictionary"], "--marker-id", MARKER["marker_id"],
+        "--marker-dictionary", MARKER["dictionary"], "--marker-id", MARKER["marker_id"],
         "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]), "--fps", camera_fps, "--hover", "3",
     ]
     if strategy:
