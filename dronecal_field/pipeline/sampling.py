@@ -21,16 +21,25 @@ decodes:
 
 For a ``/camera/video`` run (``video=True``) a frame costs a decode of every
 access unit from the keyframe before it, so the choice follows the GOP
-instead of the clock: in a window, where the marker is still, the keyframes
-and a short burst of ``video_burst_frames`` after each (decoded in sequence
-from the keyframe: a few access units each) instead of frames every
-``max_period_s`` (each of which would decode most of its GOP); on
-transitions and legs, where the marker moves, a longer burst of
-``video_motion_burst_frames`` after each keyframe, at the zone's period. A
-stream whose keyframes are further apart than ``video_max_period_s`` still
-gets a frame that often (from its keyframe: the cost the GOP imposes).
-Pairing then interpolates a hold's image track across the gaps between
-bursts (``PointOptions.pair_across_gaps``): the marker is still there.
+instead of the clock:
+
+- in a window, where the marker is still, the keyframes and the frames of a
+  short burst after each (``video_burst_frames``, decoded in sequence from
+  the keyframe: a few access units each) instead of frames every
+  ``max_period_s`` (each of which would decode most of its GOP); a hold
+  whose settled part got no keyframe gets a burst in its middle, and a
+  stream whose keyframes are further apart than ``video_max_period_s`` one
+  that often (decoded from the keyframe: the cost such a GOP imposes);
+  pairing then interpolates the hold's image track across the gaps between
+  bursts (``PointOptions.pair_across_gaps``);
+- on transitions, where the marker moves and only the time alignment needs
+  it, a longer burst after each keyframe (``video_motion_burst_frames``) at
+  the zone's period;
+- legs keep their frames every ``leg_period_s``, so the decoder runs through
+  every access unit of a leg: each fix there is paired with the cubic
+  through four detections around it (pipeline.legs), which a burst brackets
+  for one or two fixes of a GOP at a third of its cost, so whole GOPs are
+  the cheapest per leg point.
 
 Decisions use only what was already seen, so the pass stays single and the
 memory bounded. Times are frame stamps (camera clock), ns.
@@ -58,7 +67,7 @@ class SamplingOptions:
     # /camera/video: frames follow the keyframes (a frame costs the access units since its keyframe).
     video_bursts: bool = True  # False: the clock-spaced choice above, each frame decoded from its keyframe
     video_burst_frames: int = 3  # in a window: the keyframe and the next two (a still marker: detector noise averages)
-    video_motion_burst_frames: int = 8  # on transitions and legs: the keyframe and the next 7, at the zone's period
+    video_motion_burst_frames: int = 8  # on transitions: the keyframe and the next 7, at the zone's period (legs: every leg_period_s)
     video_max_period_s: float = 4.5  # a GOP longer than this still gets a frame this often (from its keyframe: a long GOP costs)
     video_settle_s: float = 1.0  # a hold's first second (PointOptions.settle_s): past its middle with no frame since, a burst anyway
 
@@ -73,6 +82,7 @@ class _Zone:
     last_ns: int | None = None
     every_from_ns: int | None = None  # every frame in [every_from_ns, every_to_ns] (a short hold)
     every_to_ns: int | None = None
+    leg: bool = False  # a fly-through leg: every fix needs the image track around it
     settled_ns: int | None = None  # a hold: its settled part starts here (camera clock, offset unknown) ...
     mid_ns: int | None = None  # ... and a video hold with no frame since then gets a burst from here
 
@@ -117,7 +127,7 @@ class FrameSelector:
             self._zones.append(zone)
         leg_period = max(1, int(options.leg_period_s * 1e9))
         for k, (a, b) in enumerate(self.legs):
-            self._zones.append(_Zone(a - m, b + m, leg_period, group=len(self.windows) + k, dense=True))
+            self._zones.append(_Zone(a - m, b + m, leg_period, group=len(self.windows) + k, dense=True, leg=True))
         self._zones.sort(key=lambda z: z.start_ns)
         self._detected = [0] * len(self.windows)
         n_trans = max(0, len(self.windows) - 1)
@@ -189,7 +199,7 @@ class FrameSelector:
                 best = best or z
         if best is None:
             return False, None
-        if self.video and not every:
+        if self.video and not every and not best.leg:
             return self._wants_video(best, t_ns, keyframe, in_burst)
         if not every and best.last_ns is not None and t_ns - best.last_ns < best.period_ns:
             return False, best.group
