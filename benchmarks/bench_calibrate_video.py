@@ -47,10 +47,11 @@ The principal point is weakly held by 35 holds of a distorted 4K camera (one
 seed); the difference between 4 and 20 px is not a claim that bursts are
 more accurate (on the replays' H.264 twin and tests/test_video_packets.py's held run they
 are as accurate as the dense choice). Decoding the bursts (keyframe + 2) of
-this stream: ~24 ms CPU per picture (the 4K IDR dominates); slice threads (x265's WPP rows) on 2
-threads 41 ms wall per picture vs 65 ms on 1; frame threads would need a
-drain at the end of each burst (32 ms) and hold back the picture calibrate asks
-for, so the decoder keeps slice threads.
+this stream, 30 bursts, load 2.8: ~25 ms CPU per picture (the 4K IDR dominates);
+slice threads (x265's WPP rows) 18.5-19.8 ms wall per picture on 2 threads,
+24-25 ms on 1; frame threads (FRAME or AUTO, 2) 23-24 ms, and they need a
+drain at the end of each burst and hold back the picture calibrate asks for,
+so the decoder keeps slice threads on 2.
 """
 
 from __future__ import annotations
