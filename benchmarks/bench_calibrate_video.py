@@ -39,7 +39,7 @@ twin 4.9 GB):
 | 359 s flight, 35 holds | calibrate wall / CPU | flight / wall | detection stage | frames wanted (per window) | access units decoded (per window) | focal, pp, position |
 |---|---:|---:|---:|---:|---:|---|
 | H.265, keyframe bursts (this code) | 28.7 s / 31.0 s | **12.5x** | 23.2 s | 494 (14.1) | 710 (20.3) | 0.19 %, 9.5 px, 0.55 cm |
-| ... with bursts on legs too (5004b03^^, no leg point) | 24.8 s / 28.7 s | 14.5x | 19.3 s | 480 (13.7) | 579 (16.5) | 0.25 %, 4.0 px, 0.86 cm |
+| ... with bursts on legs too (code at d95224a: its leg got no point) | 24.8 s / 28.7 s | 14.5x | 19.3 s | 480 (13.7) | 579 (16.5) | 0.25 %, 4.0 px, 0.86 cm |
 | H.265, the code before (68929e2) | 137 s (12 s of it the first run's kernel compile) | 2.6x | 119 s | 1,454 (41.5) | ~7,550 (216) | 0.29 %, 19.6 px, 1.43 cm |
 | JPEG twin, /camera/image (this code) | 50.7 s / 52.0 s | 7.1x | 36.4 s | 1,454 (41.5) | - | 0.31 %, 19.9 px, 1.22 cm |
 | in process, no Monte-Carlo: bursts / old choice (this code's detector) | 18.6 s / 112.6 s | 19.3x / 3.2x | | 480 / 1,454 | 579 / 7,553 (13.0x) | |
