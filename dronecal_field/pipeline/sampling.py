@@ -68,7 +68,7 @@ class SamplingOptions:
     video_bursts: bool = True  # False: the clock-spaced choice above, each frame decoded from its keyframe
     video_burst_frames: int = 3  # in a window: the keyframe and the next two (a still marker: detector noise averages)
     video_motion_burst_frames: int = 8  # on transitions: the keyframe and the next 7, at the zone's period (legs: every leg_period_s)
-    video_max_period_s: float = 4.5  # a GOP longer than this still gets a frame this often (from its keyframe: a long GOP costs)
+    video_max_period_s: float = 4.5  # a GOP longer than this still gets a burst this often (from its keyframe: a long GOP costs)
     video_settle_s: float = 1.0  # a hold's first second (PointOptions.settle_s): past its middle with no frame since, a burst anyway
 
 
@@ -208,7 +208,8 @@ class FrameSelector:
         return True, best.group
 
     def _wants_video(self, zone: _Zone, t_ns: int, keyframe: bool, in_burst: bool) -> tuple[bool, int | None]:
-        """The GOP-following choice: a keyframe starts a burst; a long GOP still gets a frame every video_max_period_s."""
+        """The GOP-following choice: a keyframe starts a burst; a long GOP still gets one every video_max_period_s,
+        and a hold whose settled part saw no frame one in its middle."""
         o = self.options
         if keyframe:
             self._burst_left = max(1, o.video_motion_burst_frames if zone.dense else o.video_burst_frames) - 1
