@@ -154,6 +154,13 @@ def test_annotated_copy_opens_as_a_run_with_the_calibration(main_run):
         n_frames = sum(1 for _ in run.iter_frames())
         n_fixes = sum(1 for _ in run.iter_fixes())
     assert n_frames == truth["n_frames"] and n_fixes == truth["n_fixes"]
+    # the added messages go in among the run's own by time: every chunk starts after the one before it ends
+    from mcap.reader import make_reader
+
+    with open(annotated, "rb") as f:
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    assert len(chunks) >= 2
+    assert all(b.message_start_time >= a.message_end_time for a, b in zip(chunks, chunks[1:]))
 
 
 @pytest.fixture(scope="module")

@@ -102,10 +102,30 @@ def write_annotated_copy(source: str | os.PathLike, target: str | os.PathLike, r
 
     target = Path(target)
     tmp = target.with_name(target.name + ".tmp")
-    added = 0
     with open(source, "rb") as src, open(tmp, "wb") as dst:
         writer = Writer(dst, compression=CompressionType.ZSTD)
         writer.start(profile="", library="dronecal-field calibrate --annotate")
+        cal_schema = writer.register_schema("foxglove.CameraCalibration", "protobuf", _file_descriptor_set(CameraCalibration))
+        ann_schema = writer.register_schema("foxglove.ImageAnnotations", "protobuf", _file_descriptor_set(ImageAnnotations))
+        cal_channel = writer.register_channel(CALIBRATION_TOPIC, "protobuf", cal_schema)
+        ann_channel = writer.register_channel(ANNOTATIONS_TOPIC, "protobuf", ann_schema)
+        # The added messages go in among the run's own by time, so every chunk stays in time order.
+        detections = report.detections
+        t_first = min((d.timestamp_ns for d in detections), default=int(report.track.t_ns[0]))
+        used = {p.window.index for p in report.points if p.used}
+        pending = [(t_first, 0, cal_channel, calibration_message(report.camera, t_first).SerializeToString(), 0)]
+        pending += [(d.timestamp_ns, 1, ann_channel, annotation_message(d, f"w{g}", g in used).SerializeToString(), seq)
+                    for seq, (d, g) in enumerate(zip(detections, report.detection_groups))]
+        pending.sort(key=lambda m: (m[0], m[1], m[4]))
+        k = 0
+
+        def flush(until_ns: float) -> None:
+            nonlocal k
+            while k < len(pending) and pending[k][0] <= until_ns:
+                t, _, channel, data, seq = pending[k]
+                writer.add_message(channel, t, data, t, seq)
+                k += 1
+
         schema_map: dict[int, int] = {}
         channel_map: dict[int, int] = {}
         try:
@@ -120,6 +140,7 @@ def write_annotated_copy(source: str | os.PathLike, target: str | os.PathLike, r
                         )
                 elif isinstance(record, Message):
                     if record.channel_id in channel_map:
+                        flush(record.log_time)
                         writer.add_message(channel_map[record.channel_id], record.log_time, record.data, record.publish_time, record.sequence)
                 elif isinstance(record, Metadata):
                     writer.add_metadata(record.name, dict(record.metadata))
@@ -129,19 +150,8 @@ def write_annotated_copy(source: str | os.PathLike, target: str | os.PathLike, r
                     break
         except Exception:  # noqa: BLE001 - mcap raises assorted errors at the damaged end of a cut-off run
             pass
-        cal_schema = writer.register_schema("foxglove.CameraCalibration", "protobuf", _file_descriptor_set(CameraCalibration))
-        ann_schema = writer.register_schema("foxglove.ImageAnnotations", "protobuf", _file_descriptor_set(ImageAnnotations))
-        cal_channel = writer.register_channel(CALIBRATION_TOPIC, "protobuf", cal_schema)
-        ann_channel = writer.register_channel(ANNOTATIONS_TOPIC, "protobuf", ann_schema)
-        detections = report.detections
-        t_first = min((d.timestamp_ns for d in detections), default=int(report.track.t_ns[0]))
-        writer.add_message(cal_channel, t_first, calibration_message(report.camera, t_first).SerializeToString(), t_first, 0)
-        added += 1
-        used = {p.window.index for p in report.points if p.used}
-        for seq, (d, g) in enumerate(zip(detections, report.detection_groups)):
-            msg = annotation_message(d, f"w{g}", g in used)
-            writer.add_message(ann_channel, d.timestamp_ns, msg.SerializeToString(), d.timestamp_ns, seq)
-            added += 1
+        flush(float("inf"))
+        added = len(pending)
         writer.finish()
     os.replace(tmp, target)
     return added
