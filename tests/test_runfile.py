@@ -342,3 +342,26 @@ def test_json_schema_of_mavlink_channel(tmp_path):
     assert props["voltage_battery"] == {"type": "number"} and props["name"] == {"type": "string"}
     chan = [c for c in summary.channels.values() if c.topic == "/mavlink/SYS_STATUS"][0]
     assert chan.message_encoding == "json"
+
+
+def test_events_are_also_written_as_log_lines_the_foxglove_app_shows(tmp_path):
+    """foxglove.Event is not among the schemas the Foxglove app renders; /events/log (foxglove.Log) carries the same events."""
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+    from mcap.reader import make_reader
+
+    path = tmp_path / "run.mcap"
+    events = [
+        RunEvent(timestamp_ns=T0 + 100, duration_ns=3_000_000_000, type="hover", metadata={"seq": "4", "hold_s": "3.0"}),
+        RunEvent(timestamp_ns=T0 + 5_000_000_000, duration_ns=1_500_000_000, type="link_lost"),
+    ]
+    with RunWriter(path, _meta()) as w:
+        for e in events:
+            w.write_event(e)
+    with open(path, "rb") as f:
+        logs = [(s.name, m.log_time, Log.FromString(m.data)) for s, _, m in make_reader(f).iter_messages(topics=["/events/log"])]
+    assert [name for name, _, _ in logs] == ["foxglove.Log", "foxglove.Log"]
+    assert [t for _, t, _ in logs] == [e.timestamp_ns for e in events]
+    assert logs[0][2].message == "hover 3.00 s: seq=4 hold_s=3.0" and logs[0][2].level == Log.INFO
+    assert logs[1][2].message == "link_lost 1.50 s" and logs[1][2].level == Log.WARNING
+    with open_run(path) as run:
+        assert [e.type for e in run.iter_events()] == ["hover", "link_lost"]  # the reader's events are unchanged

@@ -20,6 +20,7 @@ VIDEO_TOPIC = "/camera/video"
 FIX_TOPIC = "/gnss/fix"
 ATTITUDE_TOPIC = "/vehicle/attitude"
 EVENTS_TOPIC = "/events"
+EVENTS_LOG_TOPIC = "/events/log"  # the same events as foxglove.Log: the Foxglove app shows no foxglove.Event, its Log panel shows these
 MAVLINK_TOPIC_PREFIX = "/mavlink/"
 
 IMAGE_SCHEMA = "foxglove.CompressedImage"
@@ -158,6 +159,22 @@ def event_to_proto(event: RunEvent):
         start_time=_timestamp(event.timestamp_ns),
         end_time=_timestamp(event.timestamp_ns + event.duration_ns),
         metadata=_kv(meta),
+    )
+
+
+WARNING_EVENTS = frozenset({"video_gap", "video_lag", "video_lost", "video_corrupt", "link_lost"})
+
+
+def event_to_log(event: RunEvent):
+    """foxglove.Log of a run event, for the Foxglove app's Log panel: ``hover 3.0 s: seq=4 hold_s=3.0 ...``."""
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+
+    details = " ".join(f"{k}={v}" for k, v in event.metadata.items() if k != "type")
+    return Log(
+        timestamp=_timestamp(event.timestamp_ns),
+        level=Log.WARNING if event.type in WARNING_EVENTS else Log.INFO,
+        message=f"{event.type} {event.duration_ns / 1e9:.2f} s" + (f": {details}" if details else ""),
+        name="dronecal-field",
     )
 
 

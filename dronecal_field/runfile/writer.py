@@ -203,8 +203,10 @@ class RunWriter:
         self._write_proto(pm.ATTITUDE_TOPIC, pm.attitude_to_proto(att), att.timestamp_ns)
 
     def write_event(self, event: RunEvent) -> None:
-        """Write one event on ``/events`` (foxglove.Event; log time = the event start)."""
+        """Write one event on ``/events`` (foxglove.Event; log time = the event start), and as a line of
+        ``/events/log`` (foxglove.Log), which the Foxglove app's Log panel shows."""
         self._write_proto(pm.EVENTS_TOPIC, pm.event_to_proto(event), event.timestamp_ns)
+        self._write_proto(pm.EVENTS_LOG_TOPIC, pm.event_to_log(event), event.timestamp_ns)
 
     def write_mavlink(self, name: str, timestamp_ns: int, fields: dict[str, Any]) -> None:
         """Write one MAVLink message on ``/mavlink/<name>`` as JSON (schema ``mavlink.<name>``).
