@@ -395,6 +395,35 @@ def _plan_info(run) -> tuple[dict[int, float] | None, tuple[float, float] | None
     return holds or None, roi
 
 
+def _seq(event, key: str) -> int | None:
+    try:
+        return int(event.metadata.get(key, ""))
+    except ValueError:
+        return None
+
+
+def _planned_sample_seqs(run) -> set[int] | None:
+    """Mission seqs of the attached mission.plan that are sampling points of the attached plan.json (its ``grid``),
+    matched by position (each flight of a split plan has its own seqs); None when the run carries no plan."""
+    plan_json, mission = run.attachment("plan.json"), run.attachment("mission.plan")
+    if not plan_json or not mission:
+        return None
+    try:
+        grid = json.loads(plan_json)["grid"]
+        points = np.array([[float(g["lat_deg"]), float(g["lon_deg"])] for g in grid])
+        items = json.loads(mission)["mission"]["items"]
+    except (ValueError, KeyError, TypeError):
+        return None
+    seqs = set()
+    for k, item in enumerate(items, start=1):
+        params = item.get("params") if isinstance(item, dict) else None
+        if item.get("command") != 16 or not params or len(params) < 6 or params[4] is None or params[5] is None:
+            continue
+        if len(points) and np.min(np.abs(points - [float(params[4]), float(params[5])]).max(axis=1)) < 3e-7:  # ~3 cm
+            seqs.add(int(item.get("doJumpId", k)))
+    return seqs
+
+
 def _hover_windows(run, fix_t, antenna, options: CalibrateOptions, holds) -> tuple[list[HoverWindow], str, list[str]]:
     notes: list[str] = []
     want = options.hover_source
@@ -435,9 +464,16 @@ def _find_legs(run, track: Track, windows: list[HoverWindow], options: Calibrate
     if want == "none":
         return [], "none"
     if want in ("auto", "events"):
-        events = [(e.timestamp_ns, e.end_ns) for e in run.iter_events() if e.type == "leg" and e.duration_ns > 0]
+        events = [e for e in run.iter_events() if e.type == "leg" and e.duration_ns > 0]
+        designed = _planned_sample_seqs(run)
+        if designed is not None:
+            # only legs between two of the plan's sampling points: a detour round the pole or the way home passes
+            # close under the camera, where its pairs pulled a calibration from 0.74 to 12.99 px over the ground
+            events = [e for e in events if _seq(e, "seq_from") in designed and _seq(e, "seq_to") in designed]
         if events:
-            return legs_from_intervals(events, "event"), "event"
+            return legs_from_intervals([(e.timestamp_ns, e.end_ns) for e in events], "event"), "event"
+        if designed is not None and want == "auto":
+            return [], "none"  # a hover plan: its legs are transits, and the track would find them again
         if want == "events":
             raise InputError("--leg-source events: the run has no leg events on /events; use --leg-source auto")
     legs = legs_from_track(track.t_ns, track.antenna_enu_m, options.legs)
