@@ -187,3 +187,7 @@ def test_a_damaged_chunk_is_reported_in_the_cli_and_report_json(tmp_path):
     data = json.loads((tmp_path / "out" / "report.json").read_text())
     assert any(w.startswith("run file: damaged chunk at byte") for w in data["warnings"])
     assert len(data["run"]["reader_warnings"]) == 1
+    # and what it cost: the span of the run it held and the holds it overlapped
+    cost = [w for w in data["warnings"] if w.startswith("the damaged chunk at byte")]
+    assert len(cost) == 1 and "s of the run" in cost[0] and "hover window 27 (dropped)" in cost[0]
+    assert "the damaged chunk at byte" in proc.stdout

@@ -395,6 +395,24 @@ def _plan_info(run) -> tuple[dict[int, float] | None, tuple[float, float] | None
     return holds or None, roi
 
 
+def _damage_cost(span: tuple[int, int, int], points: list[WaypointPoint], fix_t_ns: np.ndarray) -> str:
+    """What a skipped chunk cost: its span of the run and the hover windows and leg pairs it overlapped, used or not."""
+    offset, a, b = span
+    t0 = int(fix_t_ns[0]) if len(fix_t_ns) else a
+    hit = [p for p in points if p.window.start_ns <= b and a <= p.window.end_ns]
+    holds = [p for p in hit if p.window.source != "leg"]
+    lost = [p for p in holds if not p.used]
+    legs = [p for p in hit if p.window.source == "leg"]
+    names = ", ".join(str(p.window.seq if p.window.seq is not None else p.window.index) for p in holds)
+    if len(holds) == 1:
+        what = f"hover window {names} ({'dropped' if lost else 'still used'})"
+    else:
+        what = f"hover windows {names} ({len(lost)} of them dropped)" if holds else "no hover window"
+    return (f"the damaged chunk at byte {offset} held {(b - a) / 1e9:.1f} s of the run ({(a - t0) / 1e9:+.1f} to {(b - t0) / 1e9:+.1f} s "
+            f"from the first fix): it overlapped {what}" + (f" and {len(legs)} leg pairs" if legs else "")
+            + "; the frames and fixes in it are lost")
+
+
 def _seq(event, key: str) -> int | None:
     try:
         return int(event.metadata.get(key, ""))
@@ -954,6 +972,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
         # Damage is found while reading (a skipped chunk, a cut): take the reader's word after the frames, not at open.
         truncated, run_warnings = bool(run.truncated), list(dict.fromkeys(run.warnings))  # each pass over a bad chunk says so again
         warnings = [f"the run is cut off at byte {run.truncated_at}: using the complete part"] if truncated else []
+        damaged = sorted(getattr(run, "damaged_spans", ()))
     warnings += [f"run file: {w}" for w in run_warnings] + read.warnings + notes
     if dets.size_mismatch:
         warnings.append(f"frames are not {md.width}x{md.height} as camera.width/height say")
@@ -965,6 +984,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
     warnings += notes
     solved, offset = clock("calibration_s", _solve_at_offset, read, windows, legs, dets, offset, md, options)
     warnings += solved.warnings
+    warnings += [_damage_cost(span, solved.points, read.track.t_ns) for span in damaged]
     camera = solved.result.camera.with_(enu_origin=tuple(read.origin.as_list()))
     result = _with_camera(solved.result, camera)
     unc = clock("uncertainty_s", _uncertainty, camera, solved.points, result, options, read.origin, read.plan_roi)

@@ -140,6 +140,7 @@ class Run:
             self.truncated = False
             self.truncated_at: int | None = None
             self.warnings: list[str] = []
+            self.damaged_spans: set[tuple[int, int, int]] = set()  # (byte offset, start_ns, end_ns) of chunks skipped
             self.units_read = 0
             self._units: list[_Unit] = []
             self._channels: dict[int, _Channel] = {}
@@ -576,6 +577,7 @@ class Run:
             records = breakup_chunk(Chunk.read(stream), validate_crc=True)
         except Exception:  # noqa: BLE001 - a damaged chunk is skipped, as if cut off
             self.warnings.append(f"damaged chunk at byte {unit.offset} skipped")
+            self.damaged_spans.add((unit.offset, unit.start_ns, unit.end_ns))
             return []
         out = []
         for rec in records:
