@@ -4,7 +4,7 @@ Starts the SITL-style vehicle and the simulated camera on loopback sockets,
 plans a mission for the simulated camera, flies it with ``fly --start``,
 calibrates the recorded run, and prints the calibrated camera next to the
 truth, then one line saying whether the demo met its targets and where
-camera.yaml is. About four minutes on 2 cores (make demo on a fresh machine
+camera.yaml is. About six minutes on 2 cores (make demo on a fresh machine
 adds about two minutes of installing first). A second demo into the same
 folder records run-2.mcap: a flight is never overwritten.
 """
