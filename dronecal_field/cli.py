@@ -104,13 +104,25 @@ def environment_message(exc: BaseException) -> str:
     return f"{what}: check the paths, the network address and the free disk space"
 
 
-def announce_first_compile() -> None:
-    """One line on stderr when the numerical kernels are about to be compiled (else the first run sits silent)."""
-    from dronecal_field.core.kernels import cache_is_cold
+COMPILE_NOTICE = "dronecal-field: compiling the numerical kernels once (first run after install: about 15-45 s on 2 cores; cached afterwards)"
 
-    if cache_is_cold():
-        print("dronecal-field: compiling the numerical kernels once (first run after install: about 15-45 s on 2 cores; cached afterwards)",
-              file=sys.stderr, flush=True)
+
+def announce_first_compile(now: bool = False) -> None:
+    """One line on stderr when the numerical kernels are about to be compiled (else the first run sits silent).
+
+    Said just before the first solve that compiles (a command that fails on its input first says only why);
+    ``now`` says it at once, for a command whose child processes will compile (the demo).
+    """
+    from dronecal_field.core.kernels import announce_compile_with, cache_is_cold
+
+    def notice() -> None:
+        print(COMPILE_NOTICE, file=sys.stderr, flush=True)
+
+    if now:
+        if cache_is_cold():
+            notice()
+    else:
+        announce_compile_with(notice)
 
 
 # --------------------------------------------------------------------------

@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     check_out_dir("--out", args.out)
     from dronecal_field.cli import announce_first_compile
 
-    announce_first_compile()  # plan and calibrate compile in their own processes, into the shared cache
+    announce_first_compile(now=True)  # plan and calibrate compile in their own processes, into the shared cache
 
     print(f"dronecal-field demo: a {TRUTH['width']}x{TRUTH['height']} camera on a {SITE['mount_height']:g} m pole "
           f"at {SITE['lat']}, {SITE['lon']} looking {SITE['azimuth']:g} deg, tilted {SITE['tilt']:g} deg down")

@@ -316,7 +316,9 @@ def levenberg_marquardt(
     Returns the refined state, the per-problem cost (K,) (sum of squared
     residuals, unweighted) and the largest iteration count.
     """
-    from dronecal_field.core.kernels import LOSS_CODES, solve_batch
+    from dronecal_field.core.kernels import LOSS_CODES, announce_compile_once, solve_batch
+
+    announce_compile_once()
 
     if loss not in LOSS_CODES:
         raise InputError(f"unknown loss {loss!r}: use linear, huber or cauchy")

@@ -12,6 +12,8 @@ conventions are in docs/conventions.md.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numba import njit, prange
 
@@ -286,6 +288,23 @@ def normal_equations(
     shared = X.shape[0] == 1
     for k in range(R.shape[0]):
         _accumulate(intr[k], dist[k], R[k], t[k], X[0] if shared else X[k], y[k], w[k], sel, fx_col, aspect, JtJ[k], g[k], sq[k])
+
+
+_compile_notice: "Callable[[], None] | None" = None
+
+
+def announce_compile_with(callback: "Callable[[], None]") -> None:
+    """Call ``callback`` once, just before the first solve of this process, if that solve will compile the kernels."""
+    global _compile_notice
+    _compile_notice = callback
+
+
+def announce_compile_once() -> None:
+    """The hook :func:`announce_compile_with` set, run at most once (a command that fails before its first solve says nothing)."""
+    global _compile_notice
+    callback, _compile_notice = _compile_notice, None
+    if callback is not None and cache_is_cold():
+        callback()
 
 
 def cache_is_cold() -> bool:
