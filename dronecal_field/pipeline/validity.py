@@ -299,7 +299,7 @@ def points_in_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     x0, y0 = poly[:, 0][None], poly[:, 1][None]
     x1, y1 = np.roll(poly[:, 0], -1)[None], np.roll(poly[:, 1], -1)[None]
     crosses = (y0 > y) != (y1 > y)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # horizontal edges never cross (masked)
         x_at = x0 + (y - y0) * (x1 - x0) / (y1 - y0)
     return np.logical_xor.reduce(crosses & (x < x_at), axis=1)
 
