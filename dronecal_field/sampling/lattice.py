@@ -201,7 +201,12 @@ def fold_radius(distortion: np.ndarray, min_slope: float = 0.0) -> float:
         return 0.0
     if k1 >= 0 and k2 >= 0 and k3 >= 0:
         return math.inf
-    coeffs = np.trim_zeros(np.array([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0 - min_slope]), "f")
+    # coefficients too small to bend the map within r <= 10 (x <= 100) are zero (a denormal leading one breaks np.roots)
+    coeffs = np.array([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0 - min_slope])
+    coeffs[np.abs(coeffs) * np.array([1e6, 1e4, 1e2, 1.0]) < 1e-9] = 0.0
+    coeffs = np.trim_zeros(coeffs, "f")
+    if len(coeffs) <= 1 or not np.all(np.isfinite(coeffs)):
+        return math.inf
     x = np.roots(coeffs)
     x = x.real[(np.abs(x.imag) <= 1e-9 * np.maximum(1.0, np.abs(x.real))) & (x.real > 0.0) & (x.real <= 100.0)]
     return float(math.sqrt(x.min())) if x.size else math.inf
