@@ -721,6 +721,8 @@ class SimVehicle:
             return
         period = self.params["GPS_RATE_MS"] * 1e-3
         self._next_fix_s = math.ceil(now / period + 0.5) * period
+        if now < GPS_LAG_S:
+            return  # no fix measured before boot (a negative time_usec would not even pack)
         t_fix = now - GPS_LAG_S
         c = self.config
         noise = self.rng.standard_normal(3) * np.array([c.gnss_sigma_h_m, c.gnss_sigma_h_m, c.gnss_sigma_v_m])
