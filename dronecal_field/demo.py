@@ -180,12 +180,14 @@ def used_marker_points(
 
 
 def run_demo(
-    out_dir: Path, speedup: float = 3.0, trials: int = 500, fps: float = 15.0, echo=print, latency_s: float = 0.0
+    out_dir: Path, speedup: float = 3.0, trials: int = 500, fps: float = 15.0, echo=print, latency_s: float = 0.0,
+    plan_args: tuple[str, ...] = (),
 ) -> DemoResult:
     """Run the whole chain into ``out_dir``; ``echo`` receives progress lines.
 
     ``latency_s`` (seconds, host clock) makes the simulated camera's frames show
     the vehicle that long late (``sim camera --latency-s``), as a real IP camera's do.
+    ``plan_args`` go to ``plan`` as given (e.g. ``("--max-flight-time", "7")``).
     """
     from dronecal_field.camerafile import read_camera, write_camera
     from dronecal_field.core.camera import Distortion
@@ -213,7 +215,7 @@ def run_demo(
         "--image-size", f"{TRUTH['width']}x{TRUTH['height']}", "--focal-px", TRUTH["focal_px"] * 0.95,
         "--distortion", "medium", "--marker-size", MARKER["size_m"], "--marker-dictionary", MARKER["dictionary"],
         "--marker-id", MARKER["marker_id"], "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]),
-        "--hover", "3", "--trials", "200",
+        "--hover", "3", "--trials", "200", *plan_args,
     ), logs / "plan.log", timeout_s=300)
     plan = json.loads((plan_dir / "mission.plan").read_text())
     home_lat, home_lon, home_alt = plan["mission"]["plannedHomePosition"]
