@@ -216,3 +216,23 @@ def test_fly_records_leg_events_and_fixes_at_their_own_time(tmp_path, capsys):
         first_arrival.setdefault(u, t)
     lags = np.array([first_arrival[u] - f.timestamp_ns for u, f in zip(sorted(first_arrival), fixes)])
     assert np.all(lags >= 0) and np.median(lags) < 50e6
+
+
+def test_a_step_of_the_recording_computers_clock_is_found_and_said_once():
+    """The host clock steps +2 s (an NTP step) at message 200 of a 10 Hz stream with 0-60 ms link delays: one jump,
+    of +2.0 s, where it happened; a link stall that delays one block of messages by 1.5 s is not a jump."""
+    from dronecal_field.recording.status import ClockJumpMonitor
+
+    rng = np.random.default_rng(4)
+    t0 = 1_795_000_000_000_000_000
+    boot_ms = np.arange(600) * 100
+    host = t0 + boot_ms * 1_000_000 + rng.uniform(0, 60e6, 600).astype(np.int64)
+    stalled = host.copy()
+    stalled[120:160] += 1_500_000_000  # a whole block held up by the link, then back
+    host[200:] += 2_000_000_000
+    mon = ClockJumpMonitor()
+    jumps = [j for h, b in zip(host, boot_ms) if (j := mon.observe(int(h), int(b))) is not None]
+    assert len(jumps) == 1 and jumps[0][1] == pytest.approx(2.0, abs=0.07)
+    assert abs(jumps[0][0] - host[200]) < 5e9  # the block where the clock stepped
+    mon = ClockJumpMonitor()
+    assert [j for h, b in zip(stalled, boot_ms) if (j := mon.observe(int(h), int(b))) is not None] == []

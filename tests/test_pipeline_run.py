@@ -354,3 +354,15 @@ def test_a_run_cut_during_the_climb_between_layers_says_why_it_cannot_calibrate(
     text = str(err.value)
     assert "lie in one plane" in text and "fly a second height" in text and "cut off at byte" in text
     assert "--min-fix" not in text
+
+
+def test_a_clock_jump_the_recorder_saw_is_said_with_the_holds_near_it(main_run):
+    from dronecal_field.pipeline.run import _clock_jump_cost
+    from dronecal_field.runfile.records import RunEvent
+
+    _, _, _, report, _ = main_run
+    hold = next(p for p in report.points if p.used and p.window.source != "leg")
+    text = _clock_jump_cost(RunEvent(hold.window.start_ns, 0, "clock_jump", {"jump_s": "+2.000"}), report.points, report.track.t_ns)
+    assert text.startswith("the recorder's clock jumped +2.000 s against the vehicle's at +")
+    n = int(text.split("may not line up; ")[1].split(" hover windows")[0])
+    assert n >= 1 and "NTP" in text

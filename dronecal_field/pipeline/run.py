@@ -413,6 +413,18 @@ def _damage_cost(span: tuple[int, int, int], points: list[WaypointPoint], fix_t_
             + "; the frames and fixes in it are lost")
 
 
+def _clock_jump_cost(event, points: list[WaypointPoint], fix_t_ns: np.ndarray) -> str:
+    """What a clock jump the recorder saw may have cost: the holds and leg pairs within a few seconds of it."""
+    t0 = int(fix_t_ns[0]) if len(fix_t_ns) else event.timestamp_ns
+    near = [p for p in points if abs(p.window.start_ns - event.timestamp_ns) < 5e9 or p.window.start_ns <= event.timestamp_ns <= p.window.end_ns]
+    holds = [p for p in near if p.window.source != "leg"]
+    used = sum(p.used for p in near)
+    return (f"the recorder's clock jumped {event.metadata.get('jump_s', '?')} s against the vehicle's at "
+            f"{(event.timestamp_ns - t0) / 1e9:+.1f} s: frames and fixes across it may not line up; "
+            f"{len(holds)} hover windows and {len(near) - len(holds)} leg pairs lie within 5 s of it ({used} of them used): "
+            "keep the recording computer's clock from stepping during a flight (NTP slewing, not stepping)")
+
+
 def _seq(event, key: str) -> int | None:
     try:
         return int(event.metadata.get(key, ""))
@@ -973,6 +985,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
         truncated, run_warnings = bool(run.truncated), list(dict.fromkeys(run.warnings))  # each pass over a bad chunk says so again
         warnings = [f"the run is cut off at byte {run.truncated_at}: using the complete part"] if truncated else []
         damaged = sorted(getattr(run, "damaged_spans", ()))
+        jumps = [e for e in run.iter_events() if e.type == "clock_jump"]
     warnings += [f"run file: {w}" for w in run_warnings] + read.warnings + notes
     if dets.size_mismatch:
         warnings.append(f"frames are not {md.width}x{md.height} as camera.width/height say")
@@ -985,6 +998,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
     solved, offset = clock("calibration_s", _solve_at_offset, read, windows, legs, dets, offset, md, options)
     warnings += solved.warnings
     warnings += [_damage_cost(span, solved.points, read.track.t_ns) for span in damaged]
+    warnings += [_clock_jump_cost(e, solved.points, read.track.t_ns) for e in jumps]
     camera = solved.result.camera.with_(enu_origin=tuple(read.origin.as_list()))
     result = _with_camera(solved.result, camera)
     unc = clock("uncertainty_s", _uncertainty, camera, solved.points, result, options, read.origin, read.plan_roi)

@@ -52,6 +52,7 @@ from dronecal_field.mavlink.link import MavLink
 from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT, Mission
 from dronecal_field.recording.marker_check import MarkerCheck
 from dronecal_field.recording.status import (
+    ClockJumpMonitor,
     RecorderStatus,
     VehicleClock,
     attitude_from_mavlink,
@@ -293,6 +294,8 @@ class Recorder:
         self.fixes_without_position = 0
         self.fixes_repeated = 0  # GPS_RAW_INT messages repeating the fix before (same time_usec): not written again
         self.fix_clock = FixClock()
+        self.clock_jumps = ClockJumpMonitor()
+        self.clock_jump_events = 0
         self._last_fix_usec: int | None = None
         self._last_nav: tuple[int, int] | None = None  # (seq, host ns) of the last NAV_WAYPOINT reached
         self.leg_events = 0
@@ -425,6 +428,10 @@ class Recorder:
         boot_ms = getattr(msg, "time_boot_ms", None)
         if boot_ms is not None and msg.get_srcSystem() == self.link.target_system:
             self.clock.update(stamp_ns, int(boot_ms))  # on the reader thread: in arrival order
+            jump = self.clock_jumps.observe(stamp_ns, int(boot_ms), self.clock.rate)
+            if jump is not None:
+                self.clock_jump_events += 1
+                self._event(RunEvent(jump[0], 0, "clock_jump", {"jump_s": f"{jump[1]:+.3f}"}))
         if mtype == "MISSION_ITEM_REACHED":
             self.reached.append((stamp_ns, int(msg.seq)))
         elif mtype == "MISSION_CURRENT":

@@ -80,6 +80,51 @@ class VehicleClock:
         return 1.0 if abs(rate - 1.0) < 0.05 or rate <= 0 else rate
 
 
+class ClockJumpMonitor:
+    """Finds steps of this computer's clock against the vehicle's boot clock (an NTP step, a hand-set clock).
+
+    Each vehicle message gives ``host - boot / rate``: its link delay plus the
+    clocks' offset. The smallest value over a block of ``block`` messages is
+    the offset (delays are never negative). A step of that floor by more than
+    ``threshold_s`` between two steady pairs of blocks is a clock jump; a
+    block delayed as a whole (a stalled link) is not, since the next one comes back.
+    A vehicle reboot (its boot clock going back) starts afresh.
+    """
+
+    def __init__(self, block: int = 40, threshold_s: float = 0.5) -> None:
+        self.block = block
+        self.threshold_s = threshold_s
+        self._floors: list[tuple[float, int]] = []  # (floor s, host ns at the block's start)
+        self._min: float | None = None
+        self._start_ns = 0
+        self._n = 0
+        self._last_boot_ms: int | None = None
+
+    def observe(self, host_ns: int, boot_ms: int, rate: float = 1.0) -> tuple[int, float] | None:
+        """One vehicle message, in arrival order; returns (host ns where the jump happened, jump s) once per jump."""
+        if self._last_boot_ms is not None and boot_ms < self._last_boot_ms - 1000:
+            self._floors, self._min, self._n = [], None, 0  # the vehicle rebooted
+        self._last_boot_ms = int(boot_ms)
+        e = host_ns / 1e9 - boot_ms / 1000.0 / max(rate, 1e-6)
+        if self._n == 0:
+            self._start_ns = int(host_ns)
+        self._min = e if self._min is None else min(self._min, e)
+        self._n += 1
+        if self._n < self.block:
+            return None
+        self._floors.append((self._min, self._start_ns))
+        self._min, self._n = None, 0
+        del self._floors[:-4]
+        if len(self._floors) < 4:
+            return None
+        # steady before, a step, steady after: a block held up by the link is neither steady nor a step
+        (fa, _), (fb, _), (fc, at_ns), (fd, _) = self._floors
+        steady = self.threshold_s / 2
+        if abs(fb - fa) < steady and abs(fd - fc) < steady and abs(fc - fb) > self.threshold_s:
+            return at_ns, fc - fb
+        return None
+
+
 def hover_event(mission: Mission, seq: int, reached_ns: int, clock_rate: float) -> RunEvent | None:
     """The hover window that ends with MISSION_ITEM_REACHED ``seq`` (ArduCopter reports at the END of a hold)."""
     if not 0 <= seq < len(mission.items):
