@@ -236,3 +236,7 @@ def test_a_step_of_the_recording_computers_clock_is_found_and_said_once():
     assert abs(jumps[0][0] - host[200]) < 5e9  # the block where the clock stepped
     mon = ClockJumpMonitor()
     assert [j for h, b in zip(stalled, boot_ms) if (j := mon.observe(int(h), int(b))) is not None] == []
+    # a sped-up simulator whose rate estimate settles from 1 to 2 (host - boot / rate moves by boot / 2): no jump
+    fast = t0 + boot_ms * 500_000
+    mon = ClockJumpMonitor()
+    assert [j for k, (h, b) in enumerate(zip(fast, boot_ms)) if (j := mon.observe(int(h), int(b), 1.0 if k < 130 else 2.0)) is not None] == []

@@ -94,11 +94,12 @@ class ClockJumpMonitor:
     def __init__(self, block: int = 40, threshold_s: float = 0.5) -> None:
         self.block = block
         self.threshold_s = threshold_s
-        self._floors: list[tuple[float, int]] = []  # (floor s, host ns at the block's start)
+        self._floors: list[tuple[float, int, float]] = []  # (floor s, host ns at the block's start, rate used)
         self._min: float | None = None
         self._start_ns = 0
         self._n = 0
         self._last_boot_ms: int | None = None
+        self._rate = 1.0
 
     def observe(self, host_ns: int, boot_ms: int, rate: float = 1.0) -> tuple[int, float] | None:
         """One vehicle message, in arrival order; returns (host ns where the jump happened, jump s) once per jump."""
@@ -108,17 +109,23 @@ class ClockJumpMonitor:
         e = host_ns / 1e9 - boot_ms / 1000.0 / max(rate, 1e-6)
         if self._n == 0:
             self._start_ns = int(host_ns)
+            self._rate = float(rate)
+        elif abs(rate - self._rate) > 1e-3 * self._rate:
+            self._floors, self._min, self._n = [], None, 0  # the vehicle-clock rate estimate moved: offsets restart
+            return None
         self._min = e if self._min is None else min(self._min, e)
         self._n += 1
         if self._n < self.block:
             return None
-        self._floors.append((self._min, self._start_ns))
+        self._floors.append((self._min, self._start_ns, self._rate))
         self._min, self._n = None, 0
         del self._floors[:-4]
         if len(self._floors) < 4:
             return None
         # steady before, a step, steady after: a block held up by the link is neither steady nor a step
-        (fa, _), (fb, _), (fc, at_ns), (fd, _) = self._floors
+        (fa, _, ra), (fb, _, _), (fc, at_ns, _), (fd, _, rd) = self._floors
+        if abs(rd - ra) > 1e-3 * ra:
+            return None  # offsets under different rate estimates do not compare
         steady = self.threshold_s / 2
         if abs(fb - fa) < steady and abs(fd - fc) < steady and abs(fc - fb) > self.threshold_s:
             return at_ns, fc - fb
