@@ -117,7 +117,6 @@ class VideoSource:
         self._queue: queue.Queue[Frame] = queue.Queue(maxsize=max(1, int(queue_size)))
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._opened_once = False
 
     # -- public --------------------------------------------------------------
 
@@ -148,7 +147,6 @@ class VideoSource:
         self.last_error = None
         self._thread = threading.Thread(target=self._run, name=f"video:{self.url}", daemon=True)
         self._thread.start()
-        self._opened_once = True
 
     def reopen(self) -> None:
         """Close and connect again (after a dropped stream); frames already queued are kept."""

@@ -28,13 +28,13 @@ backlog shows as lag instead of turning into stale timestamps.
 from __future__ import annotations
 
 import collections
-import threading
 import time
 from dataclasses import dataclass
 from typing import Iterator
 
 from dronecal_field.errors import VideoError
 from dronecal_field.runfile.records import Frame
+from dronecal_field.video import VideoSource
 
 VIDEO_FORMATS = ("h264", "h265")
 _CODEC_OF_FORMAT = {"h264": "h264", "h265": "hevc"}
@@ -374,11 +374,11 @@ class StreamMonitor:
 RTSP_TRANSPORTS = ("tcp", "udp")
 
 
-class PacketSource:
+class PacketSource(VideoSource):
     """An RTSP stream or a video file read as packets (PyAV, no decoding), one capture thread.
 
-    Same interface as :class:`dronecal_field.video.VideoSource` (``read``,
-    ``reopen``, ``close``, ``frames_dropped``, ``ended``), plus:
+    A :class:`dronecal_field.video.VideoSource` (its capture thread, queue,
+    ``read``, ``reopen``, ``close``, ``frames_dropped``, ``ended``), plus:
 
     Attributes
     ----------
@@ -399,19 +399,10 @@ class PacketSource:
         rtsp_transport: str = "tcp",
         start_ns: int | None = None,
     ) -> None:
-        import queue
-
         if rtsp_transport not in RTSP_TRANSPORTS:
             raise VideoError(f"--rtsp-transport {rtsp_transport!r}: use tcp or udp")
-        self.url = url
-        self.live = live
-        self.timeout_s = float(timeout_s)
+        super().__init__(url, live, timeout_s, queue_size)
         self.rtsp_transport = rtsp_transport
-        self.frames_received = 0
-        self.frames_dropped = 0
-        self.bytes_received = 0
-        self.reconnects = 0
-        self.last_error: str | None = None
         self.format = ""
         self.width = 0
         self.height = 0
@@ -422,33 +413,12 @@ class PacketSource:
         self.rtcp_delay_ns: int | None = None  # arrival - RTCP capture time, the smallest seen
         self._start_ns = time.time_ns() if start_ns is None else int(start_ns)
         self._clock_locked = False
-        self._queue: queue.Queue[VideoFrame] = queue.Queue(maxsize=max(1, int(queue_size)))
         self._incidents: collections.deque[StreamIncident] = collections.deque()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._container = None
         self._params: list[bytes] = []
         self._length_size: int | None = None
 
     # -- public ------------------------------------------------------------
-
-    @property
-    def ended(self) -> bool:
-        return self._thread is None or not self._thread.is_alive()
-
-    def read(self, timeout_s: float = 1.0) -> VideoFrame | None:
-        """The next access unit, or None when none arrives within ``timeout_s`` or the source ended."""
-        import queue
-
-        deadline = time.monotonic() + max(0.0, timeout_s)
-        while True:
-            try:
-                return self._queue.get(timeout=min(0.05, max(0.0, deadline - time.monotonic())) or 0.001)
-            except queue.Empty:
-                if self.ended and self._queue.empty():
-                    return None
-                if time.monotonic() >= deadline:
-                    return None
 
     def incidents(self) -> list[StreamIncident]:
         """Incidents since the last call (lag spans, lost frames, corrupt packets)."""
@@ -462,14 +432,6 @@ class PacketSource:
         self._clock_locked = True
         return self.clock
 
-    def open(self) -> None:
-        """Connect and start the capture thread; VideoError when the stream cannot be opened."""
-        self._connect()
-        self._stop.clear()
-        self.last_error = None
-        self._thread = threading.Thread(target=self._run, name=f"video:{self.url}", daemon=True)
-        self._thread.start()
-
     def reopen(self) -> None:
         """Close and connect again (a dropped stream); the pts clock starts again."""
         self._halt()
@@ -479,14 +441,8 @@ class PacketSource:
 
     def close(self) -> None:
         """Stop the capture thread and release the stream (idempotent)."""
-        self._halt()
+        super().close()
         self._incidents.extend(self.monitor.close(time.time_ns()))
-
-    def __enter__(self) -> "PacketSource":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     # -- internals -----------------------------------------------------------
 
@@ -524,46 +480,6 @@ class PacketSource:
             container, self._container = self._container, None
             if container is not None:
                 container.close()
-
-    def _halt(self) -> None:
-        self._stop.set()
-        self._disconnect()
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=max(2.0, self.timeout_s))
-
-    def _run(self) -> None:
-        try:
-            for frame in self._frames():
-                if self._stop.is_set():
-                    return
-                self.frames_received += 1
-                self.bytes_received += len(frame.data)
-                self._deliver(frame)
-        except Exception as exc:  # noqa: BLE001 - reported through last_error / ended
-            if not self._stop.is_set():
-                self.last_error = f"{type(exc).__name__}: {exc}"
-
-    def _deliver(self, frame: VideoFrame) -> None:
-        import queue
-
-        if not self.live:
-            while not self._stop.is_set():
-                try:
-                    self._queue.put(frame, timeout=0.1)
-                    return
-                except queue.Full:
-                    continue
-            return
-        try:
-            self._queue.put_nowait(frame)
-        except queue.Full:
-            # A consumer this slow loses frames, counted; the oldest goes, as for MJPEG.
-            try:
-                self._queue.get_nowait()
-                self.frames_dropped += 1
-            except queue.Empty:
-                pass
-            self._queue.put_nowait(frame)
 
     def _stamp(self, arrival_ns: int, pts_ns: int, demux_pts_ns: int, realtime_us: int | None) -> int:
         if not self.live:
