@@ -142,6 +142,7 @@ class Run:
             self.warnings: list[str] = []
             self.damaged_spans: set[tuple[int, int, int]] = set()  # (byte offset, start_ns, end_ns) of chunks skipped
             self.units_read = 0
+            self._events: list[RunEvent] | None = None  # /events, once read
             self._units: list[_Unit] = []
             self._channels: dict[int, _Channel] = {}
             self._schemas: dict[int, tuple[str, str]] = {}  # id -> (name, encoding)
@@ -268,11 +269,17 @@ class Run:
                 run_up.append(frame)
 
     def iter_events(self) -> Iterator[RunEvent]:
-        """Events of ``/events`` (hover windows and other marks) in log-time order."""
-        if not self._has_topic(pm.EVENTS_TOPIC):
-            return
-        for _, data, log_time in self._iter_topic({pm.EVENTS_TOPIC}):
-            yield pm.event_from_bytes(data, log_time)
+        """Events of ``/events`` (hover windows and other marks) in log-time order.
+
+        Read once and kept (a few hundred small records): the stages that ask for them (hover windows, legs,
+        clock jumps) would otherwise each pass over every chunk that carries one, i.e. most of the file.
+        """
+        if self._events is None:
+            if not self._has_topic(pm.EVENTS_TOPIC):
+                self._events = []
+            else:
+                self._events = [pm.event_from_bytes(data, log_time) for _, data, log_time in self._iter_topic({pm.EVENTS_TOPIC})]
+        yield from self._events
 
     def iter_attitude(self) -> Iterator[Attitude]:
         """Vehicle attitude from ``/vehicle/attitude``, else from ``/mavlink/ATTITUDE``."""
