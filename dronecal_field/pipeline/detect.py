@@ -355,3 +355,56 @@ def _clip_roi(roi: tuple[int, int, int, int], shape: tuple[int, ...]) -> tuple[i
 
 def _mean_side(quad: np.ndarray) -> float:
     return float(np.mean(np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)))
+
+
+COARSE_SEARCH_PX = 4_000_000  # frames this large (4K) are searched at half size first
+TRACK_NS = 500_000_000  # a detection this recent predicts where to search the next frame
+
+
+def coarse_roi(image: np.ndarray, detector, marker_id: int) -> tuple[int, int, int, int] | None:
+    """A search box (full-size pixels) around the marker found in the half-size ``image`` (H, W), or None."""
+    import cv2
+    from dataclasses import replace
+
+    half = cv2.resize(image, (image.shape[1] // 2, image.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    found = detect_aruco(half, detector, marker_id, 0, None).detection
+    if found is None:
+        return None
+    return roi_around(replace(found, u_px=2.0 * found.u_px + 0.5, v_px=2.0 * found.v_px + 0.5, size_px=2.0 * found.size_px), image.shape)
+
+
+def predicted(last: Detection, before: Detection | None, t_ns: int) -> Detection:
+    """Where the marker will be at ``t_ns``: ``last`` moved on at the image velocity of the last two
+    detections (a marker crossing the image on a leg leaves a box centred where it was)."""
+    from dataclasses import replace
+
+    if before is None or not 0 < last.timestamp_ns - before.timestamp_ns < TRACK_NS:
+        return last
+    k = (t_ns - last.timestamp_ns) / (last.timestamp_ns - before.timestamp_ns)
+    return replace(last, u_px=last.u_px + k * (last.u_px - before.u_px), v_px=last.v_px + k * (last.v_px - before.v_px))
+
+
+def detect_marker(image: np.ndarray, marker, detector, timestamp_ns: int, roi: tuple[int, int, int, int] | None = None) -> FrameResult:
+    """The run's marker in a grey ``image`` (H, W): ``calibrate``'s search, which the live pass shares.
+
+    In the tracking box ``roi`` first (full-size pixels), then the whole frame if it is lost there; a 4K
+    frame with no box is searched at half size first (a whole 4K frame costs ~0.7 s of ArUco, at half
+    size a quarter), then in the box found there at full size.
+
+    Parameters
+    ----------
+    marker : runfile.records.MarkerSpec (``kind``, ``marker_id``)
+    detector : from :func:`make_aruco_detector` (None for an LED marker)
+    """
+    coarse = marker.kind == "aruco" and image.size >= COARSE_SEARCH_PX
+    while True:
+        if roi is None and coarse:
+            coarse = False
+            roi = coarse_roi(image, detector, int(marker.marker_id))
+        if marker.kind == "aruco":
+            res = detect_aruco(image, detector, int(marker.marker_id), timestamp_ns, roi)
+        else:
+            res = detect_led(image, timestamp_ns, roi)
+        if res.detection is not None or (roi is None and not coarse):
+            return res
+        roi = None  # lost in the tracking box: search the whole frame

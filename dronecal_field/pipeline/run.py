@@ -27,7 +27,8 @@ import numpy as np
 from dronecal_field.errors import ContractError, DegenerateGeometryError, DronecalError, InputError
 from dronecal_field.geodesy import EnuOrigin, geodetic_to_enu
 from dronecal_field.pipeline.align import TimeOffset, Timing, estimate_time_offset, refine_timing
-from dronecal_field.pipeline.detect import Detection, centres_under_distortion
+from dronecal_field.pipeline.detect import COARSE_SEARCH_PX, Detection, centres_under_distortion  # noqa: F401 - COARSE_SEARCH_PX, _coarse_roi: names kept
+from dronecal_field.pipeline.detect import coarse_roi as _coarse_roi  # noqa: F401 - calibrate's search lives in detect.py (the live pass shares it)
 from dronecal_field.pipeline.fixes import DistinctFixes, distinct_fixes
 from dronecal_field.pipeline.hover import (
     HoverWindow,
@@ -110,6 +111,7 @@ class FrameStats:
     transitions_dense: int
     formats: tuple[str, ...]
     video_units_decoded: int | None = None  # /camera/video: access units the decoder ran through (the real cost), None for images
+    frames_from_live: int = 0  # of frames_decoded, those whose outcome came from fly's live pass (not decoded again)
 
     def to_dict(self) -> dict:
         return {
@@ -121,6 +123,7 @@ class FrameStats:
             "transitions_decoded_densely": self.transitions_dense,
             "formats": list(self.formats),
             "video_units_decoded": self.video_units_decoded,
+            "frames_from_live_pass": self.frames_from_live,
         }
 
 
@@ -513,9 +516,16 @@ def _find_legs(run, track: Track, windows: list[HoverWindow], options: Calibrate
     return legs, ("gnss_track" if legs else "none")
 
 
-def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, sampling: SamplingOptions) -> Detections:
-    """Stage 3: one pass over the frames of the windows and the legs: the marker's detections."""
-    from dronecal_field.pipeline.detect import FrameDecoder, detect_aruco, detect_led, make_aruco_detector, roi_around
+def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, sampling: SamplingOptions, live=None) -> Detections:
+    """Stage 3: one pass over the frames of the windows and the legs: the marker's detections.
+
+    ``live`` (framecache.FrameResults, the live pass of ``fly``): inside its covered intervals its
+    frames are the candidates and their stored outcomes are taken (no read, no decode); the rest
+    is read from the file. The selector decides on the merged stream, in time order, as without.
+    """
+    import heapq
+
+    from dronecal_field.pipeline.detect import TRACK_NS, FrameDecoder, decode_gray, detect_marker, make_aruco_detector, predicted, roi_around
     from dronecal_field.pipeline.sampling import FrameSelector
 
     marker = md.marker
@@ -528,9 +538,11 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
             raise ContractError(
                 f"marker.dictionary {marker.dictionary!r} is not an OpenCV ArUco dictionary: use a name like DICT_4X4_50"
             ) from None
+    if run.video:
+        live = None  # the live pass keeps no outcomes of access units (docs/live.md)
     detections: list[Detection] = []
     groups: list[int] = []
-    read = decoded = corrupt = found = 0
+    read = decoded = corrupt = found = from_live = 0
     others: set[int] = set()
     formats: set[str] = set()
     last: Detection | None = None
@@ -539,40 +551,46 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
     size_warned = False
     decoder = FrameDecoder()  # /camera/video: access units kept from the keyframe on, decoded only up to a wanted frame
     # /camera/video holds are decoded in keyframe bursts seconds apart: the last detection still boxes the search.
-    track_ns = int(max(0.5, sampling.video_max_period_s) * 1e9) if run.video else 500_000_000
-    for frame in run.iter_frames(selector.read_windows()):
+    track_ns = int(max(0.5, sampling.video_max_period_s) * 1e9) if run.video else TRACK_NS
+    wanted = selector.read_windows()
+    if live is not None:
+        cached = (_CachedFrame(t, res) for t, res in live.items_in(wanted))
+        frames = heapq.merge(cached, run.iter_frames(live.uncovered(wanted)), key=lambda f: f.timestamp_ns)
+    else:
+        frames = run.iter_frames(wanted)
+    for frame in frames:
         read += 1
-        decoder.push(frame)
+        stored = isinstance(frame, _CachedFrame)
+        if not stored:
+            decoder.push(frame)
         # Decisions use what was detected so far (a transition is decoded once its hold showed the marker).
         decode, group = selector.wants(frame.timestamp_ns, keyframe=bool(getattr(frame, "keyframe", False)))
         if not decode:
             continue
         decoded += 1
-        formats.add(frame.format)
-        image = decoder.gray()
-        if image is None:
-            corrupt += 1
-            continue
-        if image.shape[:2] != (md.height, md.width) and not size_warned:
-            size_warned = True
-        roi = None
-        if last is not None and abs(frame.timestamp_ns - last.timestamp_ns) < 500_000_000:
-            roi = roi_around(_predicted(last, before_last, frame.timestamp_ns), image.shape)
-        elif last is not None and abs(frame.timestamp_ns - last.timestamp_ns) < track_ns:
-            roi = roi_around(last, image.shape)  # keyframe bursts seconds apart: a still hold's marker is where it was
-        coarse = marker.kind == "aruco" and image.size >= COARSE_SEARCH_PX
-        while True:
-            if roi is None and coarse:
-                # A whole 4K frame costs ~0.7 s of ArUco; at half size a quarter, then the box at full size.
-                coarse = False
-                roi = _coarse_roi(image, detector, int(marker.marker_id))
-            if marker.kind == "aruco":
-                res = detect_aruco(image, detector, int(marker.marker_id), frame.timestamp_ns, roi)
-            else:
-                res = detect_led(image, frame.timestamp_ns, roi)
-            if res.detection is not None or (roi is None and not coarse):
-                break
-            roi = None  # lost in the tracking box: search the whole frame
+        if not stored and live is not None:
+            stored, res = live.lookup(frame.timestamp_ns)  # a frame the live pass detected outside its covered spans
+            frame = _CachedFrame(frame.timestamp_ns, res) if stored else frame
+        if stored:
+            from_live += 1
+            res = frame.result
+            if res is None:
+                corrupt += 1
+                continue
+        else:
+            formats.add(frame.format)
+            image = decoder.gray()
+            if image is None:
+                corrupt += 1
+                continue
+            if image.shape[:2] != (md.height, md.width) and not size_warned:
+                size_warned = True
+            roi = None
+            if last is not None and abs(frame.timestamp_ns - last.timestamp_ns) < TRACK_NS:
+                roi = roi_around(predicted(last, before_last, frame.timestamp_ns), image.shape)
+            elif last is not None and abs(frame.timestamp_ns - last.timestamp_ns) < track_ns:
+                roi = roi_around(last, image.shape)  # keyframe bursts seconds apart: a still hold's marker is where it was
+            res = detect_marker(image, marker, detector, frame.timestamp_ns, roi)
         others.update(res.other_ids)
         selector.record(group, res.detection is not None)
         if res.detection is not None:
@@ -580,7 +598,12 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
             detections.append(res.detection)
             groups.append(int(group))
             before_last, last = last, res.detection
-            background = image
+            if not stored:
+                background = image
+    if background is None and live is not None and detections:
+        # every detection came from the live pass: the report's figure still needs one frame with the marker
+        t = detections[-1].timestamp_ns
+        background = next((decode_gray(f.data) for f in run.iter_frames([(t, t)])), None)
     stats = FrameStats(
         frames_read=read,
         frames_decoded=decoded,
@@ -590,6 +613,7 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
         transitions_dense=len(selector.transitions_taken),
         formats=tuple(sorted(formats)),
         video_units_decoded=decoder.video_stats[0] if decoder.video_stats is not None else None,
+        frames_from_live=from_live,
     )
     return Detections(
         items=detections,
@@ -603,29 +627,12 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
     )
 
 
-COARSE_SEARCH_PX = 4_000_000  # frames this large (4K) are searched at half size first
+@dataclass(frozen=True)
+class _CachedFrame:
+    """A frame the live pass already ran the detector on (stamp and outcome; None: it did not decode)."""
 
-
-def _coarse_roi(image: np.ndarray, detector, marker_id: int) -> tuple[int, int, int, int] | None:
-    """A search box (full-size pixels) around the marker found in the half-size ``image`` (H, W), or None."""
-    import cv2
-
-    from dronecal_field.pipeline.detect import detect_aruco, roi_around
-
-    half = cv2.resize(image, (image.shape[1] // 2, image.shape[0] // 2), interpolation=cv2.INTER_AREA)
-    found = detect_aruco(half, detector, marker_id, 0, None).detection
-    if found is None:
-        return None
-    return roi_around(replace(found, u_px=2.0 * found.u_px + 0.5, v_px=2.0 * found.v_px + 0.5, size_px=2.0 * found.size_px), image.shape)
-
-
-def _predicted(last: Detection, before: Detection | None, t_ns: int) -> Detection:
-    """Where the marker will be at ``t_ns``: ``last`` moved on at the image velocity of the last two
-    detections (a marker crossing the image on a leg leaves a box centred where it was)."""
-    if before is None or not 0 < last.timestamp_ns - before.timestamp_ns < 500_000_000:
-        return last
-    k = (t_ns - last.timestamp_ns) / (last.timestamp_ns - before.timestamp_ns)
-    return replace(last, u_px=last.u_px + k * (last.u_px - before.u_px), v_px=last.v_px + k * (last.v_px - before.v_px))
+    timestamp_ns: int
+    result: object  # detect.FrameResult | None
 
 
 def _align(dets: Detections, track: Track, md, options: CalibrateOptions) -> tuple[TimeOffset, list[str]]:
@@ -920,7 +927,7 @@ def _uncertainty(camera, points: list[WaypointPoint], result, options: Calibrate
 # The stage
 
 
-def calibrate_run(path: str | os.PathLike, options: CalibrateOptions = CalibrateOptions()) -> CalibrationReport:
+def calibrate_run(path: str | os.PathLike, options: CalibrateOptions = CalibrateOptions(), live=None) -> CalibrationReport:
     """Calibrate the camera seen in one run file; write the outputs when ``options.out_dir`` is set.
 
     When a cut-off run cannot be calibrated, the error says where it is cut:
@@ -930,6 +937,8 @@ def calibrate_run(path: str | os.PathLike, options: CalibrateOptions = Calibrate
     ----------
     path : a run file following shared/contracts/run-format.md (also cut off)
     options : see CalibrateOptions
+    live : pipeline.framecache.FrameResults of ``fly``'s live pass over this run (same process), or None:
+        its detector outcomes stand in for the frames it covered (not decoded again); JPEG/PNG runs only
 
     Returns
     -------
@@ -943,7 +952,7 @@ def calibrate_run(path: str | os.PathLike, options: CalibrateOptions = Calibrate
     CalibrationError : the solver found no trustworthy camera
     """
     try:
-        return _calibrate_run(Path(path), options)
+        return _calibrate_run(Path(path), options, live)
     except ContractError:
         raise
     except DronecalError as exc:
@@ -964,7 +973,7 @@ def _cut_off_at(path: Path) -> int | None:
         return None
 
 
-def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
+def _calibrate_run(path: Path, options: CalibrateOptions, live=None) -> CalibrationReport:
     """The pipeline: each stage a function of the ones before."""
     from dronecal_field.runfile.reader import open_run
 
@@ -980,7 +989,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions) -> CalibrationReport:
                 f"track never stays within {options.track.max_spread_m * 100:.0f} cm for {options.track.min_duration_s:g} s "
                 "nor flies straight for long): fly holds of a few seconds at each waypoint, or legs at constant speed"
             )
-        dets = clock("detection_s", _detect_frames, run, windows, legs, md, options.sampling)
+        dets = clock("detection_s", _detect_frames, run, windows, legs, md, options.sampling, live)
         # Damage is found while reading (a skipped chunk, a cut): take the reader's word after the frames, not at open.
         truncated, run_warnings = bool(run.truncated), list(dict.fromkeys(run.warnings))  # each pass over a bad chunk says so again
         warnings = [f"the run is cut off at byte {run.truncated_at}: using the complete part"] if truncated else []
