@@ -29,12 +29,12 @@ FIRST_SEQ = 4  # takeoff 1, speed 2, ROI 3, then the waypoints
 HIDDEN = (5, 8, 10)
 
 
-def _fly_with_camera(tmp_path, plan, out, hide=(), extra=()):
+def _fly_with_camera(tmp_path, plan, out, hide=(), extra=(), speedup=4.0):
     truth = make_truth_camera(HOME, 4.0, 0.0, 20.0, 560.0, 640, 480, distortion=Distortion(k1=-0.1))
     cam = SimCamera(truth, MarkerSpec(size_m=0.4, offset_frd_m=OFFSET), connect="udpin:127.0.0.1:0",
                     serve_url="http://127.0.0.1:0/stream.mjpg", fps=15, noise_sigma_dn=1.0, seed=3, hide_marker_at=hide).start()
     host, port = cam.mavlink_address
-    config = VehicleConfig(home_lat_deg=HOME[0], home_lon_deg=HOME[1], home_alt_m=HOME[2], speedup=4.0, boot_s=1.0, params=FAST_PARAMS)
+    config = VehicleConfig(home_lat_deg=HOME[0], home_lon_deg=HOME[1], home_alt_m=HOME[2], speedup=speedup, boot_s=1.0, params=FAST_PARAMS)
     sim = SimVehicle(config, listen=["udp:127.0.0.1:0"], out=[f"udp:{host}:{port}"]).start()
     try:
         rc = main(["fly", "--connect", sim.addresses()[0], "--mission", str(plan), "--video", cam.url, "--out", str(out),
@@ -88,3 +88,28 @@ def test_hidden_marker_waypoints_are_named_and_refly_plan_reaches_them(tmp_path,
         reached = {int(f["seq"]) for _n, _t, f in run.iter_mavlink({"MISSION_ITEM_REACHED"})}
     assert set(mapping) <= reached
     assert re.search(r"verdict: good: 3/3 waypoints detected", printed), printed[-2000:]
+
+
+@pytest.mark.slow
+def test_fly_calibrate_takes_most_detections_from_the_live_pass(tmp_path, capsys):
+    """`fly --calibrate`: the live worker detected every ring frame around the holds in flight; calibrate after
+    landing decodes only what that pass did not cover (docs/live.md "From landing to the final result")."""
+    # 8 s holds at 8x: the 1 s of wall time a hold has above, the flights between them twice as fast
+    plan = write_plan(tmp_path / "mission.plan", WAYPOINTS, hold_s=8.0, takeoff_alt_m=2.0, speed_mps=3.0)
+    out = tmp_path / "run.mcap"
+    rc, _ = _fly_with_camera(tmp_path, plan, out, extra=("--calibrate", "--min-fix", "rtk_fixed"), speedup=8.0)
+    captured = capsys.readouterr()
+    printed = captured.out
+    assert rc == 0, printed[-3000:] + captured.err[-1000:]
+    assert re.search(r"calibration ready \d+\.\d s after the run file was closed", printed), printed[-2000:]
+    m = re.search(r"detections: (\d+) of (\d+) frames from the live pass", printed)
+    assert m, printed[-3000:]
+    from_live, decoded = int(m.group(1)), int(m.group(2))
+    assert decoded > 100 and from_live >= 0.7 * decoded, (from_live, decoded)
+    report = json.loads((tmp_path / "run-calibration" / "report.json").read_text())
+    assert report["frames"]["frames_from_live_pass"] == from_live
+    live = json.loads((tmp_path / "run.live.json").read_text())
+    assert live["frame_cache"]["frames_detected"] >= from_live and live["frame_cache"]["covered_s"] > 10
+    # the same camera as calibrate on the file alone (the truth: 560 px)
+    fx = float(re.search(r"fx (\d+\.\d+)", printed).group(1))
+    assert abs(fx / 560.0 - 1) < 0.05, fx

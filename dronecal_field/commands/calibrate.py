@@ -109,8 +109,11 @@ def _options(args: argparse.Namespace, out: Path | None):
     )
 
 
-def run_single(args: argparse.Namespace, run_path: Path) -> int:
-    """One run, in this process: the report's summary on stdout."""
+def run_single(args: argparse.Namespace, run_path: Path, live=None) -> int:
+    """One run, in this process: the report's summary on stdout.
+
+    ``live``: pipeline.framecache.FrameResults of fly's live pass over this run (``fly --calibrate``), or None.
+    """
     from dronecal_field.pipeline.report import all_warnings
     from dronecal_field.pipeline.run import calibrate_run
 
@@ -118,7 +121,7 @@ def run_single(args: argparse.Namespace, run_path: Path) -> int:
 
     out = args.out if args.out is not None else run_path.with_name(run_path.stem + "-calibration")
     announce_first_compile()
-    report = calibrate_run(run_path, _options(args, out))
+    report = calibrate_run(run_path, _options(args, out), live=live)
     cam = report.camera
     i = cam.intrinsics
     mc = report.monte_carlo or report.linearised
@@ -141,6 +144,8 @@ def run_single(args: argparse.Namespace, run_path: Path) -> int:
         f"  confidence ({mc.method}): RMS mean {mc.rms_mean:.3f} px; at 15 m: {mc.ground_error_15m_cm:.1f} cm, "
         f"{mc.speed_error_15m_kmh:.2f} km/h at 50 km/h",
     ]
+    if report.frames.frames_from_live:
+        lines.append(f"  detections: {report.frames.frames_from_live} of {report.frames.frames_decoded} frames from the live pass")
     for p in dropped[:5]:
         lines.append(f"  dropped window {p.window.index}" + (f" (seq {p.window.seq})" if p.window.seq is not None else "") + f": {p.dropped}")
     if len(dropped) > 5:

@@ -372,7 +372,7 @@ def run(args: argparse.Namespace) -> int:
     if args.calibrate and closed_mono is not None:
         from dronecal_field.live.session import calibrate_after_landing
 
-        print("\n".join(calibrate_after_landing(out, args.min_fix, closed_mono)), flush=True)
+        print("\n".join(calibrate_after_landing(out, args.min_fix, closed_mono, live)), flush=True)
     return 0
 
 

@@ -20,6 +20,7 @@ from dronecal_field.core.camera import Camera
 from dronecal_field.pipeline.detect import Detection
 from dronecal_field.pipeline.hover import HoverWindow
 from dronecal_field.pipeline.points import PointOptions, WaypointPoint, marker_track_at, window_point
+from dronecal_field.pipeline.sampling import SamplingOptions
 
 MIN_SOLVE_POINTS = 6  # as calibrate (pipeline.run.MIN_POINTS)
 NOT_DETECTED = "marker not detected"
@@ -34,6 +35,8 @@ class LiveOptions:
     min_fix: str = "rtk_fixed"
     summary_every: int = 3  # a summary line every N waypoints
     points: PointOptions = field(default_factory=PointOptions)
+    sampling: SamplingOptions = field(default_factory=SamplingOptions)  # the frame cache's zones: calibrate's read windows
+    frame_cache: bool = True  # detect every ring frame around holds and legs for calibrate after landing (JPEG/PNG)
 
 
 @dataclass(frozen=True, eq=False)

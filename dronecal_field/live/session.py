@@ -70,8 +70,12 @@ def conclude(live: LiveCalibration, run_path: Path, mission: Any, timeout_s: flo
     return result, lines
 
 
-def calibrate_after_landing(run_path: Path, min_fix: str, closed_mono: float) -> list[str]:
-    """``calibrate RUN`` as the user would run it (its defaults, its output), into ``<run>-calibration/``; lines to print."""
+def calibrate_after_landing(run_path: Path, min_fix: str, closed_mono: float, live: LiveCalibration | None = None) -> list[str]:
+    """``calibrate RUN`` as the user would run it (its defaults, its output), into ``<run>-calibration/``; lines to print.
+
+    ``live``: the concluded live pipeline of this flight: its frame cache (every ring frame around the holds
+    and legs, detected in flight) stands in for the frames it covered, which are not decoded again.
+    """
     import argparse
     import contextlib
     import io
@@ -82,9 +86,10 @@ def calibrate_after_landing(run_path: Path, min_fix: str, closed_mono: float) ->
     sub = parser.add_subparsers()
     calibrate_cmd.register(sub)
     args = parser.parse_args(["calibrate", str(run_path), "--min-fix", min_fix])
+    frames = live.frame_results() if live is not None else None
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        calibrate_cmd.run_single(args, run_path)
+        calibrate_cmd.run_single(args, run_path, live=frames)
     lines = out.getvalue().rstrip().splitlines()
     lines.append(f"calibration ready {time.monotonic() - closed_mono:.1f} s after the run file was closed")
     return lines

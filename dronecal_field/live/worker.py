@@ -5,13 +5,24 @@
     recorder video thread  --on_frame-->  frame ring (a few frames a second, bounded by count)
     recorder writer thread --on_record--> fixes, attitudes (bounded deques); hover / leg events -> job queue (bounded)
     worker thread (nice +10): each job: frames of the hold -> detector -> point -> running calibration
-                              -> coverage, summary, verdict; and twice a second the Foxglove view
+                              -> coverage, summary, verdict; and twice a second the Foxglove view;
+                              between jobs, every ring frame around each hold and leg -> detector
+                              -> frame cache (calibrate after landing takes it: pipeline/framecache.py)
 
 The observer's calls are O(1) appends and a ``put_nowait``: the recorder never
 waits for the live work. When the worker falls behind, the job queue fills
 and further waypoints are skipped (counted in ``jobs_dropped`` and named as
 "not checked live"); frames the ring no longer holds are simply not used.
 The recorder's own frame queue, its drops and its priority are untouched.
+
+The frame cache: each hover event opens a *zone* of frame stamps, the hold
+widened as ``calibrate`` reads it (``SamplingOptions.margin_s`` + ``dense_s``
+each side), each leg event one widened by ``margin_s``. Every ring frame in a
+zone is detected once, in time order, with ``calibrate``'s detector; a zone
+whose frames all got an outcome becomes a *covered* interval (from after the
+last of its frames the ring evicted undetected). ``calibrate`` then decodes
+only what lies outside. JPEG/PNG only: H.264/H.265 access units are not
+cached (each decode needs its GOP; ``calibrate`` reads them from the file).
 """
 
 from __future__ import annotations
@@ -54,6 +65,7 @@ RING_HZ = 16.0  # JPEG frames a second kept for the worker: all of a 15 fps stre
 RING_FRAMES = 4000  # and at most this many (H.264/H.265: every access unit, a decodable chain; ~2 min at 30 fps) ...
 RING_BYTES = 96 << 20  # ... or this many bytes of JPEG (1080p30: the last ~20 s, longer than a hold)
 GRACE_S = 0.3  # wait this long after a hold's end for its last frames to arrive
+ZONE_BATCH = 8  # ring frames detected between two looks at the job queue (~0.05-0.2 s at 720p-1080p)
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,6 +85,7 @@ class LiveResult:
     wall_s: float
     summaries: list[str] = field(default_factory=list)
     constrained: bool = False  # the estimate passed progress.constrained (focal to 2 %, camera where the plan put it)
+    frames: Any = None  # pipeline.framecache.FrameResults of the zone pass (None for H.264/H.265 or --no-live)
 
     def to_dict(self) -> dict:
         return {
@@ -93,6 +106,9 @@ class LiveResult:
             "unchecked_seqs": self.unchecked,
             "worker_cpu_s": self.cpu_s,
             "wall_s": self.wall_s,
+            "frame_cache": None if self.frames is None else {
+                "frames_detected": len(self.frames), "covered_s": round(self.frames.covered_s, 3), "covered_intervals": len(self.frames.covered),
+            },
         }
 
 
@@ -151,18 +167,30 @@ class LiveCalibration:
         self._cpu_s = 0.0
         self._started = time.monotonic()
         self._lock = threading.Lock()  # outcomes/estimate read by the status line
+        # The frame cache (docs/live.md "From landing to the final result"): outcomes by frame stamp, zones, covered spans.
+        self._outcomes: dict[int, Any] = {}  # stamp -> detect.FrameResult, or None (did not decode)
+        self._zones: list[list[int]] = []  # pending [start_ns, end_ns] (frame stamps)
+        self._covered: list[tuple[int, int]] = []
+        self._evicted_undone_ns = -1  # newest ring frame evicted before the worker detected it (written by on_frame)
+        self._cache_on: bool | None = None  # JPEG/PNG: True; H.264/H.265: False; None until the first frame
+        self._last_det: Any = None  # tracking in the zone pass (calibrate's search box)
+        self._before_det: Any = None
 
     # ----- observer (recorder threads): O(1), never waits -----
     def on_frame(self, frame: Any) -> None:
         compressed = frame.format in COMPRESSED
         if not compressed:
             self._latest_frame = frame
-        if compressed or frame.timestamp_ns - self._last_kept_ns >= int(1e9 / RING_HZ):
+        # 0.8: a 15 fps stream's jitter (frames 60 ms apart) must not cost frames; 30 fps still keeps every other
+        if compressed or frame.timestamp_ns - self._last_kept_ns >= int(0.8e9 / RING_HZ):
             self._last_kept_ns = frame.timestamp_ns
             self._frames.append(frame)
             self._ring_bytes += len(frame.data)
             while len(self._frames) > RING_FRAMES or self._ring_bytes > RING_BYTES:
-                self._ring_bytes -= len(self._frames.popleft().data)
+                old = self._frames.popleft()
+                self._ring_bytes -= len(old.data)
+                if old.timestamp_ns not in self._outcomes and old.timestamp_ns > self._evicted_undone_ns:
+                    self._evicted_undone_ns = old.timestamp_ns  # a zone holding it is covered only after it
 
     def on_record(self, record: Any) -> None:
         if isinstance(record, GnssFix):
@@ -189,6 +217,7 @@ class LiveCalibration:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=timeout_s)
+        frames = self.frame_results()
         with self._lock:
             v = verdict(self.outcomes, [s for s in self.expected if s not in self.unchecked], self.estimate, self.coverage, self.prior)
             result = LiveResult(
@@ -196,6 +225,7 @@ class LiveCalibration:
                 verdict=v, coverage=self.coverage, offset=self.offset, jobs_dropped=self.jobs_dropped,
                 unchecked=sorted(set(self.unchecked)), cpu_s=self._cpu_s, wall_s=time.monotonic() - self._started,
                 summaries=list(self.summaries), constrained=constrained(self.estimate, self.prior),
+                frames=frames,
             )
         if self.view is not None:
             try:
@@ -203,6 +233,17 @@ class LiveCalibration:
             except Exception:  # noqa: BLE001 - the view is cosmetic
                 pass
         return result
+
+    def frame_results(self):
+        """The zone pass's outcomes and covered intervals (``pipeline.framecache.FrameResults``); None when nothing is cached."""
+        from dronecal_field.pipeline.framecache import FrameResults
+
+        if not self._cache_on:
+            return None
+        outcomes = dict(self._outcomes)  # one C-level copy: safe while a late worker still adds
+        with self._lock:
+            covered = list(self._covered)
+        return FrameResults.build(outcomes, covered, source="live pass")
 
     def new_summaries(self) -> list[str]:
         """Summary lines not handed out before (fly prints them between status lines)."""
@@ -233,20 +274,32 @@ class LiveCalibration:
         t_cpu = time.thread_time()
         self._prepare()
         last_view = 0.0
+        busy = False  # the zone pass has frames waiting: look at the job queue without waiting
         while True:
+            busy = busy and bool(self._zones) and not self._stop.is_set()
             try:
-                ready, event = self._jobs.get(timeout=0.1)
+                ready, event = self._jobs.get(timeout=0.0 if busy else 0.1)
             except queue.Empty:
                 ready = event = None
             if event is not None:
+                self._open_zone(event)
                 wait = ready - time.monotonic()
                 if wait > 0 and not self._stop.is_set():
                     time.sleep(wait)
                 try:
+                    self._zone_pass(until_ns=int(event.timestamp_ns + event.duration_ns) + self.camera_offset_ns)  # the job then reads the cache
                     self._process(event)
+                    busy = True
                 except Exception as exc:  # noqa: BLE001 - one bad waypoint must not end the live view
                     with self._lock:
                         self.summaries.append(f"live: waypoint skipped ({type(exc).__name__}: {exc})")
+            elif self._zones and not self._stop.is_set():
+                try:
+                    busy = self._zone_pass(budget=ZONE_BATCH) > 0
+                except Exception as exc:  # noqa: BLE001 - the cache is an optimisation: calibrate reads the file instead
+                    self._zones.clear()
+                    with self._lock:
+                        self.summaries.append(f"live: frame cache stopped ({type(exc).__name__}: {exc})")
             now = time.monotonic()
             if self.view is not None and now - last_view >= 0.5:
                 last_view = now
@@ -257,6 +310,7 @@ class LiveCalibration:
             self._cpu_s = time.thread_time() - t_cpu
             if self._stop.is_set() and self._jobs.empty():
                 break
+        self._close_zones()
         self._cpu_s = time.thread_time() - t_cpu
 
     def _prepare(self) -> None:
@@ -288,13 +342,13 @@ class LiveCalibration:
             po = self.options.points
             a, b = HoverWindow(0, start, end, "event", seq).stable(po.settle_s, po.tail_s)
             picked = pick_frames(frames, a + self.camera_offset_ns, b + self.camera_offset_ns, self.options.frames_per_hold)
-            dets = detect_in_frames(picked, self.marker, self._detector, frames)
+            dets = self._detect_picked(picked, frames)
             size = self.marker.size_m if self.marker.kind == "aruco" else None
             outcome = hold_outcome(seq, len(self.outcomes), start, end, len(picked), dets, track, self.camera_offset_ns, size, self.options)
         else:
             seq = int(event.metadata.get("seq_to", -1))
             picked = pick_frames(frames, start + self.camera_offset_ns, end + self.camera_offset_ns, self.options.frames_per_leg)
-            dets = detect_in_frames(picked, self.marker, self._detector, frames)
+            dets = self._detect_picked(picked, frames)
             item = self.mission.items[seq] if 0 <= seq < len(self.mission.items) else None
             self.leg_detections.extend(dets)
             if item is None or item.command != CMD_NAV_WAYPOINT or item.hold_s > 0:
@@ -303,6 +357,92 @@ class LiveCalibration:
         self._conclude(outcome, track)
         if self.view is not None and picked:
             self._publish_waypoint_frame(picked, dets)
+
+    # ----- the frame cache: every ring frame around the holds and legs, detected once -----
+    def _open_zone(self, event: RunEvent) -> None:
+        """A hover or leg event: the span of frame stamps calibrate reads around it (SamplingOptions' margins)."""
+        if self._cache_on is None and self._frames:
+            self._cache_on = self.options.frame_cache and self._frames[-1].format not in COMPRESSED
+        if not self._cache_on:
+            return
+        s = self.options.sampling
+        widen = int((s.margin_s + (s.dense_s if event.type == "hover" else 0.0)) * 1e9)
+        self._zones.append([int(event.timestamp_ns) - widen, int(event.timestamp_ns + event.duration_ns) + widen])
+
+    def _zone_pass(self, until_ns: int | None = None, budget: int | None = None) -> int:
+        """Detect ring frames inside pending zones not detected yet, in time order (up to ``until_ns``,
+        at most ``budget`` of them); close the zones the stream has passed. Stops at once on finish()."""
+        if not self._zones:
+            return 0
+        frames = list(self._frames)
+        done = 0
+        for frame in frames:
+            t = frame.timestamp_ns
+            if self._stop.is_set() or (until_ns is not None and t > until_ns) or (budget is not None and done >= budget):
+                break
+            if t in self._outcomes or not any(a <= t <= b for a, b in self._zones):
+                continue
+            self._detect_one(frame)
+            done += 1
+        newest = frames[-1].timestamp_ns if frames else None
+        for zone in list(self._zones):
+            if newest is not None and newest > zone[1] and all(f.timestamp_ns in self._outcomes for f in frames if zone[0] <= f.timestamp_ns <= zone[1]):
+                self._zones.remove(zone)
+                self._cover(zone[0], zone[1])
+        return done
+
+    def _cover(self, a: int, b: int) -> None:
+        """[a, b] had every ring frame detected, except those the ring evicted first: covered after the last of them."""
+        start = a if self._evicted_undone_ns < a else self._evicted_undone_ns + 1
+        if start <= b:
+            with self._lock:
+                self._covered.append((start, b))
+
+    def _close_zones(self) -> None:
+        """At the end: each pending zone is covered up to its first frame not detected (calibrate reads the rest)."""
+        frames = list(self._frames)
+        for a, b in self._zones:
+            last = None
+            for f in frames:
+                if f.timestamp_ns < a:
+                    continue
+                if f.timestamp_ns > b or f.timestamp_ns not in self._outcomes:
+                    break
+                last = f.timestamp_ns
+            if last is not None:
+                self._cover(a, last)
+        self._zones.clear()
+
+    def _detect_one(self, frame: Any) -> Any:
+        """calibrate's search on one JPEG/PNG frame (its tracking box from the last detection); kept by stamp."""
+        from dronecal_field.pipeline.detect import TRACK_NS, decode_gray, detect_marker, predicted, roi_around
+
+        t = frame.timestamp_ns
+        if t in self._outcomes:
+            return self._outcomes[t]
+        image = decode_gray(frame.data)
+        result = None
+        if image is not None:
+            last = self._last_det
+            roi = None
+            if last is not None and abs(t - last.timestamp_ns) < TRACK_NS:
+                roi = roi_around(predicted(last, self._before_det, t), image.shape)
+            result = detect_marker(image, self.marker, self._detector, t, roi)
+            if result.detection is not None and (last is None or t > last.timestamp_ns):
+                self._before_det, self._last_det = last, result.detection
+        self._outcomes[t] = result
+        return result
+
+    def _detect_picked(self, picked: list, frames: list) -> list:
+        """A job's detections: from the cache where the zone pass got there first (never a frame twice)."""
+        if not picked or picked[0].format in COMPRESSED:
+            return detect_in_frames(picked, self.marker, self._detector, frames)
+        found = []
+        for frame in sorted(picked, key=lambda f: f.timestamp_ns):
+            result = self._detect_one(frame)
+            if result is not None and result.detection is not None:
+                found.append(result.detection)
+        return found
 
     def _conclude(self, outcome: WaypointOutcome, track: FixTrack) -> None:
         from dronecal_field.pipeline.align import estimate_time_offset
