@@ -155,3 +155,52 @@ def test_h264_access_units_are_decoded_from_their_keyframe_and_the_marker_found(
     jpeg = detect_in_frames([Frame(timestamp_ns=0, format="jpeg", data=marker_jpeg(640, 480))], marker, make_aruco_detector("DICT_4X4_50"))
     # the marker moves 1 px a frame: the H.264 detections sit where the JPEG one does, shifted by the frame index
     assert [d.u_px - jpeg[0].u_px for d in dets] == pytest.approx([13.0, 15.0, 18.0], abs=0.5)
+
+
+def test_the_zone_pass_detects_every_ring_frame_around_a_hold_once_and_covers_only_what_it_saw():
+    """The frame cache (live/worker.py): a hover event opens calibrate's read window around the hold; every ring
+    frame in it is detected once; frames the ring evicted before the event are not covered (calibrate reads them
+    from the file); on finish() a zone still open is covered up to its last detected frame."""
+    import time
+
+    from dronecal_field.pipeline.detect import decode_gray, detect_marker, make_aruco_detector
+    from dronecal_field.pipeline.sampling import SamplingOptions
+    from test_mavlink_support import marker_jpeg
+
+    marker = MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.4)
+    live = LiveCalibration(_mission(), marker, 640, 480, ring_frames=20).start()
+    jpeg = marker_jpeg(640, 480)
+    t0, dt = 1_700_000_000_000_000_000, 66_666_667  # 15 fps
+    stamp = [t0 + k * dt for k in range(91)]  # 6 s of frames
+
+    def wait_for(n):  # the worker is niced: give it time (no assertion on how long it takes)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            cache = live.frame_results()
+            if cache is not None and len(cache) >= n:
+                return
+            time.sleep(0.02)
+
+    for k in range(40):  # no zone yet: the 20-frame ring evicts frames 0-19 undetected
+        live.on_frame(Frame(timestamp_ns=stamp[k], format="jpeg", data=jpeg))
+    hold = (t0 + 1_000_000_000, t0 + 2_000_000_000)
+    live.on_record(RunEvent(timestamp_ns=hold[0], duration_ns=hold[1] - hold[0], type="hover", metadata={"seq": "4"}))
+    wait_for(20)
+    for start in range(40, 91, 10):  # in batches the ring holds: nothing more is lost
+        for k in range(start, min(start + 10, 91)):
+            live.on_frame(Frame(timestamp_ns=stamp[k], format="jpeg", data=jpeg))
+        wait_for(sum(1 for k in range(20, min(start + 10, 91)) if stamp[k] <= hold[1] + 3_200_000_000))  # the first zone's
+    # a second hold whose zone runs past the last frame: pending when the flight ends
+    live.on_record(RunEvent(timestamp_ns=t0 + 5_500_000_000, duration_ns=300_000_000, type="hover", metadata={"seq": "5"}))
+    wait_for(71)
+    result = live.finish(timeout_s=30.0)
+    cache = result.frames
+    widen = int((SamplingOptions().margin_s + SamplingOptions().dense_s) * 1e9)
+    assert hold[1] + widen < stamp[90]  # the premise: the first zone closed while frames still came
+    # covered: from just after frame 19 (the last evicted undetected) to frame 90 (the last detected)
+    assert cache.covered == ((stamp[19] + 1, stamp[90]),)
+    assert cache.t_ns.tolist() == stamp[20:91]  # each ring frame of the zones once, nothing outside them
+    whole = detect_marker(decode_gray(jpeg), marker, make_aruco_detector("DICT_4X4_50"), 0).detection
+    assert all(r.detection is not None and abs(r.detection.u_px - whole.u_px) < 1e-3 for r in cache.results)
+    assert cache.uncovered([(t0, stamp[90])]) == [(t0, stamp[19])]
+    assert result.to_dict()["frame_cache"]["frames_detected"] == 71

@@ -126,11 +126,13 @@ class LiveCalibration:
     view : live.view.LiveView or None (no Foxglove).
     camera_latency_s : the stream's declared latency (the camera offset until one is estimated).
     job_queue : waypoints waiting for the worker before further ones are skipped.
+    ring_frames, ring_bytes : the frame ring's bounds (RING_FRAMES, RING_BYTES).
     """
 
     def __init__(
         self, mission: Any, marker: Any, width: int, height: int, plan: dict | None = None, origin: Any = None,
         options: LiveOptions = LiveOptions(), view: Any = None, camera_latency_s: float | None = None, job_queue: int = 8,
+        ring_frames: int = RING_FRAMES, ring_bytes: int = RING_BYTES,
     ) -> None:
         self.mission = mission
         self.marker = marker
@@ -145,7 +147,10 @@ class LiveCalibration:
         self.prior = guessed_camera(plan) if plan is not None and origin is not None else None
         self._frames: collections.deque = collections.deque()
         self._ring_bytes = 0
+        self._ring_max = (int(ring_frames), int(ring_bytes))
         self._last_kept_ns = 0
+        self._last_seen_ns = 0
+        self._period_ns: float | None = None  # the stream's mean frame interval (running average)
         self._latest_frame: Any = None
         self._fixes: collections.deque[GnssFix] = collections.deque(maxlen=200_000)
         self._attitudes: collections.deque[Attitude] = collections.deque(maxlen=200_000)
@@ -181,12 +186,18 @@ class LiveCalibration:
         compressed = frame.format in COMPRESSED
         if not compressed:
             self._latest_frame = frame
-        # 0.8: a 15 fps stream's jitter (frames 60 ms apart) must not cost frames; 30 fps still keeps every other
-        if compressed or frame.timestamp_ns - self._last_kept_ns >= int(0.8e9 / RING_HZ):
+        # A stream at up to ~RING_HZ keeps every frame, however jittered (two frames 12 ms apart are both in the
+        # file, and calibrate takes both): only a faster one (mean interval from a running average) is thinned.
+        dt = frame.timestamp_ns - self._last_seen_ns
+        self._last_seen_ns = frame.timestamp_ns
+        if 0 < dt < 1_000_000_000:
+            self._period_ns = dt if self._period_ns is None else 0.95 * self._period_ns + 0.05 * dt
+        gap = int(0.8e9 / RING_HZ)
+        if compressed or (self._period_ns or 0) >= gap or frame.timestamp_ns - self._last_kept_ns >= gap:
             self._last_kept_ns = frame.timestamp_ns
             self._frames.append(frame)
             self._ring_bytes += len(frame.data)
-            while len(self._frames) > RING_FRAMES or self._ring_bytes > RING_BYTES:
+            while len(self._frames) > self._ring_max[0] or self._ring_bytes > self._ring_max[1]:
                 old = self._frames.popleft()
                 self._ring_bytes -= len(old.data)
                 if old.timestamp_ns not in self._outcomes and old.timestamp_ns > self._evicted_undone_ns:
