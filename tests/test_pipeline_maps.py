@@ -153,3 +153,30 @@ def test_sigma_consistency_says_which_way_the_fit_departs_from_the_measured_sigm
     assert "lever arm" in sigma_consistency(4.0, 2.0)["note"]
     assert sigma_consistency(1.0, 1.1)["note"].endswith("consistent")
     assert sigma_consistency(1.0, None) is None
+
+
+def test_sigmas_are_scaled_up_to_explain_the_fit_never_down():
+    # 1 px of image noise, sigmas that claim 0.5 px: the uncertainty must use twice them (the fit says so);
+    # sigmas that claim 2 px stay (conservative). Outliers do not count.
+    from dronecal_field.core.calibrate import calibrate
+    from dronecal_field.core.synthetic import visible
+    from dronecal_field.core.uncertainty import linearised
+    from dronecal_field.pipeline.report import sigma_consistency
+    from dronecal_field.pipeline.run import sigma_scale
+
+    camera = pole_camera(width=1920, height=1080, f_px=1400.0, position_enu=(0.0, 0.0, 4.0), tilt_deg=15.0, distortion=(-0.2, 0.05, 0.0, 0.0, 0.0))
+    e, n, u = np.meshgrid(np.linspace(-3.5, 3.5, 6), np.linspace(4.5, 12, 5), [0.8, 2.5, 4.5])
+    X = np.c_[e.ravel(), n.ravel(), u.ravel()]
+    X = X[visible(camera, X, 20.0)]
+    uv = camera.project(X) + np.random.default_rng(5).normal(0, 1.0 / np.sqrt(2), (len(X), 2))
+    uv[3] += 40.0  # one wild pair: the robust fit's outlier
+    model = CalibrationModel(distortion="k1k2", fix_aspect_ratio=True)
+    result = calibrate(X, uv, 1920, 1080, model=model, loss="huber")
+    assert 3 in result.outliers
+    tight = linearised(result.camera, X, sigma_3d=np.zeros(3), sigma_2d=0.5 / np.sqrt(2), model=model).rms_mean
+    scale = sigma_scale(result, tight)
+    assert 1.7 < scale < 2.3  # the fit's inliers are 1 px RMS, twice what 0.5 px predicts (less the fitted dof)
+    loose = linearised(result.camera, X, sigma_3d=np.zeros(3), sigma_2d=2.0 / np.sqrt(2), model=model).rms_mean
+    assert sigma_scale(result, loose) == 1.0
+    assert "scaled 2.00x" in sigma_consistency(2.0, 1.0, 2.0)["note"]
+    assert sigma_consistency(2.0, 1.0, 2.0)["sigma_scale"] == 2.0

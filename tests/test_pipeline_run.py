@@ -117,7 +117,8 @@ def test_main_run_writes_every_output(main_run):
     assert data["gnss"]["fix_rate_hz"] == pytest.approx(5.0, abs=0.3) and data["gnss"]["repeated_fixes_left_out"] == 0
     assert data["points"]["pairing"].startswith("at each fix")
     consistency = data["uncertainty"]["consistency"]
-    assert consistency["ratio"] == pytest.approx(report.result.rms_px / report.monte_carlo.rms_mean)
+    assert consistency["ratio"] == pytest.approx(report.result.rms_px / (report.monte_carlo.rms_mean / report.sigma_scale))
+    assert report.sigma_scale >= 1.0 and data["uncertainty"]["sigmas"]["scale"] == report.sigma_scale
     assert consistency["note"].startswith(f"fit RMS {report.result.rms_px:.2f} px")
     assert "under the first calibration's distortion" in data["points"]["marker_centre"]  # the camera is distorted
 
