@@ -442,7 +442,7 @@ def report_html(report, data: dict) -> str:
         f"<h2>Dropped hover windows</h2><table><tr><th>window</th><th>seq</th><th>reason</th></tr>{dropped}</table>"
         "<h2>Parameter standard deviations</h2><div style='display:flex;gap:2em'>"
         f"<div><h3>from the fit's residuals</h3>{_table(resid_rows)}</div>"
-        f"<div><h3>linearised, measured sigmas</h3>{_table(std_rows)}</div>"
+        f"<div><h3>linearised, measured sigmas{_scaled(report)}</h3>{_table(std_rows)}</div>"
         f"<div><h3>Monte-Carlo</h3>{_table(mc_rows)}</div></div>"
         "<h2>Figures</h2>" + "".join(figs)
         + "<p style='font-size:12px;color:#777'>All numbers are in report.json.</p></body></html>"
@@ -579,6 +579,12 @@ def _fix_rate_hz(report) -> float | None:
         if p.stable_ns[1] > p.stable_ns[0] and p.n_fixes >= 2
     ]
     return float(np.median(rates)) if rates else None
+
+
+def _scaled(report) -> str:
+    """`` x1.36`` when the sigmas were scaled to explain the fit (run.sigma_scale), else nothing."""
+    scale = getattr(report, "sigma_scale", 1.0)
+    return f" x{scale:.2f}" if scale > 1.0 else ""
 
 
 def sigma_consistency(fit_rms_px: float, expected_rms_px: float | None, scale: float = 1.0) -> dict | None:
