@@ -9,6 +9,8 @@ from the file.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -85,8 +87,11 @@ def _same_camera(a, b) -> None:
 def test_calibrate_with_a_full_cache_decodes_nothing_and_finds_the_same_camera(replay):
     path, outcomes, options, plain = replay
     stamps = sorted(outcomes)
-    cache = FrameResults.build(outcomes, [(stamps[0], stamps[-1])])
-    cached = calibrate_run(path, options, live=cache)
+    cache = FrameResults.build(outcomes, [(stamps[0], stamps[-1])], formats=("jpeg",))
+    cached = calibrate_run(path, replace(options, out_dir=path.parent / "cached"), live=cache)
+    assert cached.frames.formats == plain.frames.formats == ("jpeg",)
+    html = (path.parent / "cached" / "report.html").read_text()
+    assert f"{cached.frames.frames_from_live} detected in flight by the live pass" in html
     assert plain.frames.frames_from_live == 0
     assert cached.frames.frames_from_live == cached.frames.frames_decoded > 100
     assert cached.frames.frames_decoded == plain.frames.frames_decoded  # same candidates, same choices

@@ -254,7 +254,8 @@ class LiveCalibration:
         outcomes = dict(self._outcomes)  # one C-level copy: safe while a late worker still adds
         with self._lock:
             covered = list(self._covered)
-        return FrameResults.build(outcomes, covered, source="live pass")
+        ring = list(self._frames)
+        return FrameResults.build(outcomes, covered, source="live pass", formats=(ring[-1].format,) if ring else ())
 
     def new_summaries(self) -> list[str]:
         """Summary lines not handed out before (fly prints them between status lines)."""

@@ -84,20 +84,23 @@ class FrameResults:
         has an outcome; the frames it kept are the candidates there (a 30 fps
         stream kept at 16 Hz offers every other frame).
     source : who made them, for reports (``"live pass"``).
+    formats : the frames' formats (``jpeg``, ``png``), for the report's list of what was decoded.
     """
 
     t_ns: np.ndarray
     results: tuple[FrameResult | None, ...]
     covered: tuple[Interval, ...]
     source: str = "live pass"
+    formats: tuple[str, ...] = ()
 
     @classmethod
-    def build(cls, outcomes: dict[int, FrameResult | None], covered: list[Interval], source: str = "live pass") -> "FrameResults":
+    def build(cls, outcomes: dict[int, FrameResult | None], covered: list[Interval], source: str = "live pass",
+              formats: tuple[str, ...] = ()) -> "FrameResults":
         """From ``{stamp: outcome}`` (any order) and covered intervals (any order, may overlap)."""
         stamps = sorted(int(t) for t in outcomes)
         return cls(
             t_ns=np.asarray(stamps, np.int64), results=tuple(outcomes[t] for t in stamps),
-            covered=tuple(merge_intervals(list(covered))), source=source,
+            covered=tuple(merge_intervals(list(covered))), source=source, formats=tuple(formats),
         )
 
     def __len__(self) -> int:
@@ -123,8 +126,8 @@ class FrameResults:
         """(stamp, outcome) of the frames inside both ``ranges`` and the covered intervals, in time order."""
         out: list[tuple[int, FrameResult | None]] = []
         for a, b in intersect_intervals(list(ranges), list(self.covered)):
-            lo, hi = np.searchsorted(self.t_ns, [a, b], side="left")[0], np.searchsorted(self.t_ns, b, side="right")
-            out.extend((int(self.t_ns[k]), self.results[k]) for k in range(int(lo), int(hi)))
+            lo, hi = int(np.searchsorted(self.t_ns, a, side="left")), int(np.searchsorted(self.t_ns, b, side="right"))
+            out.extend((int(self.t_ns[k]), self.results[k]) for k in range(lo, hi))
         return out
 
     @property

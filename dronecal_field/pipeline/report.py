@@ -406,7 +406,8 @@ def report_html(report, data: dict) -> str:
         ("ground position error at 15 m", f"{_fmt(at15.get('ground_position_error_cm'), '.2f', ' cm')} RMS, p95 {_fmt(at15.get('ground_position_error_cm_p95'), '.2f', ' cm')}"),
         ("speed error at 15 m (50 km/h)", f"{_fmt(at15.get('speed_error_kmh_at_50kmh'), '.3f', ' km/h')} RMS, p95 {_fmt(at15.get('speed_error_kmh_p95'), '.3f', ' km/h')}"),
         *_validity_rows(validity, region),
-        ("frames decoded / read", f"{report.frames.frames_decoded} / {report.frames.frames_read} ({report.frames.frames_corrupt} corrupt)"),
+        ("frames decoded / read", f"{report.frames.frames_decoded} / {report.frames.frames_read} ({report.frames.frames_corrupt} corrupt"
+                                  + (f"; {report.frames.frames_from_live} detected in flight by the live pass" if report.frames.frames_from_live else "") + ")"),
     ])
     std_rows = [(k, f"{cal['parameter_std_from_measured_sigmas'][k]:.4g}") for k in PARAM_NAMES[:9] if cal["parameter_std_from_measured_sigmas"][k] > 0]
     resid_rows = [(k, f"{cal['parameter_std_from_residuals'][k]:.4g}") for k in PARAM_NAMES[:9] if cal["parameter_std_from_residuals"][k] > 0]

@@ -575,6 +575,7 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
             frame = _CachedFrame(frame.timestamp_ns, res) if stored else frame
         if stored:
             from_live += 1
+            formats.update(live.formats)
             res = frame.result
             if res is None:
                 corrupt += 1
