@@ -308,8 +308,8 @@ def test_a_4k_frame_is_searched_at_half_size_then_in_a_box_at_full_size():
     corners as a whole-frame search (to 1e-3 px) for about a quarter of its cost (0.11 + 0.04 s vs 0.69 s CPU here)."""
     import cv2
 
-    from dronecal_field.pipeline.detect import detect_aruco, make_aruco_detector
-    from dronecal_field.pipeline.run import COARSE_SEARCH_PX, _coarse_roi
+    from dronecal_field.pipeline.detect import COARSE_SEARCH_PX, detect_aruco, make_aruco_detector
+    from dronecal_field.pipeline.detect import coarse_roi as _coarse_roi
 
     image = np.random.default_rng(0).integers(60, 120, (2160, 3840), dtype=np.uint8)
     image[900:1220, 1900:2220] = 255

@@ -27,8 +27,7 @@ import numpy as np
 from dronecal_field.errors import ContractError, DegenerateGeometryError, DronecalError, InputError
 from dronecal_field.geodesy import EnuOrigin, geodetic_to_enu
 from dronecal_field.pipeline.align import TimeOffset, Timing, estimate_time_offset, refine_timing
-from dronecal_field.pipeline.detect import COARSE_SEARCH_PX, Detection, centres_under_distortion  # noqa: F401 - COARSE_SEARCH_PX, _coarse_roi: names kept
-from dronecal_field.pipeline.detect import coarse_roi as _coarse_roi  # noqa: F401 - calibrate's search lives in detect.py (the live pass shares it)
+from dronecal_field.pipeline.detect import Detection, centres_under_distortion
 from dronecal_field.pipeline.fixes import DistinctFixes, distinct_fixes
 from dronecal_field.pipeline.hover import (
     HoverWindow,
