@@ -179,4 +179,5 @@ def test_sigmas_are_scaled_up_to_explain_the_fit_never_down():
     loose = linearised(result.camera, X, sigma_3d=np.zeros(3), sigma_2d=2.0 / np.sqrt(2), model=model).rms_mean
     assert sigma_scale(result, loose) == 1.0
     assert "scaled 2.00x" in sigma_consistency(2.0, 1.0, 2.0)["note"]
+    assert "close, but above; every uncertainty figure uses the sigmas scaled 1.20x" in sigma_consistency(1.2, 1.0, 1.2)["note"]
     assert sigma_consistency(2.0, 1.0, 2.0)["sigma_scale"] == 2.0

@@ -606,6 +606,8 @@ def sigma_consistency(fit_rms_px: float, expected_rms_px: float | None, scale: f
     elif ratio > 1.5:
         note = (f"fit RMS {fit_rms_px:.2f} px, {ratio:.2f}x the {expected_rms_px:.2f} px the measured sigmas predict: "
                 "an error the sigmas do not hold (lever arm, time offset, distortion model); check the residual figure")
+    elif scale > 1.0 + 1e-9:
+        note = f"fit RMS {fit_rms_px:.2f} px against {expected_rms_px:.2f} px predicted by the measured sigmas: close, but above"
     else:
         note = f"fit RMS {fit_rms_px:.2f} px against {expected_rms_px:.2f} px predicted by the measured sigmas: consistent"
     if scale > 1.0 + 1e-9:
