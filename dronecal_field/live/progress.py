@@ -170,22 +170,14 @@ def detect_in_frames(frames: list[Any], marker: Any, detector: Any, stream: list
     ``detect.make_aruco_detector`` (None for an LED marker); ``stream`` every
     access unit around the frames when they are H.264/H.265 (:func:`gray_images`).
     """
-    from dronecal_field.pipeline.detect import detect_aruco, detect_led, roi_around
+    from dronecal_field.pipeline.detect import detect_marker, roi_around
 
     found: list[Detection] = []
     last: Detection | None = None
     for timestamp_ns, image in gray_images(frames, stream):
         if image is None:
             continue
-        roi = roi_around(last, image.shape) if last is not None else None
-        while True:
-            if marker.kind == "aruco":
-                res = detect_aruco(image, detector, int(marker.marker_id), timestamp_ns, roi)
-            else:
-                res = detect_led(image, timestamp_ns, roi)
-            if res.detection is not None or roi is None:
-                break
-            roi = None  # lost in the tracking box: the whole frame
+        res = detect_marker(image, marker, detector, timestamp_ns, roi_around(last, image.shape) if last is not None else None)
         if res.detection is not None:
             found.append(res.detection)
             last = res.detection
