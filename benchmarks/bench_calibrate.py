@@ -330,6 +330,29 @@ def legs_speed(name: str, minutes: float, fps: float, scale: float, workdir: Pat
 # (b) speed
 
 
+def flight_telemetry(flight, hold_s: float, rng: np.random.Generator) -> list[tuple[int, int, object]]:
+    """(write time ns, order, record) of a flight, in write order: 10 Hz fixes (RTK noise) and attitude,
+    hover events written when the hold ends (as fly does)."""
+    from dronecal_field.runfile.records import Attitude, GnssFix, RunEvent
+
+    t0, t1 = int(flight.t_ns[0]), int(flight.t_ns[-1])
+    telemetry: list[tuple[int, int, object]] = []
+    fix_t = np.arange(t0, t1, 100_000_000, dtype=np.int64)
+    pos, rpy = flight.at(fix_t)
+    sigma = np.array([0.008, 0.008, 0.012])
+    geo = enu_to_geodetic(pos + rng.normal(size=pos.shape) * sigma, ORIGIN)
+    cov = np.diag(sigma**2)
+    for k, t in enumerate(fix_t):
+        telemetry.append((int(t), 0, GnssFix(timestamp_ns=int(t), lat_deg=float(geo[k, 0]), lon_deg=float(geo[k, 1]), alt_m=float(geo[k, 2]),
+                                             covariance_enu=cov, fix_type="rtk_fixed")))
+        yaw = float((rpy[k, 2] + np.pi) % (2 * np.pi) - np.pi)
+        telemetry.append((int(t), 1, Attitude(timestamp_ns=int(t), roll_rad=float(rpy[k, 0]), pitch_rad=float(rpy[k, 1]), yaw_rad=yaw)))
+    for a, b, seq in flight.holds:
+        telemetry.append((b, 2, RunEvent(timestamp_ns=a, duration_ns=b - a, type="hover", metadata={"seq": str(seq), "hold_s": f"{hold_s:g}"})))
+    telemetry.sort(key=lambda r: (r[0], r[1]))
+    return telemetry
+
+
 def build_long_run(path: Path, minutes: float, fps: float, move_hz: float, hold_hz: float, seed: int = 0) -> dict:
     """Write a ``minutes``-long 1080p run with RunWriter; frames rendered at ``move_hz`` / ``hold_hz`` and reused between."""
     from dronecal_field.runfile.records import FORMAT_VERSION, Attitude, Frame, GnssFix, MarkerSpec, RunEvent, RunMetadata
@@ -346,21 +369,7 @@ def build_long_run(path: Path, minutes: float, fps: float, move_hz: float, hold_
     rng = np.random.default_rng(seed)
     t0, t1 = int(flight.t_ns[0]), int(flight.t_ns[-1])
 
-    # Telemetry: 10 Hz fixes (RTK noise) and attitude, hover events written when the hold ends (as fly does).
-    telemetry: list[tuple[int, int, object]] = []  # (write time ns, order, record)
-    fix_t = np.arange(t0, t1, 100_000_000, dtype=np.int64)
-    pos, rpy = flight.at(fix_t)
-    sigma = np.array([0.008, 0.008, 0.012])
-    geo = enu_to_geodetic(pos + rng.normal(size=pos.shape) * sigma, ORIGIN)
-    cov = np.diag(sigma**2)
-    for k, t in enumerate(fix_t):
-        telemetry.append((int(t), 0, GnssFix(timestamp_ns=int(t), lat_deg=float(geo[k, 0]), lon_deg=float(geo[k, 1]), alt_m=float(geo[k, 2]),
-                                             covariance_enu=cov, fix_type="rtk_fixed")))
-        yaw = float((rpy[k, 2] + np.pi) % (2 * np.pi) - np.pi)
-        telemetry.append((int(t), 1, Attitude(timestamp_ns=int(t), roll_rad=float(rpy[k, 0]), pitch_rad=float(rpy[k, 1]), yaw_rad=yaw)))
-    for a, b, seq in flight.holds:
-        telemetry.append((b, 2, RunEvent(timestamp_ns=a, duration_ns=b - a, type="hover", metadata={"seq": str(seq), "hold_s": f"{hold_s:g}"})))
-    telemetry.sort(key=lambda r: (r[0], r[1]))
+    telemetry = flight_telemetry(flight, hold_s, rng)
 
     # Frames: capture at 30 fps, stamped LATENCY_S later; the rendering nearest in time (10 Hz moving, 2 Hz holding).
     capture = t0 + np.round(np.arange(int((t1 - t0) * 1e-9 * fps)) / fps * 1e9).astype(np.int64)
@@ -404,7 +413,7 @@ def build_long_run(path: Path, minutes: float, fps: float, move_hz: float, hold_
             if isinstance(record, RunEvent):
                 writer.write_event(record)
     return {"truth": truth, "duration_s": (t1 - t0) / 1e9, "frames": len(capture), "renders": renders, "waypoints": len(waypoints),
-            "fixes": len(fix_t), "mean_jpeg_kb": jpeg_bytes / len(capture) / 1e3, "size_mb": path.stat().st_size / 1e6}
+            "fixes": sum(1 for _, order, _ in telemetry if order == 0), "mean_jpeg_kb": jpeg_bytes / len(capture) / 1e3, "size_mb": path.stat().st_size / 1e6}
 
 
 def timed_calibrate(run: Path, out: Path) -> dict:

@@ -78,9 +78,9 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_calibrate import LATENCY_S, OFFSET_FRD_M, timed_calibrate, to_truth_frame  # noqa: E402
+from bench_calibrate import LATENCY_S, OFFSET_FRD_M, flight_telemetry, timed_calibrate, to_truth_frame  # noqa: E402
 from contract_writer import ORIGIN, MarkerLook, _sim_render, encode_jpeg, grid_waypoints, make_flight, pole_camera  # noqa: E402
-from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic  # noqa: E402
+from dronecal_field.geodesy import EnuOrigin  # noqa: E402
 
 WIDTH, HEIGHT, FOCAL_PX = 3840, 2160, 2600.0
 DISTORTION = (-0.20, 0.05, -3e-4, -1e-4, 0.0)
@@ -110,20 +110,7 @@ def build_runs(video_path: Path, jpeg_path: Path | None, minutes: float, seed: i
     rng = np.random.default_rng(seed)
     t0, t1 = int(flight.t_ns[0]), int(flight.t_ns[-1])
 
-    telemetry: list[tuple[int, int, object]] = []
-    fix_t = np.arange(t0, t1, 100_000_000, dtype=np.int64)
-    pos, rpy = flight.at(fix_t)
-    sigma = np.array([0.008, 0.008, 0.012])
-    geo = enu_to_geodetic(pos + rng.normal(size=pos.shape) * sigma, ORIGIN)
-    cov = np.diag(sigma**2)
-    for k, t in enumerate(fix_t):
-        telemetry.append((int(t), 0, GnssFix(timestamp_ns=int(t), lat_deg=float(geo[k, 0]), lon_deg=float(geo[k, 1]), alt_m=float(geo[k, 2]),
-                                             covariance_enu=cov, fix_type="rtk_fixed")))
-        yaw = float((rpy[k, 2] + np.pi) % (2 * np.pi) - np.pi)
-        telemetry.append((int(t), 1, Attitude(timestamp_ns=int(t), roll_rad=float(rpy[k, 0]), pitch_rad=float(rpy[k, 1]), yaw_rad=yaw)))
-    for a, b, seq in flight.holds:
-        telemetry.append((b, 2, RunEvent(timestamp_ns=a, duration_ns=b - a, type="hover", metadata={"seq": str(seq), "hold_s": f"{HOLD_S:g}"})))
-    telemetry.sort(key=lambda r: (r[0], r[1]))
+    telemetry = flight_telemetry(flight, HOLD_S, rng)
 
     capture = t0 + np.round(np.arange(int((t1 - t0) * 1e-9 * FPS)) / FPS * 1e9).astype(np.int64)
     holds = np.array([(a, b) for a, b, _ in flight.holds], np.int64)
