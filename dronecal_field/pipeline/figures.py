@@ -110,7 +110,7 @@ def monte_carlo_figure(report) -> bytes | None:
     ax.axvline(report.result.rms_px, color="tab:red", lw=1.5, label=f"this flight {report.result.rms_px:.3f} px")
     ax.set_xlabel("RMS reprojection error (px)")
     ax.set_ylabel("trials")
-    scale = getattr(report, "sigma_scale", 1.0)
+    scale = report.sigma_scale
     sigmas = "the measured sigmas" if scale <= 1.0 else f"the measured sigmas x{scale:.2f} (to explain the fit)"
     ax.set_title(f"Monte-Carlo, {mc.trials} trials with {sigmas}", fontsize=10)
     ax.legend(fontsize=8)

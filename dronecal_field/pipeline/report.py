@@ -226,14 +226,14 @@ def report_dict(report) -> dict:
             "sigmas": {
                 "sigma_3d_m_median": np.median(np.array([p.sigma_enu_m for p in used]), axis=0),
                 "sigma_2d_px_median": float(np.median([p.sigma_px for p in used])),
-                "scale": float(getattr(report, "sigma_scale", 1.0)),  # applied to both for every uncertainty figure (run.sigma_scale)
+                "scale": float(report.sigma_scale),  # applied to both for every uncertainty figure (run.sigma_scale)
             },
             "monte_carlo": unc(mc),
             "linearised": unc(lin),
             # the expected RMS scales with the sigmas: the headline's over the scale is what the measured ones predict
             "consistency": sigma_consistency(
-                report.result.rms_px, None if headline is None else headline.rms_mean / getattr(report, "sigma_scale", 1.0),
-                getattr(report, "sigma_scale", 1.0)),
+                report.result.rms_px, None if headline is None else headline.rms_mean / report.sigma_scale,
+                report.sigma_scale),
             "image_map": report.maps.summary(),
             "at_15m": None if headline is None else {
                 "method": headline.method,
@@ -584,7 +584,7 @@ def _fix_rate_hz(report) -> float | None:
 
 def _scaled(report) -> str:
     """`` x1.36`` when the sigmas were scaled to explain the fit (run.sigma_scale), else nothing."""
-    scale = getattr(report, "sigma_scale", 1.0)
+    scale = report.sigma_scale
     return f" x{scale:.2f}" if scale > 1.0 else ""
 
 
