@@ -330,6 +330,14 @@ def legs_speed(name: str, minutes: float, fps: float, scale: float, workdir: Pat
 # (b) speed
 
 
+def long_flight(truth, lattice: np.ndarray, minutes: float, hold_s: float, move_s: float, min_waypoints: int, drift_m: float, seed: int):
+    """(waypoints, flight, render) of a ``minutes``-long flight over an even pick of ``lattice`` (at least ``min_waypoints``)."""
+    n_wp = int(np.clip(round((minutes * 60.0 - 13.0) / (hold_s + move_s)), min_waypoints, len(lattice)))
+    waypoints = lattice[np.unique(np.round(np.linspace(0, len(lattice) - 1, n_wp)).astype(int))]
+    flight = make_flight(truth, waypoints, hold_s=hold_s, move_s=move_s, drift_m=drift_m, offset_frd_m=OFFSET_FRD_M, seed=seed)
+    return waypoints, flight, _sim_render(truth, flight, LOOK, seed)
+
+
 def flight_telemetry(flight, hold_s: float, rng: np.random.Generator) -> list[tuple[int, int, object]]:
     """(write time ns, order, record) of a flight, in write order: 10 Hz fixes (RTK noise) and attitude,
     hover events written when the hold ends (as fly does)."""
@@ -362,10 +370,7 @@ def build_long_run(path: Path, minutes: float, fps: float, move_hz: float, hold_
     truth = truth_camera("distorted")
     lattice = grid_waypoints(east_m=(-3.6, -1.8, 0.0, 1.8, 3.6), north_m=(6.0, 8.5, 11.0, 13.5), up_m=(1.0, 2.5, 4.0))
     hold_s, move_s = 6.0, 4.0
-    n_wp = int(np.clip(round((minutes * 60.0 - 13.0) / (hold_s + move_s)), 8, len(lattice)))
-    waypoints = lattice[np.unique(np.round(np.linspace(0, len(lattice) - 1, n_wp)).astype(int))]
-    flight = make_flight(truth, waypoints, hold_s=hold_s, move_s=move_s, drift_m=0.02, offset_frd_m=OFFSET_FRD_M, seed=seed)
-    render = _sim_render(truth, flight, LOOK, seed)
+    waypoints, flight, render = long_flight(truth, lattice, minutes, hold_s, move_s, 8, 0.02, seed)
     rng = np.random.default_rng(seed)
     t0, t1 = int(flight.t_ns[0]), int(flight.t_ns[-1])
 

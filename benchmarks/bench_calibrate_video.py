@@ -78,8 +78,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_calibrate import LATENCY_S, OFFSET_FRD_M, flight_telemetry, timed_calibrate, to_truth_frame  # noqa: E402
-from contract_writer import ORIGIN, MarkerLook, _sim_render, encode_jpeg, grid_waypoints, make_flight, pole_camera  # noqa: E402
+from bench_calibrate import LATENCY_S, OFFSET_FRD_M, flight_telemetry, long_flight, timed_calibrate, to_truth_frame  # noqa: E402
+from contract_writer import ORIGIN, MarkerLook, encode_jpeg, grid_waypoints, pole_camera  # noqa: E402
 from dronecal_field.geodesy import EnuOrigin  # noqa: E402
 
 WIDTH, HEIGHT, FOCAL_PX = 3840, 2160, 2600.0
@@ -103,10 +103,7 @@ def build_runs(video_path: Path, jpeg_path: Path | None, minutes: float, seed: i
 
     truth = truth_camera()
     lattice = grid_waypoints(east_m=(-3.5, -2.1, -0.7, 0.7, 2.1, 3.5), north_m=(6.0, 9.5, 13.0), up_m=(1.0, 3.0))
-    n_wp = int(np.clip(round((minutes * 60.0 - 13.0) / (HOLD_S + MOVE_S)), 6, len(lattice)))
-    waypoints = lattice[np.unique(np.round(np.linspace(0, len(lattice) - 1, n_wp)).astype(int))]
-    flight = make_flight(truth, waypoints, hold_s=HOLD_S, move_s=MOVE_S, drift_m=0.01, offset_frd_m=OFFSET_FRD_M, seed=seed)
-    render = _sim_render(truth, flight, LOOK, seed)
+    waypoints, flight, render = long_flight(truth, lattice, minutes, HOLD_S, MOVE_S, 6, 0.01, seed)
     rng = np.random.default_rng(seed)
     t0, t1 = int(flight.t_ns[0]), int(flight.t_ns[-1])
 
