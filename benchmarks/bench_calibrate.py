@@ -361,9 +361,25 @@ def flight_telemetry(flight, hold_s: float, rng: np.random.Generator) -> list[tu
     return telemetry
 
 
+def write_telemetry(writer, telemetry: list[tuple[int, int, object]], j: int, until_ns: int) -> int:
+    """Write ``telemetry`` from index ``j`` while its write time is at most ``until_ns``; the next index."""
+    from dronecal_field.runfile.records import Attitude, GnssFix
+
+    while j < len(telemetry) and telemetry[j][0] <= until_ns:
+        record = telemetry[j][2]
+        if isinstance(record, GnssFix):
+            writer.write_fix(record)
+        elif isinstance(record, Attitude):
+            writer.write_attitude(record)
+        else:
+            writer.write_event(record)
+        j += 1
+    return j
+
+
 def build_long_run(path: Path, minutes: float, fps: float, move_hz: float, hold_hz: float, seed: int = 0) -> dict:
     """Write a ``minutes``-long 1080p run with RunWriter; frames rendered at ``move_hz`` / ``hold_hz`` and reused between."""
-    from dronecal_field.runfile.records import FORMAT_VERSION, Attitude, Frame, GnssFix, MarkerSpec, RunEvent, RunMetadata
+    from dronecal_field.runfile.records import FORMAT_VERSION, Frame, MarkerSpec, RunEvent, RunMetadata
     from dronecal_field.runfile.writer import RunWriter
     from contract_writer import encode_jpeg
 
@@ -399,15 +415,7 @@ def build_long_run(path: Path, minutes: float, fps: float, move_hz: float, hold_
     with RunWriter(path, metadata, background_flush=False) as writer:
         for t in capture:
             stamp = int(t) + latency_ns
-            while j < len(telemetry) and telemetry[j][0] <= stamp:
-                record = telemetry[j][2]
-                if isinstance(record, GnssFix):
-                    writer.write_fix(record)
-                elif isinstance(record, Attitude):
-                    writer.write_attitude(record)
-                else:
-                    writer.write_event(record)
-                j += 1
+            j = write_telemetry(writer, telemetry, j, stamp)
             key = key_of(int(t))
             if key != last_key:
                 data, last_key = encode_jpeg(render(key), 92), key

@@ -78,7 +78,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_calibrate import LATENCY_S, OFFSET_FRD_M, flight_telemetry, long_flight, timed_calibrate, to_truth_frame  # noqa: E402
+from bench_calibrate import LATENCY_S, OFFSET_FRD_M, flight_telemetry, long_flight, timed_calibrate, to_truth_frame, write_telemetry  # noqa: E402
 from contract_writer import ORIGIN, MarkerLook, encode_jpeg, grid_waypoints, pole_camera  # noqa: E402
 from dronecal_field.geodesy import EnuOrigin  # noqa: E402
 
@@ -97,7 +97,7 @@ def build_runs(video_path: Path, jpeg_path: Path | None, minutes: float, seed: i
     """Write the H.265 run (and its JPEG twin); returns what was built."""
     import av
 
-    from dronecal_field.runfile.records import FORMAT_VERSION, Attitude, Frame, GnssFix, MarkerSpec, RunEvent, RunMetadata
+    from dronecal_field.runfile.records import FORMAT_VERSION, Frame, MarkerSpec, RunEvent, RunMetadata
     from dronecal_field.runfile.writer import RunWriter
     from dronecal_field.videopackets import access_unit, parameter_sets
 
@@ -197,15 +197,7 @@ def build_runs(video_path: Path, jpeg_path: Path | None, minutes: float, seed: i
         with RunWriter(path, metadata, camera=camera, background_flush=False) as writer:
             for k, t in enumerate(capture):
                 stamp = int(t) + latency_ns
-                while j < len(telemetry) and telemetry[j][0] <= stamp:
-                    record = telemetry[j][2]
-                    if isinstance(record, GnssFix):
-                        writer.write_fix(record)
-                    elif isinstance(record, Attitude):
-                        writer.write_attitude(record)
-                    else:
-                        writer.write_event(record)
-                    j += 1
+                j = write_telemetry(writer, telemetry, j, stamp)
                 if camera == "video":
                     data, _key = packets[gop_of_frame[k]]
                     video_bytes += len(data)
