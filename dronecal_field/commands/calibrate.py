@@ -16,6 +16,17 @@ one folder per run (DIR/<run-stem>/), and writes DIR/summary.csv and
 DIR/summary.json. A run that fails is listed with its error and does not
 stop the others; the exit code is then 1. --workers or --scheduler with a
 single run also takes this path.
+
+The flights of one plan (a plan split into mission-1.plan, mission-2.plan,
+... to fit the battery; fly attaches the same plan.json to each run):
+  calibrate run-1.mcap run-2.mcap [--out DIR]
+pools them into ONE camera (one camera.yaml and report in DIR, default
+<first-run>-joint-calibration beside it): each run is paired on its own
+camera clock, then one solve and one uncertainty on all the points. Runs of
+different plans stay a batch. --joint pools runs that carry no common plan
+(refused when their image sizes differ or their plans put the camera over
+1 m apart); --separate calibrates each run alone (the batch) even when they
+are flights of one plan.
 """
 
 from __future__ import annotations
@@ -55,6 +66,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--max-readout-s", type=float, default=0.06, metavar="S",
                         help="longest rolling-shutter readout searched, seconds (default 0.06; 0 for a global shutter)")
     parser.add_argument("--annotate", action="store_true", help="also write a copy of the run with the calibration and detections for Foxglove")
+    pooled = parser.add_argument_group("several runs of one camera")
+    how = pooled.add_mutually_exclusive_group()
+    how.add_argument("--joint", action="store_true",
+                     help="one camera from the points of all the runs (the default for the flights of one plan)")
+    how.add_argument("--separate", action="store_true",
+                     help="calibrate each run alone (a batch) even when the runs are flights of one plan")
     batch = parser.add_argument_group("many runs (Dask)")
     batch.add_argument("--workers", type=int, default=None, metavar="N",
                        help="local worker processes for a batch (default: one per core; 0 runs them one by one in this process)")
@@ -65,9 +82,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     _check_flags(args)
+    if getattr(args, "joint", False):
+        return run_joint(args)
+    if len(args.run) > 1 and not getattr(args, "separate", False):
+        flights = _flights_of_one_plan(args.run)
+        if flights is not None:
+            print(flights)
+            return run_joint(args)
     if len(args.run) > 1 or args.workers is not None or args.scheduler is not None:
         return run_batch(args)
     return run_single(args, args.run[0])
+
+
+def _flights_of_one_plan(runs: list[Path]) -> str | None:
+    """The line saying the runs are the flights of one plan (same plan.json attached), or None when they are not."""
+    from dronecal_field.errors import DronecalError
+    from dronecal_field.pipeline.joint import flights_of_one_plan, plan_of_run
+
+    try:
+        plans = [plan_of_run(p) for p in runs]
+    except DronecalError:
+        return None  # a run that does not open: the batch lists it with its error
+    if not flights_of_one_plan(plans):
+        return None
+    names = ", ".join(p.name for p in runs)
+    numbers = [p.flight for p in plans]
+    which = ("flights " + ", ".join(str(n) for n in numbers[:-1]) + f" and {numbers[-1]}") if None not in numbers else "the flights"
+    return f"runs {names} are {which} of one plan: calibrated together; --separate to calibrate each alone"
 
 
 def _check_flags(args: argparse.Namespace) -> None:
@@ -83,6 +124,8 @@ def _check_flags(args: argparse.Namespace) -> None:
         check_address("--scheduler", args.scheduler, ("tcp", "tls", "inproc", "ucx"))
     if args.out is not None:
         check_out_dir("--out", args.out)
+    if getattr(args, "joint", False) and len(args.run) < 2:
+        raise InputError("--joint needs two or more run files: pass the runs of every flight of the plan")
 
 
 def _options(args: argparse.Namespace, out: Path | None):
@@ -114,14 +157,39 @@ def run_single(args: argparse.Namespace, run_path: Path, live=None) -> int:
 
     ``live``: pipeline.framecache.FrameResults of fly's live pass over this run (``fly --calibrate``), or None.
     """
-    from dronecal_field.pipeline.report import all_warnings
-    from dronecal_field.pipeline.run import calibrate_run
-
     from dronecal_field.cli import announce_first_compile
+    from dronecal_field.pipeline.run import calibrate_run
 
     out = args.out if args.out is not None else run_path.with_name(run_path.stem + "-calibration")
     announce_first_compile()
     report = calibrate_run(run_path, _options(args, out), live=live)
+    print("\n".join(_summary_lines(report, run_path.name, out)))
+    return 0
+
+
+def run_joint(args: argparse.Namespace) -> int:
+    """The runs of one camera pooled into one calibration, in this process: the summary on stdout."""
+    from dronecal_field.cli import announce_first_compile
+    from dronecal_field.pipeline.joint import calibrate_joint
+
+    first = args.run[0]
+    out = args.out if args.out is not None else first.with_name(first.stem + "-joint-calibration")
+    announce_first_compile()
+    report = calibrate_joint(args.run, _options(args, out))
+    lines = _summary_lines(report, " + ".join(p.name for p in args.run) + " jointly", out)
+    per_run = [
+        f"  {r.path.name}" + (f" (flight {r.flight})" if r.flight is not None else "") + f": {r.used} points used, "
+        f"time offset {r.offset.offset_s:+.3f} s" + ("" if r.alone else " (too small alone: paired at its motion offset)")
+        for r in report.runs
+    ]
+    print("\n".join(lines[:1] + per_run + lines[1:]))
+    return 0
+
+
+def _summary_lines(report, title: str, out: Path) -> list[str]:
+    """What calibrate prints about a calibration (one run, or several pooled)."""
+    from dronecal_field.pipeline.report import all_warnings
+
     cam = report.camera
     i = cam.intrinsics
     mc = report.monte_carlo or report.linearised
@@ -132,7 +200,7 @@ def run_single(args: argparse.Namespace, run_path: Path, live=None) -> int:
     legs_text = (f" and {sum(1 for p in on_legs if p.used)} fix-by-fix pairs on {len(report.legs)} legs (from {report.leg_source})"
                  if getattr(report, "legs", None) else "")
     lines = [
-        f"calibrated {run_path.name}: {sum(1 for p in hover if p.used)} of {len(report.windows)} waypoints "
+        f"calibrated {title}: {sum(1 for p in hover if p.used)} of {len(report.windows)} waypoints "
         f"(windows from {report.window_source}){legs_text}, model {report.result.model.name}",
         f"  fx {i.fx:.2f}  fy {i.fy:.2f}  cx {i.cx:.2f}  cy {i.cy:.2f} px;  distortion "
         + " ".join(f"{v:.4g}" for v in cam.distortion.as_array()),
@@ -162,8 +230,7 @@ def run_single(args: argparse.Namespace, run_path: Path, live=None) -> int:
     for w in all_warnings(report):
         lines.append(f"  warning: {w}")
     lines.append(f"report: {report.outputs.get('report_html', out)}")
-    print("\n".join(lines))
-    return 0
+    return lines
 
 
 def run_batch(args: argparse.Namespace) -> int:

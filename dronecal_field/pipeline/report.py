@@ -264,7 +264,40 @@ def report_dict(report) -> dict:
         },
         "outputs": dict(report.outputs),
     }
+    if getattr(report, "runs", None):  # a joint calibration (pipeline/joint.py): which runs, and each one's part, first
+        out = {"tool": out.pop("tool"), "joint": _joint_section(report), **out}
     return _clean(out)
+
+
+def _joint_section(report) -> dict:
+    """report.json's ``joint``: the runs pooled into this one camera, the points each gave and each one's time offset."""
+    runs = report.runs
+    return {
+        "runs": [r.to_dict() for r in runs],
+        "n_runs": len(runs),
+        "points_used": sum(r.used for r in runs),
+        "frame": "every run's points in the ENU frame of the first run (frame.enu_origin); window numbers run on from one run to the next",
+        "text": "one calibration from the points of every run: each run's points were paired on its own clock (its own time offset, "
+                "rolling shutter and noise, from its own solve when it calibrates alone), then one solve and one uncertainty on all of them; "
+                "run, time_offset and frames below are the first run's or the sum",
+    }
+
+
+def _joint_rows(report) -> str:
+    """report.html's table of the pooled runs (empty for a single run)."""
+    runs = getattr(report, "runs", None)
+    if not runs:
+        return ""
+    rows = "".join(
+        f"<tr><td>{html.escape(Path(r.path).name)}</td><td>{'' if r.flight is None else r.flight}</td><td>{r.used}</td>"
+        f"<td>{len(r.windows)} / {len(r.legs)}</td>"
+        f"<td>{_fmt(r.offset.offset_s, '+.3f', ' s')} \u00b1 {_fmt(r.offset.std_s, '.3f', ' s')} ({html.escape(str(r.offset.method))})</td>"
+        f"<td>{'alone first, ' + _fmt(r.alone_rms_px, '.2f', ' px') if r.alone else html.escape('paired at its motion offset: ' + str(r.alone_reason))}</td></tr>"
+        for r in runs
+    )
+    return ("<h2>Runs calibrated together</h2><table><tr><th>run</th><th>flight</th><th>points used</th><th>hover windows / legs</th>"
+            f"<th>camera time offset</th><th>its own solve</th></tr>{rows}</table>"
+            "<p style='font-size:13px'>Each run keeps its own camera clock; per-run windows, legs and frames are in report.json (joint.runs).</p>")
 
 
 # --------------------------------------------------------------------------
@@ -339,7 +372,22 @@ def detections_csv(report) -> str:
     """
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(["timestamp_ns", "capture_ns", "window", "seq", "kind", "u_px", "v_px", "size_px", "in_settled_part", "window_used"])
+    header = ["timestamp_ns", "capture_ns", "window", "seq", "kind", "u_px", "v_px", "size_px", "in_settled_part", "window_used"]
+    runs = getattr(report, "runs", None)
+    if runs:  # a joint calibration: each run's detections on its own clock, with its own offset (a first column names the run)
+        writer.writerow(["run", *header])
+        for run in runs:
+            for row in _detection_rows(run):
+                writer.writerow([Path(run.path).name, *row])
+        return buf.getvalue()
+    writer.writerow(header)
+    for row in _detection_rows(report):
+        writer.writerow(row)
+    return buf.getvalue()
+
+
+def _detection_rows(report):
+    """detections.csv's rows of one run (``report``: a CalibrationReport, or a joint report's JointRun)."""
     offset = report.offset.offset_ns
     points = sorted(report.points, key=lambda p: p.window.start_ns)
     starts = np.array([p.window.start_ns for p in points], np.int64)
@@ -348,12 +396,11 @@ def detections_csv(report) -> str:
         k = int(np.searchsorted(starts, capture, side="right")) - 1
         p = points[k] if k >= 0 and capture <= points[k].window.end_ns else None
         settled = bool(p is not None and p.stable_ns[0] <= capture <= p.stable_ns[1])
-        writer.writerow([
+        yield [
             d.timestamp_ns, capture, "" if p is None else p.window.index,
             "" if p is None or p.window.seq is None else p.window.seq, d.kind,
             f"{d.u_px:.4f}", f"{d.v_px:.4f}", f"{d.size_px:.2f}", int(settled), int(bool(p is not None and p.used)),
-        ])
-    return buf.getvalue()
+        ]
 
 
 # --------------------------------------------------------------------------
@@ -388,8 +435,10 @@ def report_html(report, data: dict) -> str:
     region = unc.get("over_validity_region") or {}
     validity = getattr(report, "validity", None)
     off = data["time_offset"]
+    runs = getattr(report, "runs", None)
+    names = ", ".join(Path(r.path).name for r in runs) if runs else report.run_path.name
     summary = _table([
-        ("run", f"{report.run_path.name}{' (cut off)' if report.truncated else ''}"),
+        ("runs (joint calibration)" if runs else "run", f"{names}{' (cut off)' if report.truncated else ''}"),
         ("model", f"{cal['model']} ({cal['model_reason']})"),
         ("hover points used / windows", f"{data['hover_windows']['used']} / {len(report.windows)} (from {report.window_source})"),
         ("leg pairs used / legs", f"{data['legs']['pairs_used']} fix-by-fix pairs on {data['legs']['count']} legs"
@@ -400,7 +449,8 @@ def report_html(report, data: dict) -> str:
         ("distortion k1 k2 p1 p2 k3", " ".join(f"{v:.4g}" for v in cam.distortion.as_array())),
         ("camera position ENU", " ".join(f"{v:.3f}" for v in cam.pose.position_world) + " m"),
         ("ENU origin", f"{report.origin.lat_deg:.8f}, {report.origin.lon_deg:.8f}, {report.origin.h_m:.3f} m ({report.altitude_datum}; {report.origin_source})"),
-        ("camera time offset", f"{_fmt(off['offset_s'], '+.3f', ' s')} ± {_fmt(off['std_s'], '.3f', ' s')} ({off['method']})"),
+        ("camera time offset", "; ".join(f"{Path(r.path).name} {_fmt(r.offset.offset_s, '+.3f', ' s')}" for r in runs) if runs
+         else f"{_fmt(off['offset_s'], '+.3f', ' s')} ± {_fmt(off['std_s'], '.3f', ' s')} ({off['method']})"),
         ("fit vs measured sigmas", (unc.get("consistency") or {}).get("note", "-")),
         ("MC RMS mean / p95", f"{_fmt(mc.get('rms_mean'), '.3f')} / {_fmt((mc.get('rms_percentiles') or {}).get('95'), '.3f')} px ({mc.get('trials', 0)} trials)"),
         ("ground position error at 15 m", f"{_fmt(at15.get('ground_position_error_cm'), '.2f', ' cm')} RMS, p95 {_fmt(at15.get('ground_position_error_cm_p95'), '.2f', ' cm')}"),
@@ -437,9 +487,9 @@ def report_html(report, data: dict) -> str:
     return (
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>dronecal-field calibration report</title>"
         f"<style>{style}</style></head><body>"
-        f"<h1>Calibration of {html.escape(report.run_path.name)}</h1>"
+        f"<h1>{'Joint calibration' if runs else 'Calibration'} of {html.escape(names)}</h1>"
         + _verdict(validity, warning_list)
-        + f"{summary}<h2>Warnings</h2><ul>{warnings}</ul>"
+        + summary + _joint_rows(report) + f"<h2>Warnings</h2><ul>{warnings}</ul>"
         f"<h2>Dropped hover windows</h2><table><tr><th>window</th><th>seq</th><th>reason</th></tr>{dropped}</table>"
         "<h2>Parameter standard deviations</h2><div style='display:flex;gap:2em'>"
         f"<div><h3>from the fit's residuals</h3>{_table(resid_rows)}</div>"
@@ -533,7 +583,7 @@ def _write_outputs_into(report, tmp: Path, out_dir: Path) -> dict[str, str]:
         tmp / CAMERA_FILE,
         report.camera.with_(covariance=report.covariance_measured),
         comment=(
-            f"dronecal-field calibrate {report.run_path.name}: model {report.result.model.name}, "
+            f"dronecal-field calibrate {_run_names(report)}: model {report.result.model.name}, "
             f"RMS {report.result.rms_px:.3f} px over {len(report.used_points)} waypoints\n"
             f"world frame ENU at enu_origin {o.lat_deg:.8f} {o.lon_deg:.8f} {o.h_m:.3f} m ({report.altitude_datum} heights)\n"
             "parameter_covariance: linearised, from the measured per-waypoint sigmas"
@@ -560,6 +610,12 @@ def _write_outputs_into(report, tmp: Path, out_dir: Path) -> dict[str, str]:
     _atomic_write(tmp / REPORT_JSON, json.dumps(data, indent=1, allow_nan=False))
     _atomic_write(tmp / REPORT_HTML, report_html(report, data))
     return outputs
+
+
+def _run_names(report) -> str:
+    """The run's file name; a joint calibration's runs, ``--joint``."""
+    runs = getattr(report, "runs", None)
+    return " ".join(Path(r.path).name for r in runs) + " --joint" if runs else report.run_path.name
 
 
 def all_warnings(report) -> list[str]:

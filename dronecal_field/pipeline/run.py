@@ -1001,11 +1001,31 @@ def _cut_off_at(path: Path) -> int | None:
         return None
 
 
-def _calibrate_run(path: Path, options: CalibrateOptions, live=None) -> CalibrationReport:
-    """The pipeline: each stage a function of the ones before."""
+@dataclass(frozen=True, eq=False)
+class RunStages:
+    """One run through the stages that need only the run itself (read track to time alignment):
+    what the solve starts from. ``calibrate --joint`` (pipeline/joint.py) pools several of these."""
+
+    path: Path
+    md: object  # runfile.RunMetadata
+    read: TrackRead
+    windows: list[HoverWindow]
+    window_source: str
+    legs: list[Leg]
+    leg_source: str
+    dets: Detections
+    offset: TimeOffset  # from the marker's motion, before the solve refines it
+    truncated: bool
+    run_warnings: list[str]
+    warnings: list[str]
+    damaged: list  # (byte offset, start_ns, end_ns) of skipped chunks
+    jumps: list  # the recorder's clock_jump events
+
+
+def _run_stages(path: Path, options: CalibrateOptions, live, clock: "_Clock") -> RunStages:
+    """Stages 1-4 of one run: track, hover windows and legs, detections, time alignment."""
     from dronecal_field.runfile.reader import open_run
 
-    clock = _Clock()
     with open_run(path) as run:
         md = run.metadata
         read = clock("read_track_s", _read_track, run, path, options)
@@ -1031,7 +1051,20 @@ def _calibrate_run(path: Path, options: CalibrateOptions, live=None) -> Calibrat
     if not dets.items:
         raise InputError(_no_marker_message(path, md.marker, windows, dets.stats))
     offset, notes = clock("time_alignment_s", _align, dets, read.track, md, options)
-    warnings += notes
+    return RunStages(
+        path=path, md=md, read=read, windows=windows, window_source=window_source, legs=legs, leg_source=leg_source, dets=dets,
+        offset=offset, truncated=truncated, run_warnings=run_warnings, warnings=warnings + notes, damaged=damaged, jumps=jumps,
+    )
+
+
+def _calibrate_run(path: Path, options: CalibrateOptions, live=None) -> CalibrationReport:
+    """The pipeline: each stage a function of the ones before."""
+    clock = _Clock()
+    st = _run_stages(path, options, live, clock)
+    md, read, windows, legs, dets = st.md, st.read, st.windows, st.legs, st.dets
+    window_source, leg_source, truncated, run_warnings = st.window_source, st.leg_source, st.truncated, st.run_warnings
+    damaged, jumps, offset = st.damaged, st.jumps, st.offset
+    warnings = list(st.warnings)
     solved, offset = clock("calibration_s", _solve_at_offset, read, windows, legs, dets, offset, md, options)
     warnings += solved.warnings
     warnings += [_damage_cost(span, solved.points, read.track.t_ns) for span in damaged]
