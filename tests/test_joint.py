@@ -166,3 +166,28 @@ def test_joint_refuses_runs_of_two_different_cameras(flights, tmp_path):
     assert len(lines) == 1, proc.stderr
     assert "run-1.mcap is 640x480 and other.mcap is 800x600" in lines[0] and "drop --joint" in lines[0]
     assert not (tmp_path / "out").exists()
+
+
+def test_a_flight_too_small_to_calibrate_alone_still_contributes(flights, tmp_path):
+    """A flight cut short after 3 holds (6 needed alone) is paired at its motion-based offset and pooled."""
+    from dronecal_field.pipeline.joint import calibrate_joint
+    from dronecal_field.pipeline.run import CalibrateOptions
+
+    _, paths = flights
+    short = HALVES[2][[0, 3, 8]]
+    raw, path = tmp_path / "raw.mcap", tmp_path / "run-2-short.mcap"
+    write_run(raw, TRUTH, make_flight(TRUTH, short, hold_s=2.5, move_s=1.5, seed=32), MarkerLook(),
+              RunSpec(fps=8.0, latency_s=0.30, site_origin=ORIGIN, seed=42))
+    _with_attachments(raw, path, {"plan.json": _plan_json(), "mission.plan": _mission_plan(2)})
+    report = calibrate_joint([paths[0], path], CalibrateOptions(trials=0))
+    alone, small = report.runs
+    assert alone.alone and alone.used == 12
+    assert not small.alone and small.used == 3 and "too few good waypoints" in small.alone_reason
+    assert abs(small.offset.offset_s - 0.30) < 0.05, small.offset.offset_s
+    assert len(report.used_points) == 15
+    # its points are paired right: through the TRUE camera they reproject within a pixel (joint frame = the truth's)
+    X = np.array([p.marker_enu_m for p in small.points if p.used])
+    uv = np.array([p.uv_px for p in small.points if p.used])
+    assert np.max(np.linalg.norm(TRUTH.project(X) - uv, axis=1)) < 1.0
+    assert report.result.rms_px < 1.0
+    assert any("run-2-short.mcap does not calibrate alone" in w for w in report.warnings)

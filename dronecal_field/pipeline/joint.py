@@ -257,7 +257,7 @@ def calibrate_joint(paths: list[str | Path], options: CalibrateOptions = Calibra
         # runs paired without a camera of their own: their centres again under the pooled distortion, and solve once more
         i = result.camera.intrinsics
         K_dist = (np.array([i.fx, i.fy, i.cx, i.cy]), result.camera.distortion.as_array())
-        parts = [p if p[0] is not None else _paired_at_motion(st, options, K_dist) for st, p in zip(stages, parts)]
+        parts = [p if p[0] is not None else _paired_at_motion(st, options, K_dist, reason=p[3]) for st, p in zip(stages, parts)]
         points, runs, tracks = _pool(stages, parts, plans, origin)
         result, reason = clock("calibration_s", _solve, points, md, options, (result, reason))
     camera = result.camera.with_(enu_origin=tuple(origin.as_list()))
@@ -312,8 +312,6 @@ def _paired_at_motion(st: RunStages, options: CalibrateOptions, K_dist, reason: 
     timing = Timing(st.offset.offset_s, st.offset.std_s, 0.0, None, 0.0, "not estimated", n_points=st.offset.n_points)
     marker_size = st.md.marker.size_m if st.md.marker.kind == "aruco" else None
     pts = _points(st.read.track, st.read.attitude, st.read.offset_frd_m, st.windows, st.legs, st.dets, centres, timing, marker_size, options)
-    if reason is None:
-        reason = "too small to calibrate alone"
     return None, pts, _offset_with_timing(st.offset, timing, st.read, None), reason
 
 
@@ -405,6 +403,6 @@ def _warnings(stages: list[RunStages], parts: list, runs: list[JointRun]) -> lis
         own += [_clock_jump_cost(e, pts, st.read.track.t_ns) for e in st.jumps]
         out += [f"{name}: {w}" for w in own]
         if not run.alone:
-            out.append(f"{name}: too small to calibrate alone ({why}); its points are paired at its time offset from the marker's "
+            out.append(f"{name} does not calibrate alone ({why}); its points are paired at its time offset from the marker's "
                        f"motion ({st.offset.offset_s:+.3f} s, not refined through a camera) with the other runs' camera")
     return out
