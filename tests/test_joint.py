@@ -191,3 +191,14 @@ def test_a_flight_too_small_to_calibrate_alone_still_contributes(flights, tmp_pa
     assert np.max(np.linalg.norm(TRUTH.project(X) - uv, axis=1)) < 1.0
     assert report.result.rms_px < 1.0
     assert any("run-2-short.mcap does not calibrate alone" in w for w in report.warnings)
+
+
+@pytest.mark.parametrize("case", ["one run", "the same run twice"])
+def test_joint_needs_two_different_runs(flights, tmp_path, case):
+    _, paths = flights
+    runs = [paths[0]] if case == "one run" else [paths[0], paths[0]]
+    proc = run_cli("calibrate", *map(str, runs), "--joint", "--out", str(tmp_path / "out"), timeout=60)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert ("two or more run files" if case == "one run" else "are the same run file") in lines[0]

@@ -208,7 +208,7 @@ def _summary_lines(report, title: str, out: Path) -> list[str]:
         f"  RMS reprojection {report.result.rms_px:.3f} px; {len(report.result.outliers)} outliers",
         f"  camera time offset {off.offset_s:+.3f} s"
         + (f" ± {off.std_s:.3f} s" if off.std_s is not None else "")
-        + f" ({off.method})",
+        + f" ({off.method})" + (f", of {report.runs[0].path.name}" if getattr(report, "runs", None) else ""),
         f"  confidence ({mc.method}): RMS mean {mc.rms_mean:.3f} px; at 15 m: {mc.ground_error_15m_cm:.1f} cm, "
         f"{mc.speed_error_15m_kmh:.2f} km/h at 50 km/h",
     ]

@@ -244,6 +244,11 @@ def calibrate_joint(paths: list[str | Path], options: CalibrateOptions = Calibra
     paths = [Path(p) for p in paths]
     if len(paths) < 2:
         raise InputError("--joint needs two or more run files: pass the runs of every flight of the plan")
+    seen: dict[Path, Path] = {}
+    for p in paths:
+        if p.resolve() in seen:
+            raise InputError(f"{seen[p.resolve()]} and {p} are the same run file: give each flight's run once")
+        seen[p.resolve()] = p
     plans = [plan_of_run(p) for p in paths]
     check_one_camera(plans)
     clock = _Clock()
