@@ -21,7 +21,8 @@ import pytest
 from conftest import run_cli
 from contract_writer import ORIGIN, MarkerLook, RunSpec, grid_waypoints, make_flight, pole_camera, write_run
 from dronecal_field.camerafile import read_camera
-from dronecal_field.geodesy import enu_to_geodetic
+from dronecal_field.demo import in_enu_frame_of
+from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic
 from dronecal_field.sim.compare import compare_cameras
 
 TRUTH = pole_camera(f_px=520.0, distortion=(-0.22, 0.06, 0.0, 0.0, 0.0))
@@ -29,6 +30,10 @@ HALVES = {  # east of the antenna at each hold: the left and the right half of t
     1: grid_waypoints(east_m=(-2.6, -1.2), north_m=(6.0, 8.5, 11.0), up_m=(0.8, 3.3)),
     2: grid_waypoints(east_m=(1.2, 2.6), north_m=(6.0, 8.5, 11.0), up_m=(0.8, 3.3)),
 }
+
+
+# Flight 2's run declares its ENU frame 32 m away and 1.5 m up (dronecal.site): the joint moves its points into flight 1's.
+SHIFTED = EnuOrigin(*enu_to_geodetic(np.array([[20.0, -25.0, 1.5]]), ORIGIN)[0])
 
 
 def _plan_json() -> bytes:
@@ -83,7 +88,7 @@ def _with_attachments(src: Path, dst: Path, attachments: dict[str, bytes]) -> No
 
 
 def _ground_error(camera_yaml: Path):
-    return compare_cameras(TRUTH, read_camera(camera_yaml), ground_step_m=0.5).ground
+    return compare_cameras(TRUTH, in_enu_frame_of(read_camera(camera_yaml), TRUTH.enu_origin), ground_step_m=0.5).ground
 
 
 @pytest.fixture(scope="module")
@@ -94,7 +99,7 @@ def flights(tmp_path_factory):
     for flight, wps in HALVES.items():
         raw = tmp / f"raw-{flight}.mcap"
         write_run(raw, TRUTH, make_flight(TRUTH, wps, hold_s=2.5, move_s=1.5, seed=30 + flight), MarkerLook(),
-                  RunSpec(fps=8.0, latency_s=0.15 * flight, site_origin=ORIGIN, seed=40 + flight))
+                  RunSpec(fps=8.0, latency_s=0.15 * flight, site_origin=ORIGIN if flight == 1 else SHIFTED, seed=40 + flight))
         path = tmp / f"run-{flight}.mcap"
         _with_attachments(raw, path, {"plan.json": plan, "mission.plan": _mission_plan(flight)})
         raw.unlink()
@@ -133,6 +138,8 @@ def test_flights_of_one_plan_are_pooled_into_one_better_camera(flights, joint, s
     assert all(r["calibrated_alone_first"] for r in runs)
     assert all(r["points_used"] >= 10 for r in runs), [r["points_used"] for r in runs]
     assert report["calibration"]["n_points"] == sum(r["points_used"] for r in runs)
+    moved = [r["enu_origin_from_joint_m"] for r in runs]
+    assert moved[0] == 0.0 and abs(moved[1] - np.linalg.norm([20.0, -25.0, 1.5])) < 0.01, moved
     # each flight keeps its own camera clock: the frames of run 2 are stamped 0.15 s later than those of run 1
     offsets = [r["time_offset"]["offset_s"] for r in runs]
     assert abs(offsets[0] - 0.15) < 0.05 and abs(offsets[1] - 0.30) < 0.05, offsets
