@@ -173,6 +173,12 @@ def test_joint_refuses_runs_of_two_different_cameras(flights, tmp_path):
     assert len(lines) == 1, proc.stderr
     assert "run-1.mcap is 640x480 and other.mcap is 800x600" in lines[0] and "drop --joint" in lines[0]
     assert not (tmp_path / "out").exists()
+    # without --joint the three runs are a batch, and the two flights of one plan are named with how to pool them
+    from dronecal_field.commands.calibrate import _flights_of_one_plan
+
+    pooled, notes = _flights_of_one_plan([paths[0], path, paths[1]])
+    assert not pooled and len(notes) == 1
+    assert notes[0].startswith("runs run-1.mcap, run-2.mcap are flights 1 and 2 of one plan, calibrated here each alone")
 
 
 def test_a_flight_too_small_to_calibrate_alone_still_contributes(flights, tmp_path):

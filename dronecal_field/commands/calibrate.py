@@ -85,30 +85,50 @@ def run(args: argparse.Namespace) -> int:
     if getattr(args, "joint", False):
         return run_joint(args)
     if len(args.run) > 1 and not getattr(args, "separate", False):
-        flights = _flights_of_one_plan(args.run)
-        if flights is not None:
-            print(flights)
+        pooled, notes = _flights_of_one_plan(args.run)
+        for line in notes:
+            print(line)
+        if pooled:
             return run_joint(args)
     if len(args.run) > 1 or args.workers is not None or args.scheduler is not None:
         return run_batch(args)
     return run_single(args, args.run[0])
 
 
-def _flights_of_one_plan(runs: list[Path]) -> str | None:
-    """The line saying the runs are the flights of one plan (same plan.json attached), or None when they are not."""
+def _flights_of_one_plan(runs: list[Path]) -> tuple[bool, list[str]]:
+    """(whether the runs are the flights of one plan: the same plan.json attached, the lines saying so).
+
+    Runs of several plans stay a batch; a plan flown in several of them is named, with how to pool it.
+    """
     from dronecal_field.errors import DronecalError
     from dronecal_field.pipeline.joint import flights_of_one_plan, plan_of_run
 
     try:
         plans = [plan_of_run(p) for p in runs]
     except DronecalError:
-        return None  # a run that does not open: the batch lists it with its error
-    if not flights_of_one_plan(plans):
-        return None
-    names = ", ".join(p.name for p in runs)
+        return False, []  # a run that does not open: the batch lists it with its error
+    if flights_of_one_plan(plans):
+        return True, [f"runs {_names(plans)} are {_which(plans)} of one plan: calibrated together; --separate to calibrate each alone"]
+    groups: dict[str, list] = {}
+    for p in plans:
+        if p.plan_hash is not None:
+            groups.setdefault(p.plan_hash, []).append(p)
+    return False, [
+        f"runs {_names(g)} are {_which(g)} of one plan, calibrated here each alone (a batch): "
+        f"calibrate them together with dronecal-field calibrate {' '.join(str(p.path) for p in g)}"
+        for g in groups.values() if len(g) > 1
+    ]
+
+
+def _names(plans) -> str:
+    return ", ".join(p.path.name for p in plans)
+
+
+def _which(plans) -> str:
     numbers = [p.flight for p in plans]
-    which = ("flights " + ", ".join(str(n) for n in numbers[:-1]) + f" and {numbers[-1]}") if None not in numbers else "the flights"
-    return f"runs {names} are {which} of one plan: calibrated together; --separate to calibrate each alone"
+    if None in numbers:
+        return "flights"
+    return "flights " + ", ".join(str(n) for n in numbers[:-1]) + f" and {numbers[-1]}"
 
 
 def _check_flags(args: argparse.Namespace) -> None:
