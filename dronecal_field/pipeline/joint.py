@@ -269,6 +269,9 @@ def calibrate_joint(paths: list[str | Path], options: CalibrateOptions = Calibra
     result = _with_camera(result, camera)
     unc = clock("uncertainty_s", _uncertainty, camera, points, result, options, origin, stages[0].read.plan_roi)
     warnings = _warnings(stages, parts, runs)
+    if options.annotate:
+        warnings.append("--annotate is not done for a joint calibration (one annotated copy per run would need the camera "
+                        "in each run's frame): calibrate a run alone with --annotate for its copy")
     first = stages[0]
     report = JointReport(
         run_path=first.path, truncated=any(st.truncated for st in stages), run_warnings=[w for st in stages for w in st.run_warnings],
