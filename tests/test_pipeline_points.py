@@ -202,3 +202,16 @@ def test_fix_noise_splits_white_and_correlated_parts(tau_s):
     slow = FixNoise(sigma_white_m=0.0, sigma_corr_m=0.008, tau_s=30.0, fix_interval_s=0.2, n_residuals=0)
     assert slow.mean_variance(t15) == pytest.approx(0.008**2, rel=0.05)
     assert estimate_fix_noise(segments[:1]) is None  # 15 residuals: too few to say
+
+
+def test_a_leg_end_hold_too_short_to_settle_says_so():
+    """A 1 s hold (the end of a fly-through leg) leaves 0.3 s after the settle time: its drop says it is a leg's end."""
+    from dataclasses import replace
+
+    from dronecal_field.pipeline.points import PointOptions, _too_few_detections
+
+    w = HoverWindow(index=0, seq=4, source="event", start_ns=0, end_ns=1_000_000_000)
+    short = _too_few_detections(1, w, (667_000_000, 1_000_000_000), PointOptions())
+    assert "a 1.0 s hold (a leg's end) leaves 0.3 s after --settle-s 1" in short
+    long = _too_few_detections(1, replace(w, end_ns=4_000_000_000), (1_000_000_000, 4_000_000_000), PointOptions())
+    assert long == "1 marker detections in the settled part; need 3"

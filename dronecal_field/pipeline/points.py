@@ -166,6 +166,19 @@ class WaypointPoint:
         return replace(self, dropped=reason)
 
 
+SHORT_SETTLED_S = 0.5  # a settled part this short is a hold at a leg's end, not a hover point
+
+
+def _too_few_detections(n: int, window: HoverWindow, stable_ns: tuple[int, int], options: PointOptions) -> str:
+    """Why a hold with too few detections gives no point; a fly-through leg's short end hold says it is one."""
+    settled_s = max(stable_ns[1] - stable_ns[0], 0) * 1e-9
+    if settled_s < SHORT_SETTLED_S:
+        # ArduCopter holds whole seconds: a 1 s hold ends a leg (plan --sampling through), its frames serve the leg
+        return (f"{n} marker detections in the settled part; need {options.min_detections}: a {window.duration_s:.1f} s hold "
+                f"(a leg's end) leaves {settled_s:.1f} s after --settle-s {options.settle_s:g}; its frames serve the leg")
+    return f"{n} marker detections in the settled part; need {options.min_detections}"
+
+
 def robust_centre(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per-axis median (D,) and robust std (D,) = 1.4826 MAD of ``values`` (N, D)."""
     v = np.asarray(values, float)
@@ -325,10 +338,7 @@ def window_point(
     if fix_rank(worst) < fix_rank(options.min_fix):
         return WaypointPoint(**base, dropped=f"fix {worst or 'unknown'} is worse than --min-fix {options.min_fix}")
     if in_det.sum() < options.min_detections:
-        return WaypointPoint(
-            **base,
-            dropped=f"{int(in_det.sum())} marker detections in the settled part; need {options.min_detections}",
-        )
+        return WaypointPoint(**base, dropped=_too_few_detections(int(in_det.sum()), window, stable_ns, options))
     xyz, scatter_m = robust_centre(np.asarray(marker_enu_m, float)[in_fix])
     reported = np.median(np.asarray(fix_sigma_m, float)[in_fix], axis=0)
     sigma_m = np.maximum(np.maximum(scatter_m, np.nan_to_num(reported, nan=0.0)), options.sigma_m_floor)
