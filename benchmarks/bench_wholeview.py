@@ -45,7 +45,7 @@ import json
 import math
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -134,11 +134,15 @@ def predicted_roi_px(plan: dict) -> tuple[str | None, float | None]:
 
 
 def run_one(name: str, out: Path, args: argparse.Namespace, extra: list[str], echo=print) -> dict:
-    """plan -> simulators -> fly --start -> calibrate -> compare, for one camera; returns the numbers.
+    """plan -> simulators -> fly --start (every flight of the plan) -> calibrate -> compare, for one camera; returns the numbers.
 
-    With ``args.reuse`` a step whose output is already in ``out`` (plan.json,
-    a finished run.mcap, report.json) is not run again: the comparison can be
-    re-measured without flying.
+    A plan split into flights is flown flight after flight (run-1.mcap,
+    run-2.mcap, ...; a one-flight plan records run.mcap), calibrated jointly
+    (``calibrate run-1.mcap run-2.mcap`` pools the flights of one plan), and
+    each flight is also calibrated alone, so the table shows what pooling
+    gains. With ``args.reuse`` a step whose output is already in ``out``
+    (plan.json, a finished run file, report.json) is not run again: the
+    comparison can be re-measured without flying.
     """
     from dronecal_field.camerafile import read_camera, write_camera
     from dronecal_field.sim.compare import compare_cameras
@@ -159,34 +163,21 @@ def run_one(name: str, out: Path, args: argparse.Namespace, extra: list[str], ec
         run_step("plan", plan_argv(name, plan_dir, args.camera_fps, args.strategy, args.sampling, extra), logs / "plan.log", timeout_s=600)
         times["plan"] = time.monotonic() - t
     plan = json.loads((plan_dir / "plan.json").read_text())
-    mission_path = plan_dir / "mission.plan"
-    if not mission_path.is_file():  # split into flights: this bench flies (and calibrates) one run
-        mission_path = sorted(plan_dir.glob("mission-*.plan"))[0]
-    mission = json.loads(mission_path.read_text())
-    home = tuple(mission["mission"]["plannedHomePosition"])
+    missions = mission_files(plan, plan_dir)
+    home = takeoff_point(missions)
     marker = dict(MARKER, size_m=plan["marker"]["size_m"], offset_frd_m=tuple(plan["marker"]["offset_frd_m"]))
+    flights = [Flight(k + 1, m, *flight_paths(out, k + 1, len(missions))) for k, m in enumerate(missions)]
 
-    wall_fps = args.camera_fps * args.speedup
-    run_path = out / "run.mcap"
-    if not (args.reuse and run_path.is_file() and "recorded" in (logs / "fly.log").read_text()):
-        echo(f"[{name}] fly {mission_path.name}: {plan.get('points')} points, {plan['flight']['flight_time_s'] / 60:.1f} min planned, "
-             f"speed-up {args.speedup:g}, camera {wall_fps:g} fps wall = {args.camera_fps:g} fps vehicle clock")
-        sims = start_simulators(truth_path, home, logs, args.speedup, wall_fps, marker)
-        t = time.monotonic()
-        try:
-            sims.wait_ready(timeout_s=180)
-            run_step("fly", cli_argv("fly", "--connect", sims.vehicle_url, "--mission", mission_path, "--video",
-                                     sims.video_url, "--out", run_path, "--start", "--timeout-s", 3600),
-                     logs / "fly.log", timeout_s=4000)
-        finally:
-            sims.stop()
-        times["fly_wall"] = time.monotonic() - t
-        (out / "flight.json").write_text(json.dumps(dict(speedup=args.speedup, camera_fps=args.camera_fps)))
-    else:  # the flight's own clock rates, not this invocation's
+    todo = [f for f in flights if not (args.reuse and f.recorded)]
+    if todo:
+        fly_flights(name, todo, plan, truth_path, home, marker, logs, args, times, echo)
+        (out / "flight.json").write_text(json.dumps(dict(speedup=args.speedup, camera_fps=args.camera_fps, n_flights=len(flights))))
+    else:  # the flights' own clock rates, not this invocation's
         flown = json.loads((out / "flight.json").read_text())
         args = argparse.Namespace(**dict(vars(args), speedup=flown["speedup"], camera_fps=flown["camera_fps"]))
-        wall_fps = args.camera_fps * args.speedup
-    fly = fly_facts(logs / "fly.log", args.speedup)
+    wall_fps = args.camera_fps * args.speedup
+    per_flight = [dict(fly_facts(f.log, args.speedup), file=f.mission.name, run=f.run.name) for f in flights]
+    fly = flights_total(per_flight)
 
     calib_dir = out / "calibration"
     row = dict(
@@ -203,19 +194,16 @@ def run_one(name: str, out: Path, args: argparse.Namespace, extra: list[str], ec
         calibration=None,
         comparison=None,
         measured_over_predicted=None,
+        flights_alone=None,
         error=None,
         times_s=times,
         out_dir=str(out),
     )
     if not (args.reuse and (calib_dir / "report.json").is_file()):
-        echo(f"[{name}] calibrate")
+        echo(f"[{name}] calibrate " + (" + ".join(f.run.name for f in flights) + " jointly" if len(flights) > 1 else flights[0].run.name))
         t = time.monotonic()
         try:
-            run_step("calibrate", cli_argv("calibrate", run_path, "--out", calib_dir, "--trials", args.trials, "--min-fix", "rtk_fixed",
-                                           "--max-frames-per-window", int(24 * args.speedup),
-                                           # settle is counted on the run (wall) clock: 1 vehicle second
-                                           "--settle-s", 1.0 / args.speedup),
-                     logs / "calibrate.log", timeout_s=1200)
+            run_step("calibrate", calibrate_argv([f.run for f in flights], calib_dir, args), logs / "calibrate.log", timeout_s=1800)
         except DronecalError:
             # A refusal is a result (e.g. the points are coplanar): keep it in the table.
             row["error"] = (logs / "calibrate.log").read_text().strip().splitlines()[-1]
@@ -223,6 +211,10 @@ def run_one(name: str, out: Path, args: argparse.Namespace, extra: list[str], ec
             return row
         times["calibrate"] = time.monotonic() - t
     report = json.loads((calib_dir / "report.json").read_text())
+    if len(flights) > 1 and report.get("joint", {}).get("n_runs") != len(flights):
+        # calibrate pools the flights of one plan by itself: a batch here means it did not see one plan
+        row["error"] = f"calibrate did not pool the {len(flights)} runs into one camera (report.json has no joint section of {len(flights)} runs)"
+        return row
     est_file = read_camera(calib_dir / "camera.yaml")
     est = in_enu_frame_of(est_file, truth.enu_origin)
     sampled = used_marker_points(report, est_file.enu_origin, truth.enu_origin)
@@ -231,6 +223,13 @@ def run_one(name: str, out: Path, args: argparse.Namespace, extra: list[str], ec
     roi_range = tuple(row["plan"]["roi_range_m"] or (3.0, 40.0))
     cmp_roi = compare_cameras(truth, est, None, ground_range_m=roi_range)
     roi_px = row["plan"]["predicted_roi_px"]
+    if len(flights) > 1:
+        for f, facts, joint_run in zip(flights, per_flight, report["joint"]["runs"]):
+            facts.update(points_in_joint=joint_run.get("points_used"), hover_points_in_joint=joint_run.get("hover_points_used"),
+                         leg_pairs_in_joint=joint_run.get("leg_pairs_used"), calibrated_alone_first=joint_run.get("calibrated_alone_first"))
+        t = time.monotonic()
+        row["flights_alone"] = [flight_alone(name, f, truth, out / f"calibration-flight-{f.k}", logs, args, echo) for f in flights]
+        times["calibrate_alone"] = time.monotonic() - t
     times["total"] = time.monotonic() - t0
     row.update(
         run=dict(fly, **run_facts(report, calib_dir / "detections.csv")),
@@ -240,6 +239,136 @@ def run_one(name: str, out: Path, args: argparse.Namespace, extra: list[str], ec
         measured_over_predicted=(cmp_roi.ground.rms_px / roi_px) if roi_px else None,
     )
     return row
+
+
+@dataclass(frozen=True)
+class Flight:
+    """One flight of the plan: its number, its mission file, the run file it records and fly's log."""
+
+    k: int
+    mission: Path
+    run: Path
+    log: Path
+
+    @property
+    def recorded(self) -> bool:
+        """The run file is there and fly said it recorded it (a flight cut short leaves no 'recorded' line)."""
+        return self.run.is_file() and self.log.is_file() and "recorded" in self.log.read_text()
+
+
+def mission_files(plan: dict, plan_dir: Path) -> list[Path]:
+    """The plan's mission files in flight order: mission.plan, or mission-1.plan, mission-2.plan, ... when split."""
+    files = [f["file"] for f in plan["flight"].get("flights") or [] if f.get("file")]
+    if not files:  # plan.json of plans before the flights list: whatever mission files are in the folder
+        files = ["mission.plan"] if (plan_dir / "mission.plan").is_file() else sorted(
+            (p.name for p in plan_dir.glob("mission-*.plan")), key=lambda n: int(n[len("mission-"):-len(".plan")]))
+    missing = [f for f in files if not (plan_dir / f).is_file()]
+    if not files or missing:
+        raise DronecalError(f"{plan_dir}: no mission file {', '.join(missing or ['mission.plan'])}: plan again (drop --reuse)")
+    return [plan_dir / f for f in files]
+
+
+def takeoff_point(missions: list[Path]) -> tuple[float, float, float]:
+    """The take-off point (lat, lon deg, h m) every flight of the plan starts from and lands at.
+
+    The flights are flown one after the other by one simulated vehicle that
+    lands, disarms and is re-armed where it stands, as an operator swaps the
+    battery and takes off again from the same spot; a plan whose flights start
+    at different points cannot be flown so.
+    """
+    from dronecal_field.geodesy import EnuOrigin, geodetic_to_enu
+
+    homes = [tuple(json.loads(m.read_text())["mission"]["plannedHomePosition"]) for m in missions]
+    first = EnuOrigin(*homes[0])
+    for m, h in zip(missions[1:], homes[1:]):
+        apart = float(np.linalg.norm(geodetic_to_enu(h[0], h[1], h[2], first)[0]))
+        if apart > 0.5:
+            raise DronecalError(f"{m.name} takes off {apart:.1f} m from {missions[0].name}'s take-off point: "
+                                "this bench flies every flight of a plan from one take-off point")
+    return homes[0]
+
+
+def flight_paths(out: Path, k: int, n: int) -> tuple[Path, Path]:
+    """(run file, fly log) of flight ``k`` of ``n``: run.mcap and logs/fly.log for a one-flight plan (older folders
+    keep working with --reuse), run-K.mcap and logs/fly-K.log otherwise."""
+    if n == 1:
+        return out / "run.mcap", out / "logs" / "fly.log"
+    return out / f"run-{k}.mcap", out / "logs" / f"fly-{k}.log"
+
+
+def fly_flights(name: str, flights: list[Flight], plan: dict, truth_path: Path, home: tuple[float, float, float], marker: dict,
+                logs: Path, args: argparse.Namespace, times: dict[str, float], echo) -> None:
+    """Fly ``flights`` one after the other with ``fly --start`` on ONE pair of simulators.
+
+    The pole camera keeps running (a real one never stops) and the vehicle
+    lands at the take-off point, disarms, and is re-armed by the next ``fly
+    --start`` (the sim vehicle accepts a new mission and MISSION_START once
+    landed: mission state reset on upload, GUIDED then arm). Fresh simulators
+    per flight would replay the same noise seed, the same GNSS noise draws, in
+    every flight; the sim vehicle has no battery to swap.
+    """
+    wall_fps = args.camera_fps * args.speedup
+    planned = {f["file"]: f for f in plan["flight"].get("flights") or []}
+    sims = start_simulators(truth_path, home, logs, args.speedup, wall_fps, marker)
+    try:
+        sims.wait_ready(timeout_s=180)
+        for f in flights:
+            p = planned.get(f.mission.name, dict(points=plan.get("points"), flight_time_s=plan["flight"]["flight_time_s"]))
+            echo(f"[{name}] fly {f.mission.name} (flight {f.k} of {len(planned) or 1}) -> {f.run.name}: {p.get('points')} points, "
+                 f"{p['flight_time_s'] / 60:.1f} min planned, speed-up {args.speedup:g}, "
+                 f"camera {wall_fps:g} fps wall = {args.camera_fps:g} fps vehicle clock")
+            t = time.monotonic()
+            run_step("fly", cli_argv("fly", "--connect", sims.vehicle_url, "--mission", f.mission, "--video", sims.video_url,
+                                     "--out", f.run, "--start", "--timeout-s", 3600), f.log, timeout_s=4000)
+            times[f"fly_wall_{f.k}"] = time.monotonic() - t
+    finally:
+        sims.stop()
+    times["fly_wall"] = sum(v for k, v in times.items() if k.startswith("fly_wall_"))
+
+
+def calibrate_argv(runs: list[Path], out_dir: Path, args: argparse.Namespace) -> list[str]:
+    """``calibrate RUN... --out OUT_DIR`` with this bench's options (the flights of one plan are pooled by calibrate itself)."""
+    return cli_argv("calibrate", *runs, "--out", out_dir, "--trials", args.trials, "--min-fix", "rtk_fixed",
+                    "--max-frames-per-window", int(24 * args.speedup),
+                    # settle is counted on the run (wall) clock: 1 vehicle second
+                    "--settle-s", 1.0 / args.speedup)
+
+
+def flight_alone(name: str, flight: Flight, truth, calib_dir: Path, logs: Path, args: argparse.Namespace, echo) -> dict:
+    """Flight ``flight`` of a split plan calibrated alone, against the truth: what the joint calibration is measured against."""
+    from dronecal_field.camerafile import read_camera
+    from dronecal_field.sim.compare import compare_cameras
+
+    log = logs / f"calibrate-flight-{flight.k}.log"
+    if not (args.reuse and (calib_dir / "report.json").is_file()):
+        echo(f"[{name}] calibrate {flight.run.name} alone")
+        try:
+            run_step("calibrate", calibrate_argv([flight.run], calib_dir, args), log, timeout_s=1200)
+        except DronecalError:  # a flight too small to calibrate alone is a result too
+            return dict(flight=flight.k, run=flight.run.name, error=log.read_text().strip().splitlines()[-1])
+    report = json.loads((calib_dir / "report.json").read_text())
+    est_file = read_camera(calib_dir / "camera.yaml")
+    sampled = used_marker_points(report, est_file.enu_origin, truth.enu_origin)
+    cmp = compare_cameras(truth, in_enu_frame_of(est_file, truth.enu_origin), sampled)
+    cal = report.get("calibration", {})
+    return dict(flight=flight.k, run=flight.run.name, error=None, points_used=cal.get("n_points"), model=cal.get("model"),
+                rms_px=cal.get("rms_px"), ground=asdict(cmp.ground), sampled=asdict(cmp.sampled) if cmp.sampled else None,
+                focal_error_pct=cmp.focal_error_pct, principal_point_error_px=cmp.principal_point_error_px,
+                position_error_cm=cmp.position_error_cm, ground_error_cm_rms=cmp.ground_error_cm_rms)
+
+
+def flights_total(per_flight: list[dict]) -> dict:
+    """The recording summed over the flights (frames, fixes, flight time), with each flight's own facts under ``flights``."""
+    if len(per_flight) == 1:
+        return dict(per_flight[0], n_flights=1, flights=per_flight)
+    if any(f.get("flight_vehicle_s") is None for f in per_flight):
+        return dict(flight_vehicle_s=None, n_flights=len(per_flight), flights=per_flight)
+    frames = sum(f["frames"] for f in per_flight)
+    wall_s = sum(f["record_wall_s"] for f in per_flight)
+    vehicle_s = sum(f["flight_vehicle_s"] for f in per_flight)
+    return dict(frames=frames, dropped=sum(f["dropped"] for f in per_flight), gnss_fixes=sum(f["gnss_fixes"] for f in per_flight),
+                record_wall_s=wall_s, flight_vehicle_s=vehicle_s, camera_fps_wall_measured=frames / wall_s,
+                camera_fps_vehicle_measured=frames / vehicle_s, n_flights=len(per_flight), flights=per_flight)
 
 
 def fly_facts(fly_log: Path, speedup: float) -> dict:
@@ -264,6 +393,8 @@ def plan_facts(plan: dict) -> dict:
                 predicted_roi_ground_cm=plan.get("prediction", {}).get("ground_combined_cm", {}).get("rms"),
                 roi_range_m=plan.get("roi", {}).get("range_m"), coverage_pct=plan.get("coverage", {}).get("pct"),
                 n_flights=plan["flight"].get("n_flights", 1), sampling=plan.get("samples"),
+                flights=[dict(file=f.get("file"), flight_time_s=f.get("flight_time_s"), points=f.get("points"))
+                         for f in plan["flight"].get("flights") or []] or None,
                 paper_far_prediction=plan.get("comparison"), warnings=plan.get("warnings"))
 
 
@@ -315,7 +446,8 @@ def table(rows: list[dict]) -> str:
     """The markdown table of the runs."""
     head = ("camera | plan | points used/planned | flight min plan (run) | cover % | marker px plan (seen) | model | "
             "focal % | pp px | pos cm | rot deg | ground 3-30 m RMS / p95 / max px | sampled RMS px | image RMS px | "
-            "ground cm RMS / @5 / @15 / @30 | ROI px predicted / measured (ratio) | fps (vehicle) | det/hold | calibrate claims")
+            "ground cm RMS / @5 / @15 / @30 | ROI px predicted / measured (ratio) | fps (vehicle) | det/hold | calibrate claims | "
+            "flights: min plan (run), points used | each flight alone: ground 3-30 m RMS / max px")
     lines = ["| " + head + " |", "|" + " --- |" * (head.count("|") + 1)]
     for r in rows:
         p, run = r["plan"], r["run"]
@@ -327,6 +459,15 @@ def table(rows: list[dict]) -> str:
             lines.append("| " + " | ".join(first + [f"-/{p['points']}", flight, _fmt(p.get("coverage_pct"), ".0f"), marker,
                                                      f"calibrate refused: {r['error']}"]) + " |")
             continue
+        each = run.get("flights") or []
+        flights = f"{len(each)}: " + " + ".join(
+            f"{_fmt(pf and pf['flight_time_s'] / 60, '.1f')} ({_fmt(f.get('flight_vehicle_s') and f['flight_vehicle_s'] / 60, '.1f')})"
+            for f, pf in zip(each, p.get("flights") or [None] * len(each)))
+        if len(each) > 1:
+            flights += ", " + " + ".join(str(f.get("points_in_joint", "-")) for f in each) + " points"
+        alone = "; ".join(f"{a['flight']}: {a['error']}" if a.get("error") else
+                          f"{a['flight']}: {_fmt(a['ground']['rms_px'])} / {_fmt(a['ground']['max_px'], '.1f')}"
+                          for a in r.get("flights_alone") or []) or "-"
         c, cal = r["comparison"], r["calibration"]
         at = {float(k): v for k, v in c["ground_error_cm_at"].items()}  # float keys, or str after a JSON round trip
         cl = cal["claims"]
@@ -346,7 +487,7 @@ def table(rows: list[dict]) -> str:
             f"{_fmt(c['ground_error_cm_rms'], '.1f')} / {_fmt(at[5.0], '.1f')} / {_fmt(at[15.0], '.1f')} / {_fmt(at[30.0], '.1f')}",
             f"{_fmt(p['predicted_roi_px'])} / {_fmt(roi['px']['rms_px'])} ({_fmt(r['measured_over_predicted'])})",
             _fmt(run.get("camera_fps_vehicle_measured"), ".1f"),
-            f"{dph[0]:.0f}-{dph[2]:.0f}" if dph else "-", f"{claims}; {len(cal['warnings'] or [])} warnings",
+            f"{dph[0]:.0f}-{dph[2]:.0f}" if dph else "-", f"{claims}; {len(cal['warnings'] or [])} warnings", flights, alone,
         ]) + " |")
     return "\n".join(lines)
 
