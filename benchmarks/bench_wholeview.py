@@ -4,6 +4,13 @@
     .venv/bin/python benchmarks/bench_wholeview.py --camera wide 4k table1 --strategy image --sampling mixed
     .venv/bin/python benchmarks/bench_wholeview.py --camera 4k --strategy paper-far -- --max-agl 3
     .venv/bin/python benchmarks/bench_wholeview.py --camera wide --label image --reuse    # re-measure, no flight
+    .venv/bin/python benchmarks/bench_wholeview.py --camera wide --sampling hover --label split -- --endurance 8
+
+The last line is the split check: an 8-minute battery cannot hold the wide
+camera's hold plan, so ``plan`` writes mission-1.plan and mission-2.plan (5.8
+and 3.7 min). ``plan`` splits only when no layout that covers the ROI fits
+75 % of ``--endurance``: with the default sampling an 8-minute battery fits a
+one-flight plan; ``-- --endurance 5`` splits that one (3.7 + 2.2 min).
 
 Every command runs in its own process over real sockets, as ``make demo``
 does (dronecal_field/demo.py): the truth camera is written to truth.yaml,
@@ -31,6 +38,21 @@ got (frames / vehicle seconds): if the renderer cannot keep up, lower
 ``--speedup`` (default 2, and 1 for 4K: a 4K frame takes 30+ ms to render and
 encode). Settle time in calibrate is 1 vehicle second (``--settle-s`` counts
 on the run's wall clock).
+
+A plan split into flights is flown flight after flight, each a fresh ``fly
+--start`` recording its own run-K.mcap (a one-flight plan records run.mcap, so
+older folders still work with ``--reuse``), on ONE pair of simulators at the
+plan's take-off point: between flights the vehicle lands there and disarms,
+and the next ``fly --start`` uploads the next mission and re-arms it, as an
+operator swaps the battery and takes off from the same spot while the pole
+camera keeps running. (Fresh simulators per flight would draw the same noise
+seed, i.e. the same GNSS noise, in every flight.) ``calibrate run-1.mcap
+run-2.mcap ...`` then pools the runs into one camera by itself (they carry one
+plan.json), and each run is also calibrated alone (OUT/CAMERA-LABEL/
+calibration-flight-K/): the table's last two columns give each flight's
+planned (flown) minutes and points in the joint calibration, and each flight
+alone's ground 3-30 m RMS / max px against the truth, so the pooling's gain is
+measured here; the JSON has them under ``run.flights`` and ``flights_alone``.
 
 ``--strategy`` and ``--sampling`` go to ``plan`` only when given; anything
 after ``--`` goes to ``plan`` verbatim (options of plans to come). One table
