@@ -440,6 +440,17 @@ def test_a_plan_longer_than_the_battery_is_split_into_flights(tmp_path):
     assert s["points"] <= sum(x["points"] for x in f["flights"]) <= s["points"] + f["n_flights"]  # a re-entered leg repeats one hold
     assert sorted({g["flight"] for g in s["grid"]}) == list(range(1, f["n_flights"] + 1))
     assert "mission.plan" not in names and any("split into" in w for w in s["warnings"])
+    # fly's live pass counts each flight's own points (the grid numbers every flight's in its own mission) and says it is one of n
+    from dronecal_field.live.progress import expected_seqs, plan_flight, verdict
+    from dronecal_field.mavlink.missionfile import read_mission
+
+    for k in range(1, f["n_flights"] + 1):
+        mission = read_mission(out / f"mission-{k}.plan")
+        assert len(expected_seqs(mission, s)) == sum(1 for g in s["grid"] if g["flight"] == k)
+        assert plan_flight(mission, s) == (k, f["n_flights"])
+    text = verdict([], [], None, 0.4, None, (2, f["n_flights"])).text
+    assert f"flight 2 of {f['n_flights']} of the plan: calibrate this run together with the other flights' runs" in text
+    assert "calibrate needs" not in text
 
 
 def test_geojson_roi_is_read_in_wgs84_and_kept(tmp_path):

@@ -367,17 +367,46 @@ def coverage(roi: Any, outcomes: list[WaypointOutcome]) -> float | None:
     return float(roi.coverage(np.concatenate(uv) if uv else np.zeros((0, 2))))
 
 
+def _flies_here(item: Any, point: dict) -> bool:
+    """True when mission ``item`` is at plan.json grid ``point``'s drone position (within ~5 cm; a grid without positions: True)."""
+    if item is None:
+        return False
+    if point.get("lat_deg") is None or point.get("lon_deg") is None:
+        return True
+    return abs(item.x - float(point["lat_deg"]) * 1e7) <= 5 and abs(item.y - float(point["lon_deg"]) * 1e7) <= 5
+
+
 def expected_seqs(mission: Any, plan: dict | None) -> list[int]:
     """The mission seqs that are measurement points: plan.json's grid, else every NAV_WAYPOINT with a hold."""
     from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT
 
     grid = (plan or {}).get("grid") if isinstance(plan, dict) else None
     if isinstance(grid, list):
-        seqs = sorted({int(g["mission_seq"]) for g in grid if isinstance(g, dict) and g.get("mission_seq") is not None})
-        nav = {item.seq for item in mission.items if item.command == CMD_NAV_WAYPOINT}
-        if seqs and set(seqs) <= nav:
+        nav = {item.seq: item for item in mission.items if item.command == CMD_NAV_WAYPOINT}
+        # A split plan's grid holds every flight's points, each numbered in its own mission: keep the ones this mission flies there.
+        seqs = sorted({int(g["mission_seq"]) for g in grid if isinstance(g, dict) and g.get("mission_seq") is not None
+                       and _flies_here(nav.get(int(g["mission_seq"])), g)})
+        if seqs:
             return seqs
     return [item.seq for item in mission.items[1:] if item.command == CMD_NAV_WAYPOINT and item.hold_s > 0]
+
+
+def plan_flight(mission: Any, plan: dict | None) -> tuple[int, int] | None:
+    """(k, n) when ``mission`` is flight k of a plan split into n > 1 flights (plan.json's grid), else None."""
+    from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT
+
+    grid = (plan or {}).get("grid") if isinstance(plan, dict) else None
+    if not isinstance(grid, list):
+        return None
+    flights = {int(g["flight"]) for g in grid if isinstance(g, dict) and g.get("flight") is not None}
+    if len(flights) < 2:
+        return None
+    nav = {item.seq: item for item in mission.items if item.command == CMD_NAV_WAYPOINT}
+    here = [int(g["flight"]) for g in grid if isinstance(g, dict) and g.get("flight") is not None and g.get("mission_seq") is not None
+            and _flies_here(nav.get(int(g["mission_seq"])), g)]
+    if not here:
+        return None
+    return max(set(here), key=here.count), max(flights)
 
 
 @dataclass(frozen=True)
@@ -390,8 +419,12 @@ class Verdict:
 
 
 def verdict(outcomes: list[WaypointOutcome], expected: list[int], estimate: LiveEstimate | None, cover: float | None,
-            prior: Camera | None = None) -> Verdict:
-    """``good: ...`` or ``re-fly waypoints 12, 17, 31 (marker not detected)``; unflown expected waypoints are re-flown too."""
+            prior: Camera | None = None, flight: tuple[int, int] | None = None) -> Verdict:
+    """``good: ...`` or ``re-fly waypoints 12, 17, 31 (marker not detected)``; unflown expected waypoints are re-flown too.
+
+    ``flight`` (k, n): this mission is flight k of a plan split into n; its coverage and points are a part of the
+    plan's, and the verdict says the flights are calibrated together rather than that this one alone is too few.
+    """
     by_seq: dict[int, WaypointOutcome] = {}
     for o in outcomes:
         if o.seq not in by_seq or (o.good and not by_seq[o.seq].good):
@@ -415,8 +448,11 @@ def verdict(outcomes: list[WaypointOutcome], expected: list[int], estimate: Live
         tail.append(f"predicted ground error {estimate.ground_error_15m_cm:.1f} cm at 15 m ({estimate.n_points} points)")
     elif estimate is not None:
         tail.append(f"the calibration is not constrained yet (focal ± {100 * estimate.focal_std_px / estimate.focal_px:.0f} % from {estimate.n_points} points)")
-    elif detected < MIN_SOLVE_POINTS:
+    elif detected < MIN_SOLVE_POINTS and flight is None:
         tail.append(f"only {detected} points: calibrate needs {MIN_SOLVE_POINTS}")
+    if flight is not None:
+        tail.append(f"flight {flight[0]} of {flight[1]} of the plan: calibrate this run together with the other flights' runs "
+                    "(calibrate run-1.mcap run-2.mcap ... pools them into one camera)")
     if not refly:
         return Verdict(True, f"good: {detected}/{len(expected)} waypoints detected" + ("; " + ", ".join(tail) if tail else ""), ())
     parts = [f"{', '.join(str(s) for s in seqs)} ({why})" for why, seqs in sorted(reasons.items(), key=lambda kv: min(kv[1]))]

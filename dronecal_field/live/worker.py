@@ -54,6 +54,7 @@ from dronecal_field.live.progress import (
     image_roi,
     leg_outcome,
     pick_frames,
+    plan_flight,
     solve,
     summary_line,
     verdict,
@@ -230,7 +231,8 @@ class LiveCalibration:
             self._thread.join(timeout=timeout_s)
         frames = self.frame_results()
         with self._lock:
-            v = verdict(self.outcomes, [s for s in self.expected if s not in self.unchecked], self.estimate, self.coverage, self.prior)
+            v = verdict(self.outcomes, [s for s in self.expected if s not in self.unchecked], self.estimate, self.coverage, self.prior,
+                        plan_flight(self.mission, self.plan))
             result = LiveResult(
                 outcomes=list(self.outcomes), expected=list(self.expected), estimate=self.estimate, history=list(self.history),
                 verdict=v, coverage=self.coverage, offset=self.offset, jobs_dropped=self.jobs_dropped,
