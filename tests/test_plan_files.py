@@ -523,3 +523,21 @@ def test_planning_again_into_a_plan_folder_keeps_the_users_files(tmp_path):
     assert not (out / "mission-2.plan").exists()
     wps = [it for it in json.loads((out / "mission.plan").read_text())["mission"]["items"] if it["command"] == 16]
     assert max(it["params"][0] for it in wps) == 4.0  # the new plan (4 s holds) is in place
+
+
+def test_max_flight_time_is_a_cap_on_the_mission(tmp_path):
+    """--max-flight-time 8 where no layout covering the ROI fits it: one flight within 8 min, covering less, and said so
+    (it had chosen a 13.2 min flight: the cap only steered the choice)."""
+    demo = ["--lat=-35.363261", "--lon", "149.165230", "--ground-alt", "584", "--azimuth", "30", "--image-size", "1280x720",
+            "--focal-px", "950", "--mount-height", "4", "--tilt", "25", "--distortion", "medium", "--marker-size", "0.4", "--hover", "3"]
+    rc, out = run_plan(tmp_path, *demo, "--sampling", "hover", "--max-flight-time", "8")
+    assert rc == 0
+    s = json.loads((out / "plan.json").read_text())
+    assert s["flight"]["n_flights"] == 1 and s["flight"]["flight_time_s"] <= 8 * 60
+    assert 0.8 <= s["coverage"]["pct"] / 100 < 0.95
+    assert any("no layout covering the whole ROI fits --max-flight-time 8 min" in w for w in s["warnings"])
+    # without the cap the same camera's plan covers the ROI in one (longer) flight
+    rc, out = run_plan(tmp_path, *demo, "--sampling", "hover", name="uncapped")
+    assert rc == 0
+    s = json.loads((out / "plan.json").read_text())
+    assert s["coverage"]["pct"] == 100.0 and s["flight"]["flight_time_s"] > 8 * 60

@@ -578,7 +578,9 @@ def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
     routes, flight_of = _flights(req, chosen, limits)
     if len(routes) > 1:
         warnings.append(f"the plan takes {sum(r.flight_time_s for r in routes) / 60:.1f} min: split into {len(routes)} flights "
-                        f"(mission-1 ... mission-{len(routes)}), each within 75 % of the {req.endurance_s / 60:g} min battery, "
+                        f"(mission-1 ... mission-{len(routes)}), each within "
+                        + (f"--max-flight-time {req.choice_budget_s / 60:g} min, " if req.choice_budget_s < req.battery_budget_s else
+                           f"75 % of the {req.endurance_s / 60:g} min battery, ") +
                         "each starting and ending at the take-off point")
     missions = tuple(
         msn.build_mission(r, req.site.R_enu_from_site, req.site.origin, req.site.mount_height_m, req.flight.speed_m_s,
@@ -629,6 +631,16 @@ def _choose_image(req: PlanRequest, cam_site: Camera, roi: Roi, noise: NoiseMode
     pool = [c for c in usable if c.design.params.marker_size_m == size and c.design.coverage >= best_cov[size] - LAYOUT_COVERAGE_SLACK]
     budget = req.choice_budget_s
     fit = [c for c in pool if c.flight_time_s is not None and c.flight_time_s <= budget]
+    if not fit and req.evaluation.max_flight_time_s is not None:
+        # the user's --max-flight-time is a cap, not a wish: the layouts within it that cover the most of the ROI
+        within = [c for c in usable if c.design.params.marker_size_m == size and c.flight_time_s is not None and c.flight_time_s <= budget]
+        if within:
+            most = max(c.design.coverage for c in within)
+            fit = [c for c in within if c.design.coverage >= most - LAYOUT_COVERAGE_SLACK]
+            shortest = min(pool, key=lambda c: c.flight_time_s or math.inf)
+            warnings.append(f"no layout covering the whole ROI fits --max-flight-time {budget / 60:g} min (the shortest, {shortest.name}, "
+                            f"covers {100 * shortest.design.coverage:.0f} % in {(shortest.flight_time_s or 0) / 60:.1f} min): this plan covers "
+                            f"{100 * most:.0f} %; --max-flight-time {math.ceil((shortest.flight_time_s or 0) / 60):g} covers it all")
     if not fit:  # nothing that covers the ROI fits one battery: the layouts needing the fewest flights
         n_flights = {id(c): math.ceil((c.flight_time_s or math.inf) / budget) for c in pool}
         fewest = min(n_flights.values())
@@ -693,7 +705,7 @@ def _flights(req: PlanRequest, chosen: Chosen, limits: Limits) -> tuple[tuple[Ro
     n = len(chosen.marker_site)
     one = plan_route(chosen.vehicle_site, chosen.marker_site, limits, req.flight, takeoff_site=req.takeoff_site, end=req.end,
                      hold_s=chosen.hold_s, ordered=chosen.ordered, leg_speed_m_s=chosen.leg_speed_m_s)
-    if one.flight_time_s <= req.battery_budget_s:
+    if one.flight_time_s <= req.choice_budget_s:
         return (one,), np.zeros(n, int)
     # every flight starts and ends where the one-flight plan would take off
     takeoff = one.takeoff_site
@@ -701,8 +713,10 @@ def _flights(req: PlanRequest, chosen: Chosen, limits: Limits) -> tuple[tuple[Ro
         order = one.grid_order
     else:
         order = np.arange(n)
+    # each flight within the battery, and within --max-flight-time when the user set a shorter one
+    endurance_s = req.endurance_s * req.choice_budget_s / req.battery_budget_s
     routes = split_into_flights(chosen.vehicle_site[order], chosen.marker_site[order], chosen.hold_s[order], limits, req.flight,
-                                req.endurance_s, reserve=req.reserve, takeoff_site=takeoff, end=req.end, ordered=True,
+                                endurance_s, reserve=req.reserve, takeoff_site=takeoff, end=req.end, ordered=True,
                                 leg_speed_m_s=chosen.leg_speed_m_s)
     # grid indices of every flight refer to the points as given to the split: map them back to the plan's points
     routes = [replace(r, grid_index=np.where(r.grid_index >= 0, order[np.maximum(r.grid_index, 0)], -1)) for r in routes]
