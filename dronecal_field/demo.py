@@ -164,7 +164,8 @@ def start_simulators(
 def used_marker_points(
     report: dict, report_origin: tuple[float, float, float] | None, origin: tuple[float, float, float] | None
 ) -> np.ndarray:
-    """(N, 3) ENU metres at ``origin``: the marker positions calibrate used (report.json's hover windows).
+    """(N, 3) ENU metres at ``origin``: the marker positions calibrate used (report.json's hover windows, and the
+    ends of each fly-through leg's used pairs).
 
     report.json gives them in the calibration's ENU frame (``report_origin``,
     the calibrated camera's ``enu_origin``); they are moved to ``origin`` (the
@@ -172,7 +173,9 @@ def used_marker_points(
     """
     from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic, geodetic_to_enu
 
-    sampled = np.array([w["marker_enu_m"] for w in report["hover_windows"]["windows"] if w.get("used")], float).reshape(-1, 3)
+    held = [w["marker_enu_m"] for w in report["hover_windows"]["windows"] if w.get("used")]
+    on_legs = [x for leg in (report.get("legs") or {}).get("legs", []) for x in leg.get("used_marker_enu_m", [])]
+    sampled = np.array(held + on_legs, float).reshape(-1, 3)
     if report_origin is not None and origin is not None and not np.allclose(report_origin, origin, atol=1e-10):
         llh = enu_to_geodetic(sampled, EnuOrigin(*report_origin))
         sampled = geodetic_to_enu(llh[:, 0], llh[:, 1], llh[:, 2], EnuOrigin(*origin))

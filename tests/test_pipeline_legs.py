@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -133,6 +135,14 @@ def test_legs_alone_calibrate_with_rolling_shutter(legs_run):
     assert 0.005 < report.noise.sigma_white_m < 0.03
     data = report.offset.to_dict()
     assert data["rolling_shutter"]["rolling_shutter"] == "estimated" and data["gnss_fix_times"]["noise"]["n_residuals"] > 150
+    # report.json gives each leg's used span, so the sampled volume is known without a hold (the demo printed nan)
+    from dronecal_field.demo import used_marker_points
+    from dronecal_field.pipeline.report import report_dict
+
+    sampled = used_marker_points(json.loads(json.dumps(report_dict(report))), None, None)
+    assert len(sampled) == 2 * sum(1 for g in report_dict(report)["legs"]["legs"] if g["pairs_used"])
+    hull = compare_cameras(camera, report.camera, sampled_enu_m=sampled).sampled
+    assert hull is not None and hull.rms_px < 0.5
 
 
 def test_legs_without_events_are_found_in_the_track(legs_run):

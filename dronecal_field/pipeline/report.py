@@ -74,10 +74,13 @@ def _legs_section(report) -> dict:
     rows = []
     for leg in legs:
         pts = by_leg.get(leg.index, [])
+        used = [p for p in pts if p.used and p.marker_enu_m is not None]
         rows.append({
             "index": leg.index, "source": leg.source, "start_ns": leg.start_ns, "end_ns": leg.end_ns,
             "duration_s": round(leg.duration_s, 3), "speed_m_s": leg.speed_mps,
-            "pairs": len(pts), "pairs_used": sum(1 for p in pts if p.used),
+            "pairs": len(pts), "pairs_used": len(used),
+            # a leg is straight: its first and last used pair span the volume it sampled
+            "used_marker_enu_m": [[float(v) for v in used[0].marker_enu_m], [float(v) for v in used[-1].marker_enu_m]] if used else [],
         })
     return {
         "source": getattr(report, "leg_source", None),
