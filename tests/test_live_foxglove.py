@@ -155,13 +155,6 @@ def test_foxglove_client_sees_every_channel_and_decodes_one_message_of_each():
         assert channels["/live/status"]["encoding"] == "json"
         by_sub = {k: c for k, c in enumerate(channels.values(), start=1)}
         ws_send_text(sock, json.dumps({"op": "subscribe", "subscriptions": [{"id": k, "channelId": c["id"]} for k, c in by_sub.items()]}))
-        # the flight's fixes may all have gone out before the subscription: a few more after it (no race on a busy machine)
-        x, y, z = WAYPOINTS[-1]
-        for j in range(5):
-            time.sleep(0.2)
-            lat, lon, h = enu_to_geodetic(np.array([[x, y, z]]), EnuOrigin(*HOME))[0]
-            live.on_record(GnssFix(timestamp_ns=time.time_ns() + 60_000_000_000 + j * 100_000_000, lat_deg=lat, lon_deg=lon, alt_m=h,
-                                   covariance_enu=np.diag([1e-4, 1e-4, 2e-4]), fix_type="rtk_fixed"))
 
         decoded: dict[str, object] = {}
         deadline = time.monotonic() + 30
