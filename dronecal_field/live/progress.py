@@ -376,35 +376,34 @@ def _flies_here(item: Any, point: dict) -> bool:
     return abs(item.x - float(point["lat_deg"]) * 1e7) <= 5 and abs(item.y - float(point["lon_deg"]) * 1e7) <= 5
 
 
+def _grid_here(mission: Any, plan: dict | None) -> list[dict]:
+    """plan.json's grid points this mission flies: a split plan's grid holds every flight's points, each numbered in
+    its own mission, so a point counts where this mission's NAV_WAYPOINT at its seq stands at its position."""
+    from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT
+
+    grid = (plan or {}).get("grid") if isinstance(plan, dict) else None
+    if not isinstance(grid, list):
+        return []
+    nav = {item.seq: item for item in mission.items if item.command == CMD_NAV_WAYPOINT}
+    return [g for g in grid if isinstance(g, dict) and g.get("mission_seq") is not None and _flies_here(nav.get(int(g["mission_seq"])), g)]
+
+
 def expected_seqs(mission: Any, plan: dict | None) -> list[int]:
     """The mission seqs that are measurement points: plan.json's grid, else every NAV_WAYPOINT with a hold."""
     from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT
 
-    grid = (plan or {}).get("grid") if isinstance(plan, dict) else None
-    if isinstance(grid, list):
-        nav = {item.seq: item for item in mission.items if item.command == CMD_NAV_WAYPOINT}
-        # A split plan's grid holds every flight's points, each numbered in its own mission: keep the ones this mission flies there.
-        seqs = sorted({int(g["mission_seq"]) for g in grid if isinstance(g, dict) and g.get("mission_seq") is not None
-                       and _flies_here(nav.get(int(g["mission_seq"])), g)})
-        if seqs:
-            return seqs
+    seqs = sorted({int(g["mission_seq"]) for g in _grid_here(mission, plan)})
+    if seqs:
+        return seqs
     return [item.seq for item in mission.items[1:] if item.command == CMD_NAV_WAYPOINT and item.hold_s > 0]
 
 
 def plan_flight(mission: Any, plan: dict | None) -> tuple[int, int] | None:
     """(k, n) when ``mission`` is flight k of a plan split into n > 1 flights (plan.json's grid), else None."""
-    from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT
-
     grid = (plan or {}).get("grid") if isinstance(plan, dict) else None
-    if not isinstance(grid, list):
-        return None
-    flights = {int(g["flight"]) for g in grid if isinstance(g, dict) and g.get("flight") is not None}
-    if len(flights) < 2:
-        return None
-    nav = {item.seq: item for item in mission.items if item.command == CMD_NAV_WAYPOINT}
-    here = [int(g["flight"]) for g in grid if isinstance(g, dict) and g.get("flight") is not None and g.get("mission_seq") is not None
-            and _flies_here(nav.get(int(g["mission_seq"])), g)]
-    if not here:
+    flights = {int(g["flight"]) for g in grid if isinstance(g, dict) and g.get("flight") is not None} if isinstance(grid, list) else set()
+    here = [int(g["flight"]) for g in _grid_here(mission, plan) if g.get("flight") is not None]
+    if len(flights) < 2 or not here:
         return None
     return max(set(here), key=here.count), max(flights)
 
