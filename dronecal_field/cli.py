@@ -69,11 +69,55 @@ def _version() -> str:
     return f"dronecal-field {__version__}"
 
 
+class Stopped(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised in the main thread like Ctrl-C so every command's clean-up runs."""
+
+    def __init__(self, signum: int) -> None:
+        import signal
+
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _install_stop_signals() -> None:
+    """SIGINT, SIGTERM and SIGHUP stop a command cleanly: the first raises (Ctrl-C's KeyboardInterrupt,
+    or :class:`Stopped`), so ``finally`` blocks finalise a recording and remove temporary outputs; a
+    second one during that clean-up is said and ignored, a third stops at once."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+    count = {"n": 0}
+
+    def handler(signum, _frame):
+        count["n"] += 1
+        if count["n"] == 1:
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            raise Stopped(signum)
+        if count["n"] == 2:
+            print(f"dronecal-field: {signal.Signals(signum).name} again: still finishing the files; a third signal stops at once",
+                  file=sys.stderr, flush=True)
+            return
+        os._exit(128 + signum)
+
+    for name in ("SIGINT", "SIGTERM", "SIGHUP"):
+        sig = getattr(signal, name, None)
+        if sig is None:
+            continue
+        if name == "SIGINT" and signal.getsignal(sig) is not signal.default_int_handler:
+            continue  # started with SIGINT ignored (nohup, a background job): keep it so
+        signal.signal(sig, handler)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     from dronecal_field.errors import DronecalError
 
+    if argv is None:  # a process of its own (not a test calling main in-process)
+        _install_stop_signals()
     try:
         return int(args.func(args) or 0)
     except DronecalError as exc:
@@ -83,6 +127,9 @@ def main(argv: list[str] | None = None) -> int:
         # The environment, not the program: a path, a permission, a disk, a file that is not text.
         print(f"dronecal-field {args.command}: error: {environment_message(exc)}", file=sys.stderr)
         return 2
+    except Stopped as exc:
+        print(f"dronecal-field {args.command}: stopped by {exc}", file=sys.stderr)
+        return 128 + exc.signum
     except KeyboardInterrupt:
         print(f"dronecal-field {args.command}: interrupted", file=sys.stderr)
         return 130

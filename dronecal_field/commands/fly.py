@@ -259,20 +259,23 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.live_port <= 65535:
         raise InputError(f"--live-port {args.live_port}: give a TCP port 1-65535 (8765 is Foxglove's usual one), or 0 for no live view")
     out = Path(args.out)
-    if not out.parent.is_dir():
-        raise InputError(f"--out {out}: directory {out.parent} does not exist; create it first")
     tlog_path = out.with_suffix(".tlog")
-    taken = [p for p in (out, tlog_path) if p.exists()]
-    if taken and not args.dry_run:
-        # A flight is the most expensive thing this tool makes: never write over one.
-        raise InputError(
-            f"--out {out}: {' and '.join(p.name for p in taken)} already exist (an earlier flight?); nothing was overwritten: "
-            f"choose a new name, e.g. --out {free_run_path(out)}"
-        )
+    from dronecal_field.recording.claim import OutputClaim, check_outputs, claim_outputs
+
+    video_file = Path(args.video) if "://" not in args.video and not args.video.startswith("/dev/") else None
+    check_outputs("--out", [out, tlog_path], {"--mission": mission_path, "plan.json": plan_json_path if plan_json is not None else None,
+                                              "--video": video_file})
+    # A flight is the most expensive thing this tool makes: never write over one, and own the
+    # files from now on (created exclusively), so a second fly with the same --out is refused.
+    claim = OutputClaim() if args.dry_run else claim_outputs("--out", [out, tlog_path], suggestion=free_run_path(out))
 
     from dronecal_field.recording.status import VehicleClock
 
-    link = open_link(args.connect, baud=args.baud, signing_key=args.signing_key)
+    try:
+        link = open_link(args.connect, baud=args.baud, signing_key=args.signing_key)
+    except BaseException:
+        claim.release()
+        raise
     clock = VehicleClock()  # fed from now on, so hover windows are right from the first hold
     backlog: list[tuple[int, bytes]] = []  # the session before recording (pre-flight, upload) for the .tlog
 
@@ -338,6 +341,7 @@ def run(args: argparse.Namespace) -> int:
 
         link.remove_listener(before_recording)  # the recorder takes over the clock and the tlog
         recorder = _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, __version__, clock, backlog, live)
+        claim.keep()
         if args.start:
             arm_and_start_mission(link)
             print("started: GUIDED, armed, MISSION_START sent", flush=True)
@@ -355,6 +359,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"\ninterrupted: {out} finalised ({summary}); the vehicle was not commanded", file=sys.stderr)
         raise
     finally:
+        claim.release()  # nothing recorded: the empty claimed files go
         if recorder is not None:
             summary = recorder.stop().summary()
             closed_mono = time.monotonic()
