@@ -15,8 +15,10 @@ from dronecal_field.mavlink.missionfile import (
     compare_readback,
     parse_qgc_plan,
     parse_waypoints,
+    readback_alt_m,
     read_mission,
     storage_changes,
+    stored_alt_cm,
     to_qgc_plan,
     wire_frame,
 )
@@ -143,3 +145,44 @@ def test_storage_changes_lists_what_arducopter_will_not_keep():
     items = list(mission.items)
     items[4] = MissionItem(**{**items[4].__dict__, "p4": 90.0})
     assert storage_changes(items) == ["seq 4: p4 90 -> 0"]
+
+
+@pytest.mark.parametrize(
+    "z, alt_cm, readback",
+    [
+        (1.47, 147, 1.46999990940094),  # issue 19: what ArduCopter 4.7 SITL read back
+        (3.633, 363, 3.6299998760223389),  # truncated to the centimetre, then * 0.01f
+        (2.0, 200, 2.0),
+        (1.537, 153, 1.5299999713897705),
+        (-0.004, 0, 0.0),  # truncation toward zero
+    ],
+)
+def test_altitudes_are_stored_in_truncated_centimetres_and_read_back_times_0_01f(z, alt_cm, readback):
+    import numpy as np
+
+    item = MissionItem(seq=1, frame=6, command=16, p1=3.0, x=1, y=2, z=z)
+    stored = ardupilot_readback(item)
+    assert stored_alt_cm(z) == alt_cm
+    assert stored.z == float(np.float32(readback)) == readback_alt_m(alt_cm)
+    assert compare_readback([item, item], [item, stored]) == []
+
+
+def test_the_comparison_is_at_storage_resolution_not_float_identity():
+    home = MissionItem(seq=0, frame=0, command=16)
+    sent = MissionItem(seq=1, frame=6, command=16, p1=3.0, x=100, y=200, z=1.47)
+    as_firmware = MissionItem(seq=1, frame=3, command=16, p1=3.0, x=100, y=200, z=1.46999990940094)
+    as_old_model = MissionItem(seq=1, frame=3, command=16, p1=3.0, x=100, y=200, z=1.4700000286102295)
+    one_cm_low = MissionItem(seq=1, frame=3, command=16, p1=3.0, x=100, y=200, z=1.46)
+    assert compare_readback([home, sent], [home, as_firmware]) == []  # the issue's refusal, now accepted
+    assert compare_readback([home, sent], [home, as_old_model]) == []  # the same 147 cm
+    assert compare_readback([home, sent], [home, one_cm_low]) == ["seq 1: z 1.47 (147 cm stored) read back as 1.46"]
+    # params in their stored C types: a uint16 hold compares as an integer, DO_CHANGE_SPEED's speed as float32
+    speed = MissionItem(seq=1, frame=2, command=178, p1=1.0, p2=1.5, p3=-1.0)
+    assert compare_readback([home, speed], [home, MissionItem(seq=1, frame=0, command=178, p1=1.0, p2=1.5, p3=-1.0)]) == []
+    assert compare_readback([home, speed], [home, MissionItem(seq=1, frame=0, command=178, p1=1.0, p2=1.5000001, p3=-1.0)]) != []
+
+
+def test_storage_changes_lists_sub_centimetre_altitudes_but_not_float32_representation():
+    home = MissionItem(seq=0, frame=0, command=16)
+    items = [home, MissionItem(seq=1, frame=6, command=16, p1=3.0, x=1, y=2, z=1.47), MissionItem(seq=2, frame=6, command=16, p1=3.0, x=1, y=2, z=3.633)]
+    assert storage_changes(items) == ["seq 2: z 3.633 -> 3.63"]

@@ -397,6 +397,7 @@ STORED_IN_LOCATION = frozenset({16, 17, 18, 19, 21, 22, 30, 31, 82, 92, 179, 189
 
 
 def _f32(v: float) -> float:
+    """``v`` rounded to a C float (float32), as a Python float."""
     import numpy as np
 
     return float(np.float32(v))
@@ -409,51 +410,54 @@ def _int_c(v: float, lo: int, hi: int) -> int:
     return int(max(lo, min(hi, math.trunc(_f32(v)))))
 
 
-def _u8(v: float) -> float:
-    return float(_int_c(v, 0, 255))
+def _u8(v: float) -> int:
+    return int(_int_c(v, 0, 255))
 
 
-def _i8(v: float) -> float:
-    return float(_int_c(v, -128, 127))
+def _i8(v: float) -> int:
+    return int(_int_c(v, -128, 127))
 
 
-def _u16(v: float) -> float:
-    return float(_int_c(v, 0, 65535))
+def _u16(v: float) -> int:
+    return int(_int_c(v, 0, 65535))
 
 
-def _i16(v: float) -> float:
-    return float(_int_c(v, -32768, 32767))
+def _i16(v: float) -> int:
+    return int(_int_c(v, -32768, 32767))
 
 
-def _stored_params(item: MissionItem) -> tuple[float, float, float, float] | None:
+def _stored_params(item: MissionItem) -> tuple[float | int, float | int, float | int, float | int] | None:
     """Params 1-4 as ArduCopter reads them back, or ``None`` for a command not modelled here.
 
     Transcribes AP_Mission::mavlink_int_to_mission_cmd / mission_cmd_to_mavlink_int
-    (Copter build): what is kept, in which C type, and what is dropped.
+    (Copter build): what is kept, in which C type, and what is dropped. A param
+    kept in an integer type (or dropped, or a flag) is returned as ``int``, one
+    kept as a C ``float`` as a float32-rounded ``float``: :func:`compare_readback`
+    compares each in its own type.
     """
     c, p1, p2, p3, p4 = item.command, item.p1, item.p2, item.p3, item.p4
     if c in (CMD_NAV_WAYPOINT, CMD_NAV_TAKEOFF, CMD_DO_SET_HOME, CMD_DO_SET_ROI):
-        return (_u16(p1), 0.0, 0.0, 0.0)  # hold s / min pitch / use-current / ROI mode: uint16; the rest dropped
+        return (_u16(p1), 0, 0, 0)  # hold s / min pitch / use-current / ROI mode: uint16; the rest dropped
     if c == CMD_NAV_LOITER_TIME:
-        return (_u16(p1), 0.0, -1.0 if p3 < 0 else 1.0, 1.0 if p4 > 0 else 0.0)
+        return (_u16(p1), 0, -1 if p3 < 0 else 1, 1 if p4 > 0 else 0)
     if c == CMD_NAV_RETURN_TO_LAUNCH:
-        return (0.0, 0.0, 0.0, 0.0)
+        return (0, 0, 0, 0)
     if c == CMD_NAV_LAND:
-        return (_u16(p1), 0.0, 0.0, -1.0 if p4 < 0 else 1.0)  # p4 = yaw direction flag: 0 reads back as 1
+        return (_u16(p1), 0, 0, -1 if p4 < 0 else 1)  # p4 = yaw direction flag: 0 reads back as 1
     if c == CMD_NAV_DELAY:
         return (_f32(p1), _i8(p2), _i8(p3), _i8(p4))
     if c == CMD_CONDITION_DELAY:
-        return (_f32(p1), 0.0, 0.0, 0.0)
+        return (_f32(p1), 0, 0, 0)
     if c == CMD_CONDITION_YAW:
         return (_f32(p1), _f32(p2), _i8(p3), _u8(p4))
     if c == CMD_DO_JUMP:
-        return (_u16(p1), _i16(p2), 0.0, 0.0)
+        return (_u16(p1), _i16(p2), 0, 0)
     if c == CMD_DO_CHANGE_SPEED:
-        return (_u8(p1), _f32(p2), _f32(p3), 0.0)
+        return (_u8(p1), _f32(p2), _f32(p3), 0)
     if c == CMD_DO_SET_SERVO:
-        return (_u8(p1), _u16(p2), 0.0, 0.0)
+        return (_u8(p1), _u16(p2), 0, 0)
     if c == CMD_DO_SET_CAM_TRIGG_DIST:
-        return (_f32(p1), 0.0, 0.0, 0.0)
+        return (_f32(p1), 0, 0, 0)
     return None
 
 
@@ -486,19 +490,45 @@ def ardupilot_check(item: MissionItem) -> int:
     return 0
 
 
-def ardupilot_readback(item: MissionItem) -> MissionItem | None:
-    """The item as ArduCopter 4.7 stores it and reads it back, or ``None`` if not modelled.
+def stored_alt_cm(z: float) -> int:
+    """A location's altitude as ArduPilot stores it: whole centimetres, truncated.
 
-    Location commands keep x/y exactly, z is truncated to whole centimetres
-    (``int32(z * 100.0f)``), relative frames read back as 3 (terrain as 10)
-    and absolute ones as 0. Location-less commands read back in frame 0 with
-    x = y = z = 0. Params keep only what fits the stored C type (a 1.5 s hold
-    reads back as 1 s; NAV_WAYPOINT's yaw in param 4 reads back as 0).
-    ``autocontinue`` always reads back 1. Checked against the recorded
-    SITL read-back in the tests.
+    AP_Mission::mavlink_int_to_mission_cmd: ``cmd.content.location.alt =
+    packet.z * 100.0f`` (float32 multiply, then C's float-to-int32 conversion,
+    which truncates toward zero). So 1.537 m is kept as 153 cm; 1.47 m
+    (float32 1.47000003) as 147 cm.
     """
     import numpy as np
 
+    if math.isnan(z):
+        return 0
+    return int(np.trunc(np.float32(z) * np.float32(100.0)))
+
+
+def readback_alt_m(alt_cm: int) -> float:
+    """The z ArduPilot reads back for a stored altitude: ``alt_cm * 0.01f`` (float32 multiply).
+
+    AP_Mission::mission_cmd_to_mavlink_int: ``packet.z = cmd.content.location.alt * 0.01f``.
+    147 cm reads back as 1.46999990940094 (not float32(1.47) = 1.4700000286102295).
+    """
+    import numpy as np
+
+    return float(np.float32(alt_cm) * np.float32(0.01))
+
+
+def ardupilot_readback(item: MissionItem) -> MissionItem | None:
+    """The item as ArduCopter 4.7 stores it and reads it back, or ``None`` if not modelled.
+
+    Location commands keep x/y exactly (1e-7 degree integers); z is stored in
+    whole centimetres, truncated (:func:`stored_alt_cm`) and read back as
+    ``alt_cm * 0.01f`` (:func:`readback_alt_m`: 1.47 m comes back as
+    1.46999990940094, 3.633 m as 3.63 m). Relative frames read back as 3
+    (terrain as 10) and absolute ones as 0. Location-less commands read back in
+    frame 0 with x = y = z = 0. Params keep only what fits the stored C type (a
+    1.5 s hold reads back as 1 s; NAV_WAYPOINT's yaw in param 4 reads back as
+    0). ``autocontinue`` always reads back 1. Checked against ArduCopter 4.7
+    SITL in tests/test_sitl_arducopter.py.
+    """
     params = _stored_params(item)
     if params is None:
         return None
@@ -509,50 +539,67 @@ def ardupilot_readback(item: MissionItem) -> MissionItem | None:
             frame = FRAME_GLOBAL_TERRAIN_ALT
         else:
             frame = FRAME_GLOBAL
-        alt_cm = int(np.trunc(np.float32(item.z) * np.float32(100.0)))
-        z = float(np.float32(alt_cm) / np.float32(100.0))
+        z = readback_alt_m(stored_alt_cm(item.z))
         x, y = item.x, item.y
     else:
         frame, x, y, z = FRAME_GLOBAL, 0, 0, 0.0
-    return MissionItem(seq=item.seq, frame=frame, command=item.command, p1=params[0], p2=params[1], p3=params[2], p4=params[3], x=x, y=y, z=z, autocontinue=True)
+    p1, p2, p3, p4 = (float(v) for v in params)
+    return MissionItem(seq=item.seq, frame=frame, command=item.command, p1=p1, p2=p2, p3=p3, p4=p4, x=x, y=y, z=z, autocontinue=True)
+
+
+def _readback_cm(z: float) -> int | None:
+    """A read-back z (metres) in the firmware's whole centimetres, or ``None`` if not finite."""
+    if not math.isfinite(z):
+        return None
+    return int(round(z * 100.0))
 
 
 def storage_changes(items: list[MissionItem] | tuple[MissionItem, ...]) -> list[str]:
     """Where ArduCopter will store an item differently from the file (expected, not errors).
 
-    E.g. ``seq 5: p4 144.37 -> 0`` for NAV_WAYPOINT's yaw. Frame renaming,
-    unset (NaN) params and seq 0 (home) are not listed.
+    E.g. ``seq 5: p4 144.37 -> 0`` for NAV_WAYPOINT's yaw, ``seq 7: z 3.633 -> 3.63``
+    for an altitude finer than a centimetre. Frame renaming, unset (NaN)
+    params, seq 0 (home) and float32 representation (1.47 read back as
+    1.4699999) are not listed.
     """
     notes = []
     for item in items[1:]:
-        stored = ardupilot_readback(item)
+        stored = _stored_params(item)
         if stored is None:
             continue
-        for name in ("p1", "p2", "p3", "p4", "z"):
-            a, b = getattr(item, name), getattr(stored, name)
-            if not math.isnan(a) and _f32(a) != _f32(b):  # NaN means "unset" anyway
-                notes.append(f"seq {item.seq}: {name} {a:g} -> {b:g}")
+        for name, back in zip(("p1", "p2", "p3", "p4"), stored):
+            sent = getattr(item, name)
+            if not math.isnan(sent) and _f32(sent) != _f32(back):  # NaN means "unset" anyway
+                notes.append(f"seq {item.seq}: {name} {sent:g} -> {back:g}")
+        if item.command in STORED_IN_LOCATION and not math.isnan(item.z):
+            alt_cm = stored_alt_cm(item.z)
+            if abs(item.z - alt_cm / 100.0) > 1e-4:  # more than float32's representation of a whole centimetre
+                notes.append(f"seq {item.seq}: z {item.z:g} -> {alt_cm / 100:g}")
     return notes
 
 
-def _same_param(sent: float, back: float) -> bool:
-    import numpy as np
-
-    if math.isnan(sent):
+def _same_stored(expected: float | int, back: float) -> bool:
+    """``back`` equals ``expected`` in the stored C type: integers as integers, floats as float32."""
+    if isinstance(expected, int):
+        return math.isfinite(back) and round(back) == expected and abs(back - expected) < 0.5
+    if math.isnan(expected):
         return True  # "unset": the autopilot may store anything
-    return bool(np.float32(sent) == np.float32(back))
+    return _f32(expected) == _f32(back)
 
 
 def compare_readback(sent: list[MissionItem] | tuple[MissionItem, ...], back: list[MissionItem] | tuple[MissionItem, ...]) -> list[str]:
-    """Differences between an uploaded mission and the vehicle's read-back.
+    """Differences between an uploaded mission and the vehicle's read-back, at the firmware's storage resolution.
 
     Each sent item is first turned into what ArduCopter stores
     (:func:`ardupilot_readback`: ``_INT`` frames read back as their float twins,
     location-less commands such as DO_CHANGE_SPEED and RTL in frame 0, params
-    in their stored C types), then compared with the read-back exactly: params
-    and z as float32, positions as 1e-7 degree integers. Seq 0 is skipped: the
-    vehicle replaces it with its own home. Commands not modelled are compared
-    as sent, with the frame rules only.
+    in their stored C types), then compared with the read-back in those
+    stored units: positions as 1e-7 degree integers, altitudes in whole
+    centimetres (the read-back z rounded to the centimetre, so 1.46999990940094
+    is the 147 cm that 1.47 m was stored as), params in their command's C type
+    (integers as integers, floats as float32). Seq 0 is skipped: the vehicle
+    replaces it with its own home. Commands not modelled are compared as sent,
+    with the frame rules only (params as float32, z to the centimetre).
 
     Returns
     -------
@@ -570,26 +617,31 @@ def compare_readback(sent: list[MissionItem] | tuple[MissionItem, ...], back: li
         if a_sent.command != b.command:
             problems.append(f"{where}: command {a_sent.command} read back as {b.command}")
             continue
+        stored = _stored_params(a_sent)
         expected = ardupilot_readback(a_sent)
-        if expected is not None:
+        if expected is not None and stored is not None:
             a = expected
+            params: tuple[float | int, ...] = stored
+            alt_cm = stored_alt_cm(a_sent.z) if a_sent.command in STORED_IN_LOCATION else 0
             frame_ok = a.frame == b.frame
             check_autocontinue = False
         else:
             a = a_sent
+            params = (a.p1, a.p2, a.p3, a.p4)
+            alt_cm = _readback_cm(a.z)
             fa = FLOAT_FRAME_OF.get(a.frame, a.frame)
             fb = FLOAT_FRAME_OF.get(b.frame, b.frame)
             frame_ok = fa == fb or (b.frame == FRAME_GLOBAL and (a.command in NON_LOCATION_COMMANDS or a.frame == FRAME_MISSION))
             check_autocontinue = True
         if not frame_ok:
             problems.append(f"{where}: frame {a_sent.frame} read back as {b.frame} (expected {a.frame})")
-        for name in ("p1", "p2", "p3", "p4"):
-            if not _same_param(getattr(a, name), getattr(b, name)):
+        for name, value in zip(("p1", "p2", "p3", "p4"), params):
+            if not _same_stored(value, getattr(b, name)):
                 problems.append(f"{where}: {name} {getattr(a, name)!r} read back as {getattr(b, name)!r}")
         if a.x != b.x or a.y != b.y:
             problems.append(f"{where}: position ({a.x}, {a.y}) read back as ({b.x}, {b.y}) [1e-7 deg]")
-        if not _same_param(a.z, b.z):
-            problems.append(f"{where}: z {a.z!r} read back as {b.z!r}")
+        if alt_cm is not None and _readback_cm(b.z) != alt_cm:
+            problems.append(f"{where}: z {a_sent.z!r} ({alt_cm} cm stored) read back as {b.z!r}")
         if check_autocontinue and a.autocontinue != b.autocontinue:
             problems.append(f"{where}: autocontinue {a.autocontinue} read back as {b.autocontinue}")
     return problems
