@@ -99,7 +99,7 @@ def build_runs(video_path: Path, jpeg_path: Path | None, minutes: float, seed: i
 
     from dronecal_field.runfile.records import FORMAT_VERSION, Frame, MarkerSpec, RunEvent, RunMetadata
     from dronecal_field.runfile.writer import RunWriter
-    from dronecal_field.videopackets import access_unit, parameter_sets
+    from dronecal_field.video.nal import access_unit, parameter_sets
 
     truth = truth_camera()
     lattice = grid_waypoints(east_m=(-3.5, -2.1, -0.7, 0.7, 2.1, 3.5), north_m=(6.0, 9.5, 13.0), up_m=(1.0, 3.0))

@@ -95,7 +95,7 @@ def record(url: str, seconds: float, out: str) -> None:
     from dronecal_field.recording.marker_check import MarkerCheck
     from dronecal_field.runfile.records import FORMAT_VERSION, GnssFix, MarkerSpec, RunMetadata
     from dronecal_field.runfile.writer import RunWriter
-    from dronecal_field.videopackets import open_packet_source
+    from dronecal_field.video.packets import open_packet_source
 
     source = open_packet_source(url)
     waited = time.monotonic()

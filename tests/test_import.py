@@ -318,7 +318,7 @@ def test_parse_iso8601():
 def test_import_of_an_nvr_export_writes_camera_video_without_reencoding(tmp_path, capsys, fmt, ext):
     from test_video_packets import encode_clip
 
-    from dronecal_field.videopackets import open_packet_source
+    from dronecal_field.video.packets import open_packet_source
 
     video = tmp_path / f"nvr.{ext}"
     encode_clip(video, fmt, n=25, size=(160, 128), gop=10, fps=25)

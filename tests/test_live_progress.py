@@ -132,7 +132,7 @@ def test_h264_access_units_are_decoded_from_their_keyframe_and_the_marker_found(
 
     from dronecal_field.live.progress import detect_in_frames, pick_frames
     from dronecal_field.pipeline.detect import make_aruco_detector
-    from dronecal_field.videopackets import VideoFrame, is_keyframe
+    from dronecal_field.video.nal import VideoFrame, is_keyframe
     from test_mavlink_support import marker_jpeg
 
     gray = cv2.imdecode(np.frombuffer(marker_jpeg(640, 480), np.uint8), cv2.IMREAD_GRAYSCALE)

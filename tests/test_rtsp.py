@@ -15,7 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from dronecal_field.videopackets import nal_type, open_packet_source, split_annexb
+from dronecal_field.video.nal import nal_type, split_annexb
+from dronecal_field.video.packets import open_packet_source
 from rtsp_server import stamp_errors_ns
 
 SERVER = Path(__file__).with_name("rtsp_server.py")

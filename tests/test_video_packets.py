@@ -17,16 +17,9 @@ from dronecal_field.pipeline.detect import FrameDecoder
 from dronecal_field.runfile.reader import open_run
 from dronecal_field.runfile.records import FORMAT_VERSION, Frame, GnssFix, MarkerSpec, RunMetadata
 from dronecal_field.runfile.writer import RunWriter
-from dronecal_field.videopackets import (
-    StreamMonitor,
-    VideoFrame,
-    access_unit,
-    is_keyframe,
-    nal_type,
-    open_packet_source,
-    parameter_sets,
-    split_annexb,
-)
+from dronecal_field.video.monitor import StreamMonitor
+from dronecal_field.video.nal import VideoFrame, access_unit, is_keyframe, nal_type, parameter_sets, split_annexb
+from dronecal_field.video.packets import open_packet_source
 
 PARAMS = {"h264": {7, 8}, "h265": {32, 33, 34}}
 
@@ -196,8 +189,8 @@ def video_twin(src, dst, fmt="h264", gop=10, crf=16):
     import cv2
     from dataclasses import replace
 
-    from dronecal_field.videopackets import access_unit as to_annexb
-    from dronecal_field.videopackets import parameter_sets as params_of
+    from dronecal_field.video.nal import access_unit as to_annexb
+    from dronecal_field.video.nal import parameter_sets as params_of
 
     with open_run(src) as run:
         md = replace(run.metadata, extra={**run.metadata.extra, "camera.clock": "file"})

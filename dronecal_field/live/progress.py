@@ -132,7 +132,7 @@ def gray_images(picked: list[Any], stream: list[Any] | None = None) -> list[tupl
     JPEG/PNG frames decode on their own. H.264/H.265 access units (a
     ``/camera/video`` stream) decode from the keyframe before the first picked
     one, through ``stream`` (every access unit around them, in order), with the
-    offline stage's ``videopackets.VideoFrameDecoder``.
+    offline stage's ``video.decode.VideoFrameDecoder``.
     """
     from dronecal_field.pipeline.detect import decode_gray
 
@@ -141,7 +141,8 @@ def gray_images(picked: list[Any], stream: list[Any] | None = None) -> list[tupl
         return []
     if picked[0].format not in COMPRESSED:
         return [(f.timestamp_ns, decode_gray(f.data)) for f in picked]
-    from dronecal_field.videopackets import VideoFrameDecoder, video_frame_of
+    from dronecal_field.video.decode import VideoFrameDecoder
+    from dronecal_field.video.nal import video_frame_of
 
     units = sorted(stream if stream is not None else picked, key=lambda f: f.timestamp_ns)
     wanted = {f.timestamp_ns for f in picked}

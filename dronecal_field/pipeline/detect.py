@@ -90,7 +90,7 @@ class FrameDecoder:
     Push every frame the reader returns, in order; ask :meth:`gray` only for
     the frames to detect in. Images decode on their own; an access unit needs
     the ones since its keyframe, which are kept (not decoded) until a picture
-    is asked for (dronecal_field.videopackets.VideoFrameDecoder), so frames no
+    is asked for (dronecal_field.video.decode.VideoFrameDecoder), so frames no
     one asks for after the last wanted one of a GOP cost nothing.
     """
 
@@ -102,7 +102,7 @@ class FrameDecoder:
         """The next frame of the stream (``Frame``)."""
         if frame.format in ("h264", "h265"):
             if self._video is None or self._video.format != frame.format:
-                from dronecal_field.videopackets import VideoFrameDecoder
+                from dronecal_field.video.decode import VideoFrameDecoder
 
                 self._video = VideoFrameDecoder(frame.format)
             self._video.push(frame)

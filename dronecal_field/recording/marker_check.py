@@ -43,7 +43,7 @@ class MarkerCheck:
 
         cv2 = self._cv2
         if format in ("h264", "h265"):
-            from dronecal_field.videopackets import decode_keyframe_gray
+            from dronecal_field.video.decode import decode_keyframe_gray
 
             image = decode_keyframe_gray(data, format)
         else:

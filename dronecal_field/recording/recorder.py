@@ -303,7 +303,7 @@ class Recorder:
         self.attitudes = 0
         self.hover_events = 0
         self.video_gaps = 0
-        # an H.264/H.265 stream's own health (videopackets.StreamMonitor): lag spans, frames lost, corrupt packets
+        # an H.264/H.265 stream's own health (video.monitor.StreamMonitor): lag spans, frames lost, corrupt packets
         self.video_lag_events = 0
         self.video_max_lag_s = 0.0
         self.frames_lost_stream = 0

@@ -796,7 +796,7 @@ def import_run(
 
     from dronecal_field.runfile.writer import RunWriter
     from dronecal_field.video import read_video_file, video_creation_time_ns
-    from dronecal_field.videopackets import probe_video_format, read_video_packets
+    from dronecal_field.video.files import probe_video_format, read_video_packets
 
     warnings = list(log.warnings)
     start_source = None

@@ -226,7 +226,7 @@ class Run:
             ``/camera/video`` each window also returns the access units from
             the keyframe before its start (within KEYFRAME_LOOKBACK_NS), which
             a decoder needs first; their frames are ``VideoFrame`` with
-            ``keyframe`` set (dronecal_field.videopackets).
+            ``keyframe`` set (dronecal_field.video.nal).
         """
         topic = self.camera_topic
         decode = pm.frame_from_video_bytes if self.video else pm.frame_from_bytes
@@ -252,7 +252,7 @@ class Run:
                 if inside(frame.timestamp_ns):
                     yield frame
             return
-        from dronecal_field.videopackets import video_frame_of
+        from dronecal_field.video.nal import video_frame_of
 
         # Outside the windows, only the access units since the last keyframe are kept: the
         # run-up a decoder needs to reach a window's first frame.

@@ -1,0 +1,87 @@
+"""Decoding access units (PyAV): lazily from the keyframe before a wanted frame, or one keyframe alone."""
+
+from __future__ import annotations
+
+from dronecal_field.runfile.records import Frame
+from dronecal_field.video.nal import CODEC_OF_FORMAT, VideoFrame, is_keyframe
+
+
+class VideoFrameDecoder:
+    """Decode an access-unit stream lazily: only from the keyframe before a wanted frame up to it.
+
+    Feed every access unit in order with :meth:`push`; ask for the picture of
+    the last one pushed with :meth:`gray`. Access units are kept, not decoded,
+    until a picture is asked for; a keyframe drops what was kept, so a GOP
+    with no wanted frame is never decoded and a GOP is decoded only up to its
+    last wanted frame. Slice threads only: frame threads would hold pictures
+    back, and the decoder could not hand out the one just pushed.
+    """
+
+    def __init__(self, fmt: str, threads: int = 2) -> None:
+        import av
+
+        self.format = fmt
+        self._ctx = av.CodecContext.create(CODEC_OF_FORMAT[fmt], "r")
+        self._ctx.thread_type = "SLICE"
+        self._ctx.thread_count = max(1, int(threads))
+        self._pending: list[bytes] = []
+        self._have_key = False  # the decoder holds a decodable reference chain
+        self.decoded = 0  # access units decoded
+        self.skipped = 0  # access units never decoded (GOP tails with no wanted frame)
+        self.errors = 0
+
+    def push(self, frame: Frame) -> None:
+        """The next access unit of the stream (in decode = presentation order)."""
+        key = frame.keyframe if isinstance(frame, VideoFrame) else is_keyframe(frame.data, self.format)
+        if key:
+            self.skipped += len(self._pending) if self._have_key else 0
+            self._pending = []
+            self._have_key = True
+        elif not self._have_key:
+            self.skipped += 1
+            return  # before the first keyframe: undecodable
+        self._pending.append(frame.data)
+
+    def gray(self):
+        """(H, W) uint8 luma of the access unit pushed last, or None (no keyframe before it, corrupt data)."""
+        import av
+
+        if not self._have_key or not self._pending:
+            return None
+        pending, self._pending = self._pending, []
+        last = None
+        for data in pending:
+            try:
+                frames = self._ctx.decode(av.Packet(data))
+            except av.FFmpegError:
+                self.errors += 1
+                frames = []
+            self.decoded += 1
+            if frames:
+                last = frames[-1]
+        if last is None:
+            return None
+        import numpy as np
+
+        plane = last.planes[0]
+        h, w = last.height, last.width
+        arr = np.frombuffer(plane, np.uint8).reshape(h, plane.line_size)[:, :w]
+        return np.ascontiguousarray(arr)
+
+
+def decode_keyframe_gray(data: bytes, fmt: str):
+    """(H, W) uint8 luma of one keyframe access unit decoded on its own, or None."""
+    import av
+
+    ctx = av.CodecContext.create(CODEC_OF_FORMAT[fmt], "r")
+    try:
+        frames = list(ctx.decode(av.Packet(data))) + list(ctx.decode(None))
+    except av.FFmpegError:
+        return None
+    if not frames:
+        return None
+    import numpy as np
+
+    f = frames[0]
+    plane = f.planes[0]
+    return np.ascontiguousarray(np.frombuffer(plane, np.uint8).reshape(f.height, plane.line_size)[:, : f.width])
