@@ -10,7 +10,7 @@ BIN := $(VENV)/bin
 # The loopback RTSP server of the video tests and benchmark (tests/rtsp_server.py) is
 # GStreamer's, from Debian packages; installed once, a no-op (one import) when present.
 RTSP_PACKAGES := gir1.2-gst-rtsp-server-1.0 python3-gi gstreamer1.0-plugins-base gstreamer1.0-plugins-good \
-	gstreamer1.0-plugins-bad gstreamer1.0-plugins-ugly gstreamer1.0-libav gstreamer1.0-x
+	gstreamer1.0-plugins-bad gstreamer1.0-plugins-ugly gstreamer1.0-libav gstreamer1.0-x gstreamer1.0-tools
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 $(BIN)/dronecal-field: pyproject.toml
@@ -25,7 +25,7 @@ demo: install
 	$(BIN)/dronecal-field demo --out demo-output
 
 rtsp-deps:
-	@/usr/bin/python3 -c "import gi; gi.require_version('GstRtspServer', '1.0'); from gi.repository import Gst, GstRtspServer; Gst.init(None); assert all(Gst.ElementFactory.find(e) for e in ('x264enc', 'x265enc', 'rtph265pay', 'timeoverlay'))" 2>/dev/null \
+	@command -v gst-launch-1.0 >/dev/null && /usr/bin/python3 -c "import gi; gi.require_version('GstRtspServer', '1.0'); from gi.repository import Gst, GstRtspServer; Gst.init(None); assert all(Gst.ElementFactory.find(e) for e in ('x264enc', 'x265enc', 'rtph265pay', 'timeoverlay'))" 2>/dev/null \
 	|| { $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends $(RTSP_PACKAGES); }
 
 test: install rtsp-deps
