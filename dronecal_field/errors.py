@@ -44,3 +44,7 @@ class PreflightError(DronecalError):
 
 class VideoError(DronecalError):
     """The video source could not be opened or stopped producing frames."""
+
+
+class RecordingStoppedError(DronecalError):
+    """Writing a recording stopped (a full disk): the file keeps what was written before, finalised."""

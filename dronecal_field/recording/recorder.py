@@ -45,7 +45,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from dronecal_field.errors import VideoError
+from dronecal_field.errors import RecordingStoppedError, VideoError
 from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink.control import vehicle_state
 from dronecal_field.mavlink.link import MavLink
@@ -183,10 +183,17 @@ class RecordingReport:
     video_max_lag_s: float = 0.0
     frames_lost_stream: int = 0
     packets_corrupt: int = 0
+    stopped: str | None = None
+    frames_not_recorded: int = 0
+    telemetry_not_recorded: int = 0
 
     def summary(self) -> str:
         """One line for the operator."""
-        return (
+        cut = ""
+        if self.stopped is not None:
+            cut = (f"RECORDING STOPPED EARLY ({self.stopped}); after it {self.frames_not_recorded} frames and "
+                   f"{self.telemetry_not_recorded} telemetry records were not recorded; before it: ")
+        return cut + (
             f"{self.frames_written} frames ({self.frames_dropped + self.frames_dropped_source} dropped), {self.fixes_written} GNSS fixes"
             + (f" ({self.fixes_repeated} repeats in the stream not written again)" if self.fixes_repeated else "")
             + f", {self.mavlink_messages} MAVLink messages, {self.hover_events} hover windows, {self.leg_events} legs, {self.video_gaps} video gaps, "
@@ -286,6 +293,9 @@ class Recorder:
         self._gap_start_ns: int | None = None
         self._link_lost_ns: int | None = None
         self._write_error: BaseException | None = None
+        self.stopped: str | None = None  # the run file stopped taking data (a full disk): why
+        self.frames_not_recorded = 0
+        self.telemetry_not_recorded = 0
         # counters (written by one thread each, read by anyone)
         self.frames_written = 0
         self.frames_dropped = 0
@@ -390,9 +400,13 @@ class Recorder:
         finally:
             if self.tlog is not None:
                 self.tlog.close()
+        self.stopped = self.stopped or getattr(self.writer, "failure", None)
         if self._write_error is not None:
             raise self._write_error
         return RecordingReport(
+            stopped=self.stopped,
+            frames_not_recorded=self.frames_not_recorded,
+            telemetry_not_recorded=self.telemetry_not_recorded,
             frames_written=self.frames_written,
             frames_dropped=self.frames_dropped,
             frames_dropped_source=self.frames_dropped_source,
@@ -544,14 +558,29 @@ class Recorder:
                     if item[0] == "end":
                         ending = True
                         continue
-                    self._write_telemetry(item)
+                    if self.stopped is not None:
+                        self.telemetry_not_recorded += 1
+                        continue
+                    try:
+                        self._write_telemetry(item)
+                    except RecordingStoppedError as exc:
+                        self.stopped = str(exc)
+                        self.telemetry_not_recorded += 1
                 try:
                     frame = self._frames.get(timeout=0.02)
                 except queue.Empty:
                     if ending:
                         return
                     continue
-                self.writer.write_frame(frame)
+                if self.stopped is not None:
+                    self.frames_not_recorded += 1  # drained, so the video thread never blocks
+                    continue
+                try:
+                    self.writer.write_frame(frame)
+                except RecordingStoppedError as exc:
+                    self.stopped = str(exc)  # the status line turns red at once; the file is cut at its last whole chunk
+                    self.frames_not_recorded += 1
+                    continue
                 self.frames_written += 1
             except Exception as exc:  # noqa: BLE001 - reported by stop(); keep draining so nothing blocks
                 self._write_error = self._write_error or exc
@@ -689,4 +718,5 @@ class Recorder:
             video_lag_s=self.video_lag_s,
             video_lagging=bool(getattr(getattr(self.video, "monitor", None), "lagging", False)),
             video_lost=self.frames_lost_stream + self.packets_corrupt,
+            recording_stopped=self.stopped,
         )

@@ -224,6 +224,8 @@ class RecorderStatus:
         The lag is more than a frame (sustained over a second).
     video_lost : int
         Frames lost in the stream plus corrupt packets.
+    recording_stopped : str or None
+        Why the run file stopped taking data (a full disk); None while it records.
     """
 
     waypoint: int
@@ -243,6 +245,7 @@ class RecorderStatus:
     video_lag_s: float | None = None
     video_lagging: bool = False
     video_lost: int = 0
+    recording_stopped: str | None = None
 
 
 def _mmss(seconds: float) -> str:
@@ -252,7 +255,7 @@ def _mmss(seconds: float) -> str:
 
 def status_alarm(s: RecorderStatus) -> bool:
     """True when the status line must be red: link or video lost, video behind, frames lost."""
-    return not s.link_ok or not s.video_ok or s.video_lagging or s.video_lost > 0 or s.dropped > 0
+    return not s.link_ok or not s.video_ok or s.video_lagging or s.video_lost > 0 or s.dropped > 0 or s.recording_stopped is not None
 
 
 def format_status(s: RecorderStatus, color: bool = False) -> str:
@@ -265,6 +268,8 @@ def format_status(s: RecorderStatus, color: bool = False) -> str:
     if s.video_lost:
         video += f" | {s.video_lost} VIDEO LOST"
     left = "" if s.remaining_s is None else f" / ~{_mmss(s.remaining_s)} left"
+    if s.recording_stopped is not None:
+        video += f" | RECORDING STOPPED: {s.recording_stopped.split(':', 1)[0].upper()}"
     line = (
         f"wp {s.waypoint}/{s.waypoints} {s.mode} {'armed' if s.armed else 'disarmed'} | {s.fix} {s.satellites} sats | "
         f"{s.fps:4.1f} fps {s.dropped} dropped | marker {marker} | {_mmss(s.elapsed_s)}{left}{link}{video}"

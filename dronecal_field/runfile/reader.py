@@ -31,6 +31,7 @@ from typing import Any, Callable, Iterable, Iterator
 from dronecal_field.errors import ContractError
 from dronecal_field.runfile import messages as pm
 from dronecal_field.runfile.records import (
+    CUT_METADATA_NAME,
     RUN_METADATA_NAME,
     SITE_METADATA_NAME,
     Attitude,
@@ -140,6 +141,7 @@ class Run:
             self.truncated = False
             self.truncated_at: int | None = None
             self.warnings: list[str] = []
+            self.recording_stopped: str | None = None  # the writer's own note of an early stop (a full disk)
             self.damaged_spans: set[tuple[int, int, int]] = set()  # (byte offset, start_ns, end_ns) of chunks skipped
             self.units_read = 0
             self._events: list[RunEvent] | None = None  # /events, once read
@@ -532,6 +534,10 @@ class Run:
                     self.warnings.append(
                         f"topic '{topic}' has schema '{c.schema_name}', not '{schema}' in protobuf: ignored"
                     )
+        stopped = self._metadata.get(CUT_METADATA_NAME)
+        if stopped is not None:
+            self.recording_stopped = stopped.get("reason") or "stopped early"
+            self.warnings.append(f"the recording stopped early ({self.recording_stopped}): the run ends there")
         return metadata
 
     def _discover_channels(self) -> None:

@@ -17,6 +17,7 @@ from dronecal_field.geodesy import EnuOrigin
 FORMAT_VERSION = 1
 RUN_METADATA_NAME = "dronecal.run"
 SITE_METADATA_NAME = "dronecal.site"
+CUT_METADATA_NAME = "dronecal.cut"  # written when recording stopped early (a full disk): reason, cut_at_byte, last_message_ns
 
 MARKER_KINDS = ("aruco", "led")
 ALTITUDE_DATUMS = ("ellipsoid", "msl")

@@ -36,8 +36,12 @@ class TlogWriter:
         self.flush_interval_s = float(flush_interval_s)
         self.records_written = 0
         self._lock = threading.Lock()
+        self.failure: str | None = None  # the first write that failed (a full disk); the file keeps whole records only
+        self.flushes_lost = 0
+        self._buffer = bytearray()
+        self._good_end = 0
         try:
-            self._file = open(self.path, "wb")
+            self._file = open(self.path, "wb", buffering=0)
         except OSError as exc:
             raise InputError(f"cannot create tlog {self.path}: {exc.strerror}; check the directory") from exc
         self._last_flush = time.monotonic()
@@ -68,7 +72,7 @@ class TlogWriter:
         with self._lock:
             if self._file.closed:
                 raise InputError(f"tlog {self.path} is closed; open a new TlogWriter to write more")
-            self._file.write(record)
+            self._buffer += record
             self.records_written += 1
             self._dirty = True
             now = time.monotonic()
@@ -89,7 +93,7 @@ class TlogWriter:
         with self._lock:
             if self._file.closed:
                 return
-            self._file.flush()
+            self._flush_locked()
             try:
                 os.fsync(self._file.fileno())
             except OSError:
@@ -97,9 +101,30 @@ class TlogWriter:
             self._file.close()
 
     def _flush_locked(self) -> None:
-        self._file.flush()
+        """Write the buffered records whole; a full disk cuts the file back to its last whole record and stops it."""
         self._dirty = False
         self._last_flush = time.monotonic()
+        if not self._buffer:
+            return
+        view = memoryview(bytes(self._buffer))
+        self._buffer.clear()
+        try:
+            while view:
+                n = self._file.write(view)
+                if not n:
+                    raise OSError(28, os.strerror(28))
+                view = view[n:]
+            self._good_end = self._file.tell()
+        except OSError as exc:
+            # A full disk: the records that did not fit are lost (counted), the file stays whole records,
+            # and the next flush tries again (space freed elsewhere keeps the telemetry going).
+            self.flushes_lost += 1
+            self.failure = self.failure or f"{exc.strerror or exc} at byte {self._good_end} of {self.path}"
+            try:
+                os.ftruncate(self._file.fileno(), self._good_end)
+                self._file.seek(self._good_end)
+            except OSError:
+                pass
 
     def _flush_loop(self) -> None:
         while not self._stop.wait(self.flush_interval_s / 2.0):

@@ -14,6 +14,7 @@ by several threads; the intended use is one writer thread fed by queues.
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -22,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from dronecal_field.errors import InputError
+from dronecal_field.errors import InputError, RecordingStoppedError
 from dronecal_field.geodesy import EnuOrigin
 from dronecal_field.runfile import messages as pm
 from dronecal_field.runfile.records import (
@@ -40,6 +41,40 @@ IMAGE_FORMATS = ("jpeg", "png")
 VIDEO_FORMATS = ("h264", "h265")
 CAMERA_TOPICS = ("image", "video")
 COMPRESSIONS = ("zstd", "lz4", "none")
+
+
+class _WholeWrites:
+    """An unbuffered file for mcap's Writer: each ``write`` lands whole or raises (a partial write of a
+    full disk is retried, then ENOSPC raised), and ``tell`` is exact, so the last good end is known."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        self.pos = 0
+        self.closed = False
+
+    def write(self, data: bytes) -> int:
+        view = memoryview(data)
+        while view:
+            n = os.write(self.fd, view)
+            if n <= 0:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            self.pos += n
+            view = view[n:]
+        return len(data)
+
+    def tell(self) -> int:
+        return self.pos
+
+    def flush(self) -> None:
+        pass
+
+    def fileno(self) -> int:
+        return self.fd
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            os.close(self.fd)
 
 
 def _jsonable(value: Any) -> Any:
@@ -127,38 +162,49 @@ class RunWriter:
         self._lock = threading.Lock()
         self._closed = False
         self._chunk_started: float | None = None  # monotonic time of the first message in the open chunk
+        self._good_end = 0  # bytes of the file known complete (after the last chunk written whole)
+        self.failure: str | None = None  # why writing stopped (a full disk), once it has
+        self.cut_ns: int | None = None  # UTC ns of the last message in the file when writing stopped
+        self._last_synced_ns: int | None = None
+        self._last_added_ns: int | None = None
         try:
-            self._file = open(self.path, "wb")
+            self._file = _WholeWrites(os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666))
         except OSError as exc:
             raise InputError(f"cannot create run file {self.path}: {exc.strerror}; check the directory") from exc
-        self._mcap = Writer(
-            self._file,
-            chunk_size=int(chunk_size),
-            compression={"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[
-                compression
-            ],
-        )
-        from dronecal_field import __version__
+        try:
+            self._mcap = Writer(
+                self._file,
+                chunk_size=int(chunk_size),
+                compression={"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[
+                    compression
+                ],
+            )
+            from dronecal_field import __version__
 
-        self._mcap.start(profile="", library=f"dronecal-field/{__version__}")
-        self._protobuf = MessageEncoding.Protobuf
-        self._channels: dict[str, int] = {}
-        self._mcap.add_metadata(RUN_METADATA_NAME, metadata.to_mcap_metadata())
-        site = metadata.site_metadata()
-        if site is not None:
-            self._mcap.add_metadata(SITE_METADATA_NAME, site)
-        # Registered now so the first chunk written carries them, whatever comes first.
-        from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
-        from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
-        from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
+            self._mcap.start(profile="", library=f"dronecal-field/{__version__}")
+            self._protobuf = MessageEncoding.Protobuf
+            self._channels: dict[str, int] = {}
+            self._mcap.add_metadata(RUN_METADATA_NAME, metadata.to_mcap_metadata())
+            site = metadata.site_metadata()
+            if site is not None:
+                self._mcap.add_metadata(SITE_METADATA_NAME, site)
+            # Registered now so the first chunk written carries them, whatever comes first.
+            from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+            from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
+            from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 
-        if camera == "video":
-            self._proto_channel(pm.VIDEO_TOPIC, CompressedVideo)
-        else:
-            self._proto_channel(pm.IMAGE_TOPIC, CompressedImage)
-        self._proto_channel(pm.FIX_TOPIC, LocationFix)
-        self._sync_locked()
-        self._fsync()
+            if camera == "video":
+                self._proto_channel(pm.VIDEO_TOPIC, CompressedVideo)
+            else:
+                self._proto_channel(pm.IMAGE_TOPIC, CompressedImage)
+            self._proto_channel(pm.FIX_TOPIC, LocationFix)
+            self._write_channels_outside_chunks()
+            self._sync_locked()
+            self._fsync()
+        except (OSError, RecordingStoppedError) as exc:
+            self._file.close()
+            why = self.failure or (exc.strerror if isinstance(exc, OSError) else str(exc))
+            raise InputError(f"cannot write the run file {self.path} ({why}): free some space or choose another disk") from None
         self._stop = threading.Event()
         self._flusher: threading.Thread | None = None
         if background_flush:
@@ -246,22 +292,20 @@ class RunWriter:
         now = time.time_ns()
         with self._lock:
             self._check_open()
-            self._mcap.add_attachment(create_time=now, log_time=now, name=name, media_type=media_type, data=bytes(data))
-            self._file.flush()
+            self._guarded(lambda: self._mcap.add_attachment(create_time=now, log_time=now, name=name, media_type=media_type, data=bytes(data)))
         self._fsync()
 
     def write_site(self, origin: EnuOrigin) -> None:
         """Store the ENU origin for reports as metadata ``dronecal.site``, written and synced at once."""
         with self._lock:
             self._check_open()
-            self._mcap.add_metadata(SITE_METADATA_NAME, site_to_metadata(origin))
-            self._file.flush()
+            self._guarded(lambda: self._mcap.add_metadata(SITE_METADATA_NAME, site_to_metadata(origin)))
         self._fsync()
 
     def flush(self) -> None:
         """Close the open chunk, flush and fsync: everything written so far survives a crash."""
         with self._lock:
-            if self._closed:
+            if self._closed or self.failure is not None:
                 return
             self._sync_locked()
         self._fsync()
@@ -276,9 +320,14 @@ class RunWriter:
                 return
             self._closed = True
             try:
-                self._mcap.finish()
-                self._file.flush()
-                os.fsync(self._file.fileno())
+                if self.failure is None:
+                    try:
+                        self._mcap.finish()
+                    except OSError as exc:
+                        self._fail_locked(exc)
+                if self.failure is not None:
+                    self._finish_cut_locked()
+                self._fsync()
             finally:
                 self._file.close()
 
@@ -294,6 +343,24 @@ class RunWriter:
             self._channels[topic] = channel
         return channel
 
+    def _write_channels_outside_chunks(self) -> None:
+        """The schemas and channels registered so far, also as records of their own at the top of the file.
+
+        mcap's Writer puts them into the first chunk, so a disk that fills before that chunk is written
+        would leave a run without its camera and GNSS topics; top-level copies (identical records, as
+        MCAP allows) make even a run cut at its first chunk name its topics.
+        """
+        from mcap.data_stream import RecordBuilder
+
+        schemas = getattr(self._mcap, "_Writer__schemas", {})
+        channels = getattr(self._mcap, "_Writer__channels", {})
+        builder = RecordBuilder()
+        for schema in schemas.values():
+            schema.write(builder)
+        for channel in channels.values():
+            channel.write(builder)
+        self._file.write(builder.end())
+
     def _write_proto(self, topic: str, message: Any, log_time_ns: int) -> None:
         data = message.SerializeToString()
         with self._lock:
@@ -305,8 +372,9 @@ class RunWriter:
 
     def _add_locked(self, channel: int, log_time_ns: int, data: bytes) -> bool:
         """Add a message; close the chunk when it is old. True when the caller should fsync."""
-        self._mcap.add_message(channel_id=channel, log_time=log_time_ns, data=data, publish_time=log_time_ns)
+        self._guarded(lambda: self._mcap.add_message(channel_id=channel, log_time=log_time_ns, data=data, publish_time=log_time_ns))
         self.messages_written += 1
+        self._last_added_ns = max(self._last_added_ns or log_time_ns, log_time_ns)
         now = time.monotonic()
         if self._chunk_started is None:
             self._chunk_started = now
@@ -317,8 +385,64 @@ class RunWriter:
 
     def _sync_locked(self) -> None:
         # mcap's flush() closes the chunk in progress and flushes the stream.
-        self._mcap.flush()
+        self._guarded(self._mcap.flush)
         self._chunk_started = None
+        self._good_end = self._file.tell()
+        self._last_synced_ns = self._last_added_ns
+
+    def _guarded(self, write: Any) -> None:
+        """Run one write into the file; a full disk (any OSError) stops the writer for good, keeping the
+        file up to its last complete chunk, and raises RecordingStoppedError."""
+        if self.failure is not None:
+            raise RecordingStoppedError(self.failure)
+        try:
+            write()
+        except OSError as exc:
+            self._fail_locked(exc)
+            raise RecordingStoppedError(self.failure) from None
+
+    def _fail_locked(self, exc: OSError) -> None:
+        """Cut the file back to its last complete chunk (freeing what a full disk half wrote)."""
+        if self.failure is not None:
+            return
+        why = "disk full" if exc.errno in (errno.ENOSPC, errno.EDQUOT) else (exc.strerror or str(exc))
+        self.cut_ns = self._last_synced_ns
+        self.failure = f"{why} at byte {self._good_end} of {self.path}: writing stopped; the run keeps what was written before"
+        try:
+            os.ftruncate(self._file.fd, self._good_end)
+            os.lseek(self._file.fd, self._good_end, os.SEEK_SET)
+        except OSError:
+            pass
+        self._file.pos = self._good_end
+
+    def _finish_cut_locked(self) -> None:
+        """End a cut file validly: a metadata record stating the cut, DataEnd and a footer with no summary
+        (readers scan the data section). If even that does not fit, the file stays cut at a chunk end,
+        which the run reader also reads (it states the cut)."""
+        from mcap.data_stream import RecordBuilder
+        from mcap.records import DataEnd, Footer, Metadata
+
+        from dronecal_field.runfile.records import CUT_METADATA_NAME
+
+        cut = {"reason": self.failure or "", "cut_at_byte": str(self._good_end),
+               "last_message_ns": str(self.cut_ns) if self.cut_ns is not None else "none"}
+        for with_note in (True, False):
+            builder = RecordBuilder()
+            if with_note:
+                Metadata(name=CUT_METADATA_NAME, metadata=cut).write(builder)
+            DataEnd(0).write(builder)
+            Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(builder)
+            tail = builder.end() + b"\x89MCAP0\r\n"
+            try:
+                os.lseek(self._file.fd, self._good_end, os.SEEK_SET)
+                self._file.pos = self._good_end
+                self._file.write(tail)
+                return
+            except OSError:
+                try:
+                    os.ftruncate(self._file.fd, self._good_end)
+                except OSError:
+                    return
 
     def _fsync(self) -> None:
         try:
@@ -331,11 +455,14 @@ class RunWriter:
         while not self._stop.wait(period):
             synced = False
             with self._lock:
-                if self._closed:
+                if self._closed or self.failure is not None:
                     return
                 started = self._chunk_started
                 if started is not None and time.monotonic() - started >= self.max_chunk_age_s:
-                    self._sync_locked()
+                    try:
+                        self._sync_locked()
+                    except RecordingStoppedError:
+                        return  # said by the next write (and by close): never a thread's traceback
                     synced = True
             if synced:
                 self._fsync()
