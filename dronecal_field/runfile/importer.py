@@ -791,10 +791,6 @@ def import_run(
     ImportReport
         also attached to the run as ``import_report.json``.
     """
-    import json
-    from dataclasses import asdict
-
-    from dronecal_field.runfile.writer import RunWriter
     from dronecal_field.video import read_video_file, video_creation_time_ns
     from dronecal_field.video.files import probe_video_format, read_video_packets
 
@@ -846,16 +842,37 @@ def import_run(
         from dataclasses import replace
 
         metadata = replace(metadata, extra={**metadata.extra, "camera.clock": "file"})
+    seen = _TimeRange()
+    # Written beside ``out`` under a temporary name and put in place whole at the end: an interrupted
+    # import (Ctrl-C, SIGTERM, a full disk) leaves no half run that would block the retry.
+    final = Path(out)
+    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
+    try:
+        report = _write_imported(tmp, metadata, compression, camera, log, frames_iter, first, seen, final, video, video_start_ns,
+                                 start_source, width, height, warnings)
+        try:
+            os.link(tmp, final)  # never over a file that appeared meanwhile
+        except FileExistsError:
+            raise InputError(f"--out {final} appeared while importing (another process?); nothing was overwritten: choose a new name") from None
+        except OSError:
+            if final.exists():
+                raise InputError(f"--out {final} appeared while importing (another process?); nothing was overwritten: choose a new name") from None
+            os.rename(tmp, final)  # a file system without hard links
+    finally:
+        tmp.unlink(missing_ok=True)
+    return report
+
+
+def _write_imported(tmp, metadata, compression, camera, log, frames_iter, first, seen, out, video, video_start_ns, start_source,
+                    width, height, warnings):
+    """Write the imported run into ``tmp``; the report names ``out``."""
+    import json
+    from dataclasses import asdict
+
+    from dronecal_field.runfile.writer import RunWriter
+
     n_frames = 0
-    t_min: int | None = None
-    t_max: int | None = None
-
-    def seen(t: int) -> None:
-        nonlocal t_min, t_max
-        t_min = t if t_min is None else min(t_min, t)
-        t_max = t if t_max is None else max(t_max, t)
-
-    with RunWriter(out, metadata, compression=compression, background_flush=False, camera=camera) as writer:
+    with RunWriter(tmp, metadata, compression=compression, background_flush=False, camera=camera) as writer:
         if log.mission:
             writer.attach("mission.waypoints", mission_to_waypoints(log.mission).encode(), "text/plain")
         for fix in log.fixes:
@@ -897,11 +914,26 @@ def import_run(
             position_source=log.position_source,
             clocks=[asdict(c) for c in log.clocks],
             host_seconds_per_vehicle_second=log.host_seconds_per_vehicle_second,
-            time_range_ns=(t_min, t_max) if t_min is not None else None,
+            time_range_ns=seen.range(),
             warnings=warnings,
         )
         writer.attach("import_report.json", json.dumps(report.to_dict(), indent=1).encode(), "application/json")
     return report
+
+
+class _TimeRange:
+    """The smallest and largest time seen, ns."""
+
+    def __init__(self) -> None:
+        self.t_min: int | None = None
+        self.t_max: int | None = None
+
+    def __call__(self, t: int) -> None:
+        self.t_min = t if self.t_min is None else min(self.t_min, t)
+        self.t_max = t if self.t_max is None else max(self.t_max, t)
+
+    def range(self) -> tuple[int, int] | None:
+        return (self.t_min, self.t_max) if self.t_min is not None else None
 
 
 def _chain(head: list[Any], tail: Iterator[Any]) -> Iterator[Any]:
