@@ -10,6 +10,7 @@ simulator's truth.
 from __future__ import annotations
 
 import json
+import os
 import signal
 import socket
 import subprocess
@@ -45,6 +46,7 @@ class DemoResult:
     elapsed_s: float
     ground_error_px: float = float("nan")  # RMS over the visible ground 3-30 m (sim.compare)
     ground_error_max_px: float = float("nan")
+    log_problems: tuple[str, ...] = ()  # what the steps' own logs ask for (fly's "verdict: re-fly ...", calibrate's warnings)
 
     @property
     def camera_path(self) -> Path:
@@ -54,6 +56,29 @@ class DemoResult:
     def met_targets(self) -> bool:
         """The demo's targets: focal within 1 %, camera within 5 cm, ground 3-30 m under 1 px RMS."""
         return self.focal_error_pct < 1.0 and self.position_error_cm < 5.0 and self.ground_error_px < 1.0
+
+
+def log_problems(fly_log: Path, calibrate_log: Path) -> tuple[str, ...]:
+    """What the steps' own logs say is wrong, so the demo's last line never contradicts them.
+
+    ``fly``'s live verdict (``verdict: ...``) unless it is ``good``, and ``calibrate``'s
+    ``warning:`` lines and a calibration from none of the waypoints.
+    """
+    import re
+
+    problems: list[str] = []
+    fly = fly_log.read_text(errors="replace").splitlines() if fly_log.is_file() else []
+    verdicts = [line.split("verdict:", 1)[1].strip() for line in fly if line.startswith("verdict:")]
+    if verdicts and not verdicts[-1].startswith("good"):
+        problems.append(f"fly: {verdicts[-1]}")
+    cal = calibrate_log.read_text(errors="replace").splitlines() if calibrate_log.is_file() else []
+    for line in cal:
+        m = re.match(r"calibrated .*?: (\d+) of (\d+) waypoints", line)
+        if m and int(m.group(1)) == 0 and int(m.group(2)) > 0 and "pairs on" not in line:
+            problems.append(f"calibrate: {line.strip()}")
+        if line.strip().startswith("warning:"):
+            problems.append(f"calibrate: {line.strip()}")
+    return tuple(problems)
 
 
 def _free_port(kind: int = socket.SOCK_DGRAM) -> int:
@@ -67,10 +92,38 @@ def cli_argv(*args: object) -> list[str]:
     return [sys.executable, "-m", "dronecal_field", *[str(a) for a in args]]
 
 
+def _die_with_parent() -> None:
+    """In the child, before exec: Linux sends it SIGTERM if the demo dies (even by SIGKILL), so no simulator runs on."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+    except Exception:  # noqa: BLE001 - not Linux: the demo's own clean-up still stops the group
+        pass
+
+
+def _start(argv: list[str], log_file) -> subprocess.Popen:
+    """A child in a process group of its own, so that stopping it stops everything it started."""
+    return subprocess.Popen(argv, stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True,
+                            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+
+
 def run_step(step: str, argv: list[str], log: Path, timeout_s: float) -> None:
-    """Run one command to completion, its output into ``log``; DronecalError naming the step if it fails."""
+    """Run one command to completion, its output into ``log``; DronecalError naming the step if it fails.
+
+    The demo stopped meanwhile (Ctrl-C, SIGTERM, SIGHUP) stops the step as Ctrl-C would (``fly``
+    finalises its run), then its whole process group.
+    """
     with log.open("w") as f:
-        proc = subprocess.run(argv, stdout=f, stderr=subprocess.STDOUT, timeout=timeout_s)
+        proc = _start(argv, f)
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            _stop(proc, grace_s=30.0)
+            raise DronecalError(f"demo step '{step}' did not finish within {timeout_s:.0f} s (stopped): see {log}") from None
+        except BaseException:
+            _stop(proc, grace_s=30.0)
+            raise
     if proc.returncode != 0:
         tail = log.read_text().strip().splitlines()[-1:] or ["(no output)"]
         raise DronecalError(f"demo step '{step}' failed ({tail[0]}): see {log}")
@@ -90,14 +143,24 @@ def _wait_for_tcp(port: int, proc: subprocess.Popen, log: Path, timeout_s: float
     raise DronecalError(f"the simulated camera did not open port {port} within {timeout_s:.0f} s: see {log}")
 
 
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
+def _stop(proc: subprocess.Popen, grace_s: float = 10.0) -> None:
+    """SIGINT the child's process group (as Ctrl-C); SIGKILL the group after ``grace_s``; never leaves one behind."""
+
+    def signal_group(sig: int) -> None:
         try:
-            proc.wait(timeout=10)
+            os.killpg(proc.pid, sig)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+    if proc.poll() is None:
+        signal_group(signal.SIGINT)
+        try:
+            proc.wait(timeout=grace_s)
         except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+            pass
+    signal_group(signal.SIGKILL)  # whatever the child started and left running
+    if proc.poll() is None:
+        proc.wait()
 
 
 @dataclass(frozen=True, eq=False)
@@ -146,17 +209,17 @@ def start_simulators(
     vehicle_port, camera_link_port, http_port = _free_port(), _free_port(), _free_port(socket.SOCK_STREAM)
     video_url = f"http://127.0.0.1:{http_port}/stream.mjpg"
     home_lat, home_lon, home_alt = home
-    vehicle = subprocess.Popen(cli_argv(
+    vehicle = _start(cli_argv(
         "sim", "vehicle", "--listen", f"udp:127.0.0.1:{vehicle_port}", "--out", f"udp:127.0.0.1:{camera_link_port}",
         "--home", f"{home_lat},{home_lon},{home_alt}", "--speedup", speedup,
         "--gps-rate-ms", 100,  # GPS_RATE_MS 100: the 10 Hz RTK setting docs/fly.md asks for (ArduPilot's default is 200)
-    ), stdout=(logs / "sim-vehicle.log").open("w"), stderr=subprocess.STDOUT)
-    camera = subprocess.Popen(cli_argv(
+    ), (logs / "sim-vehicle.log").open("w"))
+    camera = _start(cli_argv(
         "sim", "camera", "--connect", f"udpin:127.0.0.1:{camera_link_port}", "--camera", truth_path, "--serve", video_url,
         "--fps", fps, "--latency-s", latency_s, "--noise-dn", noise_px, "--marker-dictionary", marker["dictionary"],
         "--marker-id", marker["marker_id"], "--marker-size", marker["size_m"],
         "--marker-offset", ",".join(str(v) for v in marker["offset_frd_m"]),
-    ), stdout=(logs / "sim-camera.log").open("w"), stderr=subprocess.STDOUT)
+    ), (logs / "sim-camera.log").open("w"))
     return Simulators(vehicle_url=f"udp:127.0.0.1:{vehicle_port}", video_url=video_url, vehicle=vehicle, camera=camera,
                       camera_log=logs / "sim-camera.log")
 
@@ -224,15 +287,15 @@ def run_demo(
     home_lat, home_lon, home_alt = plan["mission"]["plannedHomePosition"]
     echo(f"    {len(plan['mission']['items'])} mission items; take-off point {home_lat:.7f}, {home_lon:.7f}")
 
-    sims = start_simulators(truth_path, (home_lat, home_lon, home_alt), logs, speedup, fps, MARKER, latency_s=latency_s)
-    echo(f"2/4 simulators: vehicle on {sims.vehicle_url} (speed-up {speedup:g}x), camera at {sims.video_url}")
     from dronecal_field.commands.fly import free_run_path
 
     # fly never writes over a recorded flight: a second demo into the same folder records run-2.mcap
     run_path = out_dir / "run.mcap"
     if run_path.exists() or run_path.with_suffix(".tlog").exists():
         run_path = free_run_path(run_path)
+    sims = start_simulators(truth_path, (home_lat, home_lon, home_alt), logs, speedup, fps, MARKER, latency_s=latency_s)
     try:
+        echo(f"2/4 simulators: vehicle on {sims.vehicle_url} (speed-up {speedup:g}x), camera at {sims.video_url}")
         sims.wait_ready()
         echo("3/4 fly --start: upload, verify, arm in GUIDED, MISSION_START, record (Ctrl-C stops cleanly)")
         run_step("fly", cli_argv(
@@ -272,6 +335,7 @@ def run_demo(
         projection_error_px=proj,
         sampled_projection_error_px=sampled_proj,
         elapsed_s=time.monotonic() - t0,
+        log_problems=log_problems(logs / "fly.log", logs / "calibrate.log"),
     )
 
 
