@@ -131,3 +131,114 @@ def test_a_run_file_that_cannot_start_on_a_full_disk_is_one_line(small_disk: Pat
                        marker=MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.3))
     with pytest.raises(InputError, match="free some space"):
         RunWriter(small_disk / "run.mcap", meta)
+
+
+# --------------------------------------------------------------------------
+# signals: SIGTERM and SIGHUP are a clean stop, like Ctrl-C
+
+
+def _fly_argv(out: Path, connect: str = "udp:127.0.0.1:9", mission: Path = MISSION, video: str = "http://127.0.0.1:9/x.mjpg", *extra: str) -> list[str]:
+    return [*PY, "fly", "--connect", connect, "--mission", str(mission), "--video", video, "--out", str(out), "--marker-size", "0.3", *extra]
+
+
+def _wait_for(predicate, timeout_s: float = 60.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def _our_processes(marker: str) -> list[str]:
+    """Command lines of running processes that mention ``marker`` (a test's own folder): orphans."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            state = (entry / "stat").read_text().split(")")[-1].split()[0]
+        except OSError:
+            continue
+        if marker in cmd and state != "Z":
+            found.append(cmd)
+    return found
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_fly_stopped_before_recording_says_so_and_gives_the_names_back(tmp_path: Path, sig: int) -> None:
+    out = tmp_path / "run.mcap"
+    proc = subprocess.Popen(_fly_argv(out, "udp:127.0.0.1:9", MISSION, "http://127.0.0.1:9/x.mjpg", "--heartbeat-timeout", "60"),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert _wait_for(out.exists, 30)  # claimed at start, before the link opens
+    proc.send_signal(sig)
+    _stdout, stderr = proc.communicate(timeout=30)
+    assert proc.returncode == 128 + sig
+    assert "Traceback" not in stderr and stderr.strip().splitlines() == [f"dronecal-field fly: stopped by {signal.Signals(sig).name}"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # the empty claims are given back
+
+
+def test_two_fly_with_one_out_the_second_is_refused_in_one_line(tmp_path: Path) -> None:
+    out = tmp_path / "run.mcap"
+    first = subprocess.Popen(_fly_argv(out, "udp:127.0.0.1:9", MISSION, "http://127.0.0.1:9/x.mjpg", "--heartbeat-timeout", "60"),
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert _wait_for(out.exists, 30)
+        second = subprocess.run(_fly_argv(out), capture_output=True, text=True, timeout=60)
+    finally:
+        first.send_signal(signal.SIGTERM)
+        first.communicate(timeout=30)
+    lines = second.stderr.strip().splitlines()
+    assert second.returncode == 2 and len(lines) == 1 and "Traceback" not in second.stderr
+    assert "already exists" in lines[0] and "another fly" in lines[0] and "run-2.mcap" in lines[0]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_fly_stopped_while_recording_finalises_the_run(tmp_path: Path, sig: int) -> None:
+    from dronecal_field.runfile.reader import open_run
+    from test_mavlink_support import MjpegServer, plan_document, start_sim
+
+    plan = tmp_path / "m.plan"
+    plan.write_text(json.dumps(plan_document([(0.0, 4.0, 1.5), (1.0, 4.0, 1.5)], hold_s=30.0)))
+    sim = start_sim(speedup=2.0, boot_s=0.5)
+    camera = MjpegServer(fps=15)
+    out = tmp_path / "run.mcap"
+    lines: list[str] = []
+    try:
+        proc = subprocess.Popen(_fly_argv(out, sim.addresses()[0], plan, camera.url, "--start", "--no-live"),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+        reader.start()
+        assert _wait_for(lambda: any(line.startswith("started:") for line in lines), 90), lines
+        time.sleep(1.5)  # a few chunks recorded
+        proc.send_signal(sig)
+        stderr = proc.communicate(timeout=60)[1]
+    finally:
+        camera.close()
+        sim.stop()
+    assert proc.returncode == 128 + sig, stderr
+    assert "Traceback" not in stderr
+    assert "finalised" in stderr and f"stopped by {signal.Signals(sig).name}" in stderr
+    with open_run(out) as run:
+        assert not run.truncated
+        assert sum(1 for _ in run.iter_fixes()) > 0 and sum(1 for _ in run.iter_frames()) > 0
+    assert out.with_suffix(".tlog").stat().st_size > 0
+
+
+def test_demo_stopped_stops_its_children_and_leaves_no_temporary_folder(tmp_path: Path) -> None:
+    """SIGTERM to the demo while its plan step runs: the plan stops (its staged folder removed), nothing runs on."""
+    out = tmp_path / "demo-signal"
+    proc = subprocess.Popen([*PY, "demo", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        assert _wait_for(lambda: any(p.name.startswith(".plan.tmp-") for p in out.glob(".*")) or (out / "plan").exists(), 120)
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 128 + signal.SIGTERM, stderr
+    assert "Traceback" not in stderr and "stopped by SIGTERM" in stderr
+    assert _wait_for(lambda: not _our_processes(str(out)), 30), _our_processes(str(out))
+    assert not [p.name for p in out.glob(".*tmp-*")]
