@@ -129,13 +129,45 @@ VIDEO = VideoStatus(url="http://cam/stream.mjpg", frames=30, fps=30.0, width=192
 def test_preflight_table(change, min_fix, failing, warning):
     snapshot = VehicleSnapshot(**{**GOOD.__dict__, **change})
     results = evaluate_preflight(snapshot, MISSION, VIDEO, min_fix=min_fix)
-    assert [r.name for r in results] == ["heartbeat", "disarmed", "gnss", "ekf", "battery", "ready_to_arm", "home", "video"]
+    assert [r.name for r in results] == ["heartbeat", "disarmed", "gnss", "ekf", "battery", "ready_to_arm", "home", "mission", "video"]
     assert {r.name for r in results if not r.ok} == failing
     assert {r.name for r in results if r.warning} == warning
     text = format_checklist(results)
-    assert text.count("\n") == 7 and ("[WARN]" in text) == bool(warning)
+    assert text.count("\n") == 8 and ("[WARN]" in text) == bool(warning)
     if "ready_to_arm" in failing:
         assert "Throttle below failsafe" in text
+
+
+def _with_item(index: int, **change):
+    items = list(MISSION.items)
+    items[index] = dataclasses.replace(items[index], **change)
+    return dataclasses.replace(MISSION, items=tuple(items))
+
+
+WP = next(i for i, item in enumerate(MISSION.items) if item.command == 16 and item.seq > 0)
+
+
+@pytest.mark.parametrize("mission, needle", [
+    (_with_item(WP, x=0, y=0), "latitude 0, longitude 0"),
+    (_with_item(WP, x=int(1e10 * 1e7)), "out of range"),
+    (_with_item(WP, z=1e308), "outside -10..500"),
+    (_with_item(WP, z=-50.0), "outside -10..500"),
+    (_with_item(WP, z=float("inf")), "not a finite number"),
+    (_with_item(WP, p1=float("inf")), "infinite"),
+    (_with_item(WP, command=31999), "command 31999"),
+    (_with_item(WP, frame=99), "frame 99"),
+    (_with_item(WP, frame=1), "frame 1"),
+    (dataclasses.replace(MISSION, items=MISSION.items + tuple(dataclasses.replace(MISSION.items[WP], seq=len(MISSION.items) + k) for k in range(10_003))),
+     "more than the vehicle holds"),
+])
+def test_preflight_checks_every_item_it_will_upload(mission, needle):
+    from dronecal_field.mavlink.preflight import check_mission_items
+
+    assert check_mission_items(MISSION) == []
+    problems = check_mission_items(mission)
+    assert problems and needle in problems[0]
+    results = evaluate_preflight(GOOD, mission, VIDEO)
+    assert [r.name for r in results if not r.ok] == ["mission"]
 
 
 def test_gnss_rate_counts_new_fixes_and_warns_below_8_hz():

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import stat
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -198,10 +199,39 @@ def _encode_xy(value: float, frame: int) -> int:
 def _param(value: object, where: str) -> float:
     if value is None:
         return math.nan  # QGC writes NaN ("leave unchanged") as JSON null
-    try:
-        return float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise InputError(f"{where}: param {value!r} is not a number; fix the mission file") from None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(f"{where}: param {value!r} is not a number; fix the mission file")
+    value = float(value)
+    if math.isinf(value):
+        raise InputError(f"{where}: param {value!r} is infinite; give a finite number (or null for 'unset')")
+    return value
+
+
+# Commands that fly to a position: a NaN/null latitude or longitude would be sent as 0 (the Gulf of Guinea).
+_NEEDS_POSITION = frozenset({16, 17, 18, 19, 82})
+
+
+def _integer(value: object, where: str, key: str) -> int:
+    """A JSON integer (``16``, or ``16.0``), never a truncated ``16.9``, a string or a bool."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value != int(value):
+        raise InputError(f"{where}: '{key}' is {value!r}, not an integer; fix the mission file")
+    return int(value)
+
+
+def _home(home: object, source: str) -> tuple[float, float, float]:
+    """``mission.plannedHomePosition`` as finite (lat, lon, alt) in range."""
+    fix = "set the home position in the planner"
+    if not isinstance(home, list) or len(home) < 3:
+        raise InputError(f"{source}: mission.plannedHomePosition must be [lat, lon, alt]; {fix}")
+    values = []
+    for name, v in zip(("lat", "lon", "alt"), home[:3]):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise InputError(f"{source}: mission.plannedHomePosition {name} is {v!r}, not a finite number; {fix}")
+        values.append(float(v))
+    lat, lon, alt = values
+    if not (-90 <= lat <= 90 and -180 <= lon <= 180 and -1000 <= alt <= 10000):
+        raise InputError(f"{source}: mission.plannedHomePosition {home[:3]} is outside lat -90..90, lon -180..180, alt -1000..10000 m; {fix}")
+    return lat, lon, alt
 
 
 def parse_qgc_plan(text: str, source: str = "mission.plan") -> Mission:
@@ -232,10 +262,7 @@ def parse_qgc_plan(text: str, source: str = "mission.plan") -> Mission:
     if not isinstance(doc, dict) or doc.get("fileType") != "Plan" or not isinstance(doc.get("mission"), dict):
         raise InputError(f"{source}: not a QGroundControl plan (fileType 'Plan' with a 'mission' object); give a .plan or .waypoints file")
     mission = doc["mission"]
-    home = mission.get("plannedHomePosition")
-    if not isinstance(home, list) or len(home) < 3 or any(v is None for v in home[:3]):
-        raise InputError(f"{source}: mission.plannedHomePosition must be [lat, lon, alt]; set the home position in the planner")
-    home_lat, home_lon, home_alt = (float(v) for v in home[:3])
+    home_lat, home_lon, home_alt = _home(mission.get("plannedHomePosition"), source)
     raw_items = mission.get("items")
     if not isinstance(raw_items, list) or not raw_items:
         raise InputError(f"{source}: mission.items is empty; plan at least one waypoint")
@@ -253,15 +280,16 @@ def parse_qgc_plan(text: str, source: str = "mission.plan") -> Mission:
         params = raw.get("params")
         if not isinstance(params, list) or len(params) != 7:
             raise InputError(f"{where}: 'params' must be a list of 7 numbers; fix the mission file")
-        try:
-            command = int(raw["command"])
-            frame = int(raw["frame"])
-        except (KeyError, TypeError, ValueError):
-            raise InputError(f"{where}: 'command' and 'frame' must be integers; fix the mission file") from None
+        if "command" not in raw or "frame" not in raw:
+            raise InputError(f"{where}: 'command' and 'frame' must be integers; fix the mission file")
+        command = _integer(raw["command"], where, "command")
+        frame = _integer(raw["frame"], where, "frame")
         p = [_param(v, where) for v in params]
+        if command in _NEEDS_POSITION and frame in GLOBAL_FRAMES and (math.isnan(p[4]) or math.isnan(p[5])):
+            raise InputError(f"{where}: command {command} needs a latitude and longitude (params 5, 6), not null/NaN; fix the mission file")
         seq = len(items)
         if "doJumpId" in raw and raw["doJumpId"] is not None:
-            jump_ids[int(raw["doJumpId"])] = seq
+            jump_ids[_integer(raw["doJumpId"], where, "doJumpId")] = seq
         p[6] = 0.0 if math.isnan(p[6]) else p[6]
         items.append(_item_from_params(seq, frame, command, p, bool(raw.get("autoContinue", True))))
     # QGC stores DO_JUMP's target as a doJumpId; on the wire it is the target's seq.
@@ -307,6 +335,8 @@ def parse_waypoints(text: str, source: str = "mission.waypoints") -> Mission:
             autocontinue = bool(int(cols[11]))
         except ValueError:
             raise InputError(f"{source}:{lineno}: non-numeric column; fix the line") from None
+        if any(math.isinf(v) for v in p) or (command in STORED_IN_LOCATION and any(math.isnan(v) for v in p[4:])):
+            raise InputError(f"{source}:{lineno}: a parameter is infinite or the position is NaN; give finite numbers")
         if seq != len(items):
             raise InputError(f"{source}:{lineno}: seq {seq} out of order (expected {len(items)}); renumber the items")
         items.append(_item_from_params(seq, frame, command, p, autocontinue))
@@ -314,6 +344,9 @@ def parse_waypoints(text: str, source: str = "mission.waypoints") -> Mission:
         raise InputError(f"{source}: needs home (item 0) and at least one more item; plan a waypoint")
     home = items[0]
     return Mission(items=tuple(items), home_lat_deg=home.x * 1e-7, home_lon_deg=home.y * 1e-7, home_alt_m=home.z, source_format="waypoints")
+
+
+MAX_MISSION_FILE_BYTES = 16_000_000  # a 10 000-item .plan is about 3 MB
 
 
 def read_mission(path: str | os.PathLike) -> Mission:
@@ -326,7 +359,13 @@ def read_mission(path: str | os.PathLike) -> Mission:
     """
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        st = p.stat()
+        if not stat.S_ISREG(st.st_mode):  # a FIFO would block for ever, /dev/zero never end
+            raise InputError(f"mission {p} is not a regular file (a pipe, device or folder); give the .plan or .waypoints file")
+        if st.st_size > MAX_MISSION_FILE_BYTES:
+            raise InputError(f"mission {p} is {st.st_size / 1e6:.0f} MB, more than any mission ({MAX_MISSION_FILE_BYTES / 1e6:.0f} MB); give the .plan or .waypoints file")
+        with p.open("rb") as f:
+            text = f.read(MAX_MISSION_FILE_BYTES + 1).decode("utf-8")
     except OSError as exc:
         raise InputError(f"cannot read mission {p}: {exc.strerror}; check --mission") from None
     if text.lstrip().startswith("QGC WPL"):

@@ -11,7 +11,8 @@ when allowed), ``gnss_rate`` (new fixes per second when measured: under 8
 warns, each hold's point averages its fixes), ``ekf`` (EKF3 healthy, as
 0x033f in the recording), ``battery``, ``ready_to_arm`` (SYS_STATUS pre-arm
 bit), ``home`` (within ``max_home_distance_m`` of the mission's first
-position) and ``video`` (opened and producing frames).
+position), ``mission`` (every item it will upload: see :func:`check_mission_items`)
+and ``video`` (opened and producing frames).
 """
 
 from __future__ import annotations
@@ -25,8 +26,26 @@ from typing import Any
 from dronecal_field.errors import InputError, PreflightError
 from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink.link import MavLink
-from dronecal_field.mavlink.missionfile import GLOBAL_FRAMES, Mission
+from dronecal_field.mavlink.missionfile import GLOBAL_FRAMES, STORED_IN_LOCATION, Mission
 
+# ArduPilot reports no mission capacity over MAVLink (it answers a too long upload with
+# MISSION_ACK NO_SPACE, after the upload began). ArduCopter SITL holds about 700 items on
+# its storage; boards with less storage hold fewer. The count is checked against this.
+DEFAULT_MAX_MISSION_ITEMS = 700
+# Sanity bounds on a waypoint's height above home (metres): nothing this tool plans flies
+# near them; a mission beyond them is a typo or a unit error. The vehicle's own fence
+# (FENCE_ALT_MAX) still applies in flight.
+MIN_ALT_ABOVE_HOME_M = -10.0
+MAX_ALT_ABOVE_HOME_M = 500.0
+# The frames ArduPilot accepts in a mission (global, relative, terrain, and MISSION for DO items).
+MISSION_FRAMES = frozenset({0, 2, 3, 5, 6, 10, 11})
+# The MAV_CMDs ArduCopter runs from a mission (AP_Mission, Copter mode AUTO), ArduPilot 4.x.
+ARDUCOPTER_MISSION_COMMANDS = frozenset({
+    16, 17, 18, 19, 20, 21, 22, 31, 82, 83, 84, 85, 92, 93, 94,  # NAV
+    112, 113, 114, 115,  # CONDITION
+    177, 178, 179, 181, 182, 183, 184, 189, 195, 197, 200, 201, 202, 203, 205, 206, 207, 208, 211, 212, 214, 215,
+    216, 217, 218, 222, 223, 1000, 2000, 2001, 2500, 2501, 42006, 42600,  # DO
+})
 MIN_FIX_CHOICES = ("rtk_fixed", "rtk_float", "3d")
 MIN_GNSS_RATE_HZ = 8.0  # fly asks for 10 Hz; a 5 Hz receiver (ArduPilot's default GPS_RATE_MS) warns
 
@@ -190,6 +209,46 @@ def first_position(mission: Mission) -> tuple[float, float] | None:
     return None
 
 
+def check_mission_items(mission: Mission, *, max_items: int = DEFAULT_MAX_MISSION_ITEMS) -> list[str]:
+    """Problems with the items ``fly`` would upload (empty: all good). Pure.
+
+    Every item: an integer command ArduCopter runs from a mission, a frame it
+    accepts, finite params; for items stored with a location, latitude and
+    longitude in range and not (0, 0) where the command flies there, a finite
+    altitude within [MIN_ALT_ABOVE_HOME_M, MAX_ALT_ABOVE_HOME_M] of home.
+    And no more items than the vehicle holds (``max_items``, with home).
+    """
+    problems: list[str] = []
+    if len(mission.items) > max_items:
+        problems.append(f"{len(mission.items)} items, more than the vehicle holds ({max_items} on ArduCopter SITL's storage): split the mission (plan --max-flight-time)")
+    for item in mission.items:
+        where = f"item {item.seq}"
+        if isinstance(item.command, bool) or not isinstance(item.command, int) or item.command not in ARDUCOPTER_MISSION_COMMANDS:
+            problems.append(f"{where}: command {item.command!r} is not one ArduCopter runs in a mission")
+            continue
+        if item.frame not in MISSION_FRAMES:
+            problems.append(f"{where}: frame {item.frame!r} is not one ArduPilot accepts in a mission (0, 2, 3, 5, 6, 10, 11)")
+            continue
+        if not all(math.isfinite(v) or math.isnan(v) for v in (item.p1, item.p2, item.p3, item.p4)) or not math.isfinite(item.z):
+            problems.append(f"{where}: a parameter is infinite or the altitude is not a finite number")
+            continue
+        if item.command not in STORED_IN_LOCATION or item.frame not in GLOBAL_FRAMES:
+            continue
+        lat, lon = item.x * 1e-7, item.y * 1e-7
+        if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+            problems.append(f"{where}: latitude {lat:g}, longitude {lon:g} out of range")
+            continue
+        if item.seq > 0 and item.command in (16, 17, 18, 19, 82) and item.x == 0 and item.y == 0:
+            problems.append(f"{where}: waypoint at latitude 0, longitude 0 (a missing position?)")
+            continue
+        if item.seq == 0:
+            continue
+        above_home = item.z - mission.home_alt_m if item.frame in (0, 5) else item.z
+        if not MIN_ALT_ABOVE_HOME_M <= above_home <= MAX_ALT_ABOVE_HOME_M:
+            problems.append(f"{where}: altitude {above_home:g} m above home is outside {MIN_ALT_ABOVE_HOME_M:g}..{MAX_ALT_ABOVE_HOME_M:g} m")
+    return problems
+
+
 def evaluate_preflight(
     vehicle: VehicleSnapshot,
     mission: Mission,
@@ -198,6 +257,7 @@ def evaluate_preflight(
     min_fix: str = "rtk_fixed",
     min_battery_pct: int = 30,
     max_home_distance_m: float = 500.0,
+    max_mission_items: int = DEFAULT_MAX_MISSION_ITEMS,
 ) -> list[CheckResult]:
     """The checklist for this vehicle, mission and video (pure).
 
@@ -215,6 +275,8 @@ def evaluate_preflight(
         Smallest remaining charge, percent.
     max_home_distance_m : float
         Largest distance between the vehicle's home and the mission's first position, metres.
+    max_mission_items : int
+        Most items the vehicle holds, home included.
 
     Returns
     -------
@@ -303,6 +365,13 @@ def evaluate_preflight(
         else:
             out.append(CheckResult("home", True, f"{d:.1f} m from the mission's first point"))
 
+    problems = check_mission_items(mission, max_items=max_mission_items)
+    if problems:
+        more = f" (+{len(problems) - 3} more)" if len(problems) > 3 else ""
+        out.append(CheckResult("mission", False, "; ".join(problems[:3]) + more + "; fix the mission file (or re-plan) before flying"))
+    else:
+        out.append(CheckResult("mission", True, f"{len(mission.items)} items, each a command, frame, position and altitude ArduCopter flies"))
+
     if video.error:
         out.append(CheckResult("video", False, video.error if video.url in video.error else f"{video.url}: {video.error}"))
     elif video.frames == 0:
@@ -370,7 +439,7 @@ def run_preflight(
             snapshot_from_link(link, gnss_meter), mission, video, min_fix=min_fix, min_battery_pct=min_battery_pct, max_home_distance_m=max_home_distance_m
         )
         failing = {r.name for r in results if not r.ok}
-        if not failing or failing & {"video", "disarmed", "heartbeat"} or time.monotonic() >= deadline:
+        if not failing or failing & {"video", "disarmed", "heartbeat", "mission"} or time.monotonic() >= deadline:
             return results
         if "home" in failing and not asked_home and link.latest("HOME_POSITION") is None:
             link.send(link.dialect.MAVLink_command_long_message(link.target_system, link.target_component, ap.CMD_REQUEST_MESSAGE, 0, 242, 0, 0, 0, 0, 0, 0))
