@@ -85,8 +85,9 @@ def test_observer_memory_is_bounded_and_a_full_queue_skips_waypoints_without_wai
     for seq in (4, 5, 6, 7):
         live.on_record(RunEvent(timestamp_ns=0, duration_ns=1, type="hover", metadata={"seq": str(seq)}))
     assert live.jobs_dropped == 2 and live.unchecked == [6, 7]
+    # Nothing looked at their frames (no worker ran; the ring let them go; no run file): "not checked", never "missed".
     result = live.finish(timeout_s=1.0)
-    assert result.unchecked == [6, 7] and 6 not in result.verdict.refly_seqs
+    assert result.unchecked == [4, 5, 6, 7] and result.verdict.refly_seqs == (8, 9, 10) and result.checked_after_landing == []
 
 
 def test_docs_layout_is_the_generated_one_and_names_only_live_topics():

@@ -6,7 +6,7 @@ the offline stage's own parts so that the live numbers mean what
 per-hold point (pipeline/points.window_point over HoverWindow.stable), the
 same solver (core/calibrate.py) and linearised uncertainty
 (core/uncertainty.py). What differs is the amount of work: a few frames per
-hold instead of every frame, no legs in the solve, no Monte-Carlo.
+hold instead of every frame, legs thinned in the solve, no Monte-Carlo.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from dronecal_field.pipeline.sampling import SamplingOptions
 
 MIN_SOLVE_POINTS = 6  # as calibrate (pipeline.run.MIN_POINTS)
 NOT_DETECTED = "marker not detected"
+NO_FRAMES = "no video frames recorded there"
 
 
 @dataclass(frozen=True)
@@ -244,6 +245,33 @@ def leg_outcome(seq: int, end_ns: int, frames: int, detections: list[Detection],
     """A fly-through waypoint: the leg into it showed the marker (``min_detections`` frames) or not."""
     problem = None if len(detections) >= min(min_detections, max(1, frames)) else NOT_DETECTED
     return WaypointOutcome(seq=int(seq), kind="leg", end_ns=int(end_ns), frames=frames, detections=detections, point=None, problem=problem)
+
+
+def live_leg_points(start_ns: int, end_ns: int, detections: list[Detection], track: FixTrack, offset_ns: int, min_fix: str,
+                    index: int = 0, time_std_s: float = 0.03) -> list[WaypointPoint]:
+    """One leg's 3D-2D pairs as calibrate makes them (``pipeline.legs.leg_points``: a pair per GNSS fix, the image
+    track interpolated at its instant), at camera offset ``offset_ns``; [start_ns, end_ns] on the GNSS (run) clock."""
+    from dronecal_field.pipeline.legs import Leg, leg_points, track_velocity
+
+    det_t = np.array([d.timestamp_ns for d in detections], np.int64)
+    det_uv = np.array([[d.u_px, d.v_px] for d in detections], float).reshape(-1, 2)
+    inside = (track.t_ns >= start_ns - 2_000_000_000) & (track.t_ns <= end_ns + 2_000_000_000)
+    t, X = track.t_ns[inside], track.marker_enu_m[inside]
+    if len(t) < 4:
+        return []
+    velocity = track_velocity(t, X)
+    sigma = np.nan_to_num(track.sigma_enu_m[inside], nan=0.02)
+    types = [f for f, keep in zip(track.fix_types, inside) if keep]
+    leg = Leg(index=int(index), start_ns=int(start_ns), end_ns=int(end_ns), source="event")
+    return leg_points([leg], t, X, velocity, sigma, types, det_t, det_uv, int(offset_ns), 0.0, time_std_s, min_fix, first_index=0)
+
+
+def thin(points: list, n: int) -> list:
+    """At most ``n`` of ``points``, evenly spread over the list."""
+    if len(points) <= n:
+        return list(points)
+    idx = np.unique(np.round(np.linspace(0, len(points) - 1, n)).astype(int))
+    return [points[k] for k in idx]
 
 
 # ----------------------------------------------------------------------------

@@ -51,7 +51,7 @@ def conclude(live: LiveCalibration, run_path: Path, mission: Any, timeout_s: flo
     """Finish the live work; write ``<run>.live.json`` and, if waypoints were missed, the refly plan. (result, lines to print)."""
     from dronecal_field.live.refly import write_refly_plan
 
-    result = live.finish(timeout_s)
+    result = live.finish(timeout_s, run_path=run_path if run_path.is_file() else None)
     lines = [s for s in live.new_summaries()]
     lines.append(f"verdict: {result.verdict.text}")
     doc = result.to_dict()
@@ -61,8 +61,12 @@ def conclude(live: LiveCalibration, run_path: Path, mission: Any, timeout_s: flo
         mapping = write_refly_plan(path, mission, result.verdict.refly_seqs, result.expected)
         doc["refly"] = {"file": path.name, "new_seq_to_flown_seq": {str(k): v for k, v in mapping.items()}}
         lines.append(f"refly: {path} holds just those {len(mapping)} waypoints (upload it to re-fly them; fly commands nothing by itself)")
-    if result.jobs_dropped:
-        lines.append(f"note: {result.jobs_dropped} waypoints were not checked live (the worker was busy): calibrate checks them")
+    if result.checked_after_landing:
+        lines.append(f"note: {len(result.checked_after_landing)} waypoints were checked after landing, from {run_path.name} "
+                     "(the live worker was behind in flight; the verdict includes them)")
+    if result.unchecked:
+        lines.append(f"note: {len(result.unchecked)} waypoints could not be checked ({', '.join(map(str, result.unchecked[:10]))}"
+                     f"{'...' if len(result.unchecked) > 10 else ''}): not in the verdict; calibrate checks them")
     live_json = run_path.with_name(run_path.stem + ".live.json")
     live_json.write_text(json.dumps(doc, indent=2, default=float), encoding="utf-8")
     if live.view is not None:

@@ -5,14 +5,17 @@
     recorder video thread  --on_frame-->  frame ring (a few frames a second, bounded by count)
     recorder writer thread --on_record--> fixes, attitudes (bounded deques); hover / leg events -> job queue (bounded)
     worker thread (nice +10): each job: frames of the hold -> detector -> point -> running calibration
-                              -> coverage, summary, verdict; and twice a second the Foxglove view;
+                              -> coverage, summary, verdict; legs -> a pair per GNSS fix (calibrate's pairing)
+    view thread (with --live-port): twice a second the Foxglove view (status, GNSS, the latest image)
                               between jobs, every ring frame around each hold and leg -> detector
                               -> frame cache (calibrate after landing takes it: pipeline/framecache.py)
 
 The observer's calls are O(1) appends and a ``put_nowait``: the recorder never
 waits for the live work. When the worker falls behind, the job queue fills
-and further waypoints are skipped (counted in ``jobs_dropped`` and named as
-"not checked live"); frames the ring no longer holds are simply not used.
+and further waypoints are deferred (counted in ``jobs_dropped``), as are
+waypoints whose frames the ring let go before the worker got to them: they are
+"not checked yet", never "missed", and ``finish`` checks them after landing
+from the ring or the closed run file, before the verdict.
 The recorder's own frame queue, its drops and its priority are untouched.
 
 The frame cache: each hover event opens a *zone* of frame stamps, the hold
@@ -32,7 +35,7 @@ import os
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -52,7 +55,10 @@ from dronecal_field.live.progress import (
     guessed_camera,
     hold_outcome,
     image_roi,
+    NO_FRAMES,
     leg_outcome,
+    live_leg_points,
+    thin,
     pick_frames,
     plan_flight,
     solve,
@@ -66,6 +72,8 @@ RING_HZ = 16.0  # JPEG frames a second kept for the worker: all of a 15 fps stre
 RING_FRAMES = 4000  # and at most this many (H.264/H.265: every access unit, a decodable chain; ~2 min at 30 fps) ...
 RING_BYTES = 96 << 20  # ... or this many bytes of JPEG (1080p30: the last ~20 s, longer than a hold)
 GRACE_S = 0.3  # wait this long after a hold's end for its last frames to arrive
+MAX_LEG_POINTS = 300  # leg pairs in the running solve (evenly thinned: it must stay well under a second)
+VIEW_PERIOD_S = 0.5  # the live view's status, GNSS and image: twice a second (docs/live.md)
 ZONE_BATCH = 8  # ring frames detected between two looks at the job queue (~0.05-0.2 s at 720p-1080p)
 
 
@@ -87,6 +95,7 @@ class LiveResult:
     summaries: list[str] = field(default_factory=list)
     constrained: bool = False  # the estimate passed progress.constrained (focal to 2 %, camera where the plan put it)
     frames: Any = None  # pipeline.framecache.FrameResults of the zone pass (None for H.264/H.265 or --no-live)
+    checked_after_landing: list[int] = field(default_factory=list)  # waypoints the worker could not reach in flight
 
     def to_dict(self) -> dict:
         return {
@@ -105,6 +114,8 @@ class LiveResult:
             "camera_offset": None if self.offset is None else self.offset.to_dict(),
             "jobs_dropped": self.jobs_dropped,
             "unchecked_seqs": self.unchecked,
+            "checked_after_landing_seqs": self.checked_after_landing,
+            "leg_points": None if self.estimate is None else self.estimate.n_points,
             "worker_cpu_s": self.cpu_s,
             "wall_s": self.wall_s,
             "frame_cache": None if self.frames is None else {
@@ -156,8 +167,13 @@ class LiveCalibration:
         self._fixes: collections.deque[GnssFix] = collections.deque(maxlen=200_000)
         self._attitudes: collections.deque[Attitude] = collections.deque(maxlen=200_000)
         self._jobs: queue.Queue = queue.Queue(maxsize=max(1, job_queue))
-        self.jobs_dropped = 0
+        self.jobs_dropped = 0  # waypoints the worker could not reach in flight (checked after landing)
         self.unchecked: list[int] = []
+        self._deferred: list[RunEvent] = []
+        self.checked_after_landing: list[int] = []
+        self._evicted_ns = -1  # newest frame the ring has let go (the worker can no longer look at it)
+        self._leg_points: list = []  # pipeline.points.WaypointPoint per GNSS fix on the legs, as calibrate pairs them
+        self._legs_seen = 0
         self.outcomes: list[WaypointOutcome] = []
         self.leg_detections: list = []
         self.estimate: LiveEstimate | None = None
@@ -170,6 +186,7 @@ class LiveCalibration:
         self._detector: Any = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._view_thread: threading.Thread | None = None
         self._cpu_s = 0.0
         self._started = time.monotonic()
         self._lock = threading.Lock()  # outcomes/estimate read by the status line
@@ -201,6 +218,7 @@ class LiveCalibration:
             while len(self._frames) > self._ring_max[0] or self._ring_bytes > self._ring_max[1]:
                 old = self._frames.popleft()
                 self._ring_bytes -= len(old.data)
+                self._evicted_ns = max(self._evicted_ns, old.timestamp_ns)
                 if old.timestamp_ns not in self._outcomes and old.timestamp_ns > self._evicted_undone_ns:
                     self._evicted_undone_ns = old.timestamp_ns  # a zone holding it is covered only after it
 
@@ -213,32 +231,58 @@ class LiveCalibration:
             try:
                 self._jobs.put_nowait((time.monotonic() + GRACE_S, record))
             except queue.Full:
-                self.jobs_dropped += 1
-                seq = record.metadata.get("seq") or record.metadata.get("seq_to")
-                if seq is not None:
-                    self.unchecked.append(int(seq))
+                self._defer(record)  # checked later from the ring, or from the closed run file after landing
 
     # ----- lifecycle -----
     def start(self) -> "LiveCalibration":
         self._thread = threading.Thread(target=self._run, name="live-calibration", daemon=True)
         self._thread.start()
+        if self.view is not None:
+            # Its own thread at normal priority: the view keeps its rates while the worker (nice +10) is deep in a job.
+            self._view_thread = threading.Thread(target=self._view_loop, name="live-view", daemon=True)
+            self._view_thread.start()
         return self
 
-    def finish(self, timeout_s: float = 30.0) -> LiveResult:
-        """Work off the queued waypoints (up to ``timeout_s``), stop the worker, and conclude."""
+    def _view_loop(self) -> None:
+        while not self._stop.wait(VIEW_PERIOD_S):
+            try:
+                self._publish_view()
+            except Exception:  # noqa: BLE001 - the view is cosmetic
+                pass
+
+    def finish(self, timeout_s: float = 30.0, run_path: Any = None) -> LiveResult:
+        """Stop the worker, check every waypoint it had not reached, and conclude.
+
+        The worker stops after its current job (up to ``timeout_s``); the
+        waypoints still queued or deferred (the worker was behind: their frames
+        left the ring) are then checked here, from the ring or, with
+        ``run_path`` (the closed run file), from the recording, so the verdict
+        never calls "missed" a waypoint whose frames nobody looked at.
+        """
         self._stop.set()
+        if self._view_thread is not None:
+            self._view_thread.join(timeout=timeout_s)
         if self._thread is not None:
             self._thread.join(timeout=timeout_s)
+        if self._thread is not None and self._thread.is_alive():
+            # Still inside one job: leave the rest to calibrate rather than race the worker.
+            pending = list(self._deferred) + self._drain_jobs()
+        else:
+            pending = self._drain_jobs() + list(self._deferred)
+            self._deferred.clear()
+            self._check_after_landing(pending, run_path)
+            pending = list(self._deferred)
+        unchecked = sorted({_event_seq(e) for e in pending if _event_seq(e) is not None})
         frames = self.frame_results()
         with self._lock:
-            v = verdict(self.outcomes, [s for s in self.expected if s not in self.unchecked], self.estimate, self.coverage, self.prior,
+            v = verdict(self.outcomes, [s for s in self.expected if s not in unchecked], self.estimate, self.coverage, self.prior,
                         plan_flight(self.mission, self.plan))
             result = LiveResult(
                 outcomes=list(self.outcomes), expected=list(self.expected), estimate=self.estimate, history=list(self.history),
                 verdict=v, coverage=self.coverage, offset=self.offset, jobs_dropped=self.jobs_dropped,
-                unchecked=sorted(set(self.unchecked)), cpu_s=self._cpu_s, wall_s=time.monotonic() - self._started,
+                unchecked=unchecked, cpu_s=self._cpu_s, wall_s=time.monotonic() - self._started,
                 summaries=list(self.summaries), constrained=constrained(self.estimate, self.prior),
-                frames=frames,
+                frames=frames, checked_after_landing=sorted(set(self.checked_after_landing)),
             )
         if self.view is not None:
             try:
@@ -246,6 +290,74 @@ class LiveCalibration:
             except Exception:  # noqa: BLE001 - the view is cosmetic
                 pass
         return result
+
+    def _defer(self, event: RunEvent) -> None:
+        """A waypoint the worker cannot look at now (queue full, frames gone from the ring): "not checked yet"."""
+        self.jobs_dropped += 1
+        if len(self._deferred) < 100_000:
+            self._deferred.append(event)
+        seq = _event_seq(event)
+        if seq is not None:
+            self.unchecked.append(seq)
+
+    def _drain_jobs(self) -> list[RunEvent]:
+        out = []
+        while True:
+            try:
+                out.append(self._jobs.get_nowait()[1])
+            except queue.Empty:
+                return out
+
+    def _check_after_landing(self, events: list[RunEvent], run_path: Any) -> None:
+        """The deferred waypoints, in time order: from the ring where it still holds their frames, else from the run file."""
+        if not events:
+            return
+        events = sorted(events, key=lambda e: e.timestamp_ns)
+        ring = list(self._frames)
+        from_file: list[RunEvent] = []
+        for event in events:
+            if self._ring_holds(event, ring):
+                self._check(event, ring, after_landing=True)
+            else:
+                from_file.append(event)
+        if not from_file:
+            return
+        frames = self._frames_from_file(from_file, run_path)
+        if frames is None:
+            self._deferred.extend(from_file)  # no file to read: calibrate checks them
+            return
+        for event in from_file:
+            self._check(event, frames, after_landing=True)
+
+    def _frames_from_file(self, events: list[RunEvent], run_path: Any) -> list | None:
+        """The recorded frames around ``events`` (camera clock), or None without a readable run file."""
+        if run_path is None:
+            return None
+        from dronecal_field.runfile.reader import open_run
+
+        windows = [(int(e.timestamp_ns) + self.camera_offset_ns, int(e.timestamp_ns + e.duration_ns) + self.camera_offset_ns) for e in events]
+        try:
+            with open_run(run_path) as run:
+                return list(run.iter_frames(windows))
+        except Exception as exc:  # noqa: BLE001 - a damaged file: the verdict says they were not checked
+            with self._lock:
+                self.summaries.append(f"live: could not read {run_path} to check {len(events)} waypoints after landing ({exc})")
+            return None
+
+    def _check(self, event: RunEvent, frames: list, after_landing: bool = False) -> None:
+        """One job; a failure of one waypoint never ends the live pass."""
+        try:
+            self._process(event, frames)
+            if after_landing and _event_seq(event) is not None:
+                self.checked_after_landing.append(_event_seq(event))
+        except Exception as exc:  # noqa: BLE001 - one bad waypoint must not end the live view
+            with self._lock:
+                self.summaries.append(f"live: waypoint skipped ({type(exc).__name__}: {exc})")
+
+    def _ring_holds(self, event: RunEvent, ring: list) -> bool:
+        """The ring still holds every frame of ``event``'s window (none evicted from it)."""
+        start = int(event.timestamp_ns) + self.camera_offset_ns
+        return bool(ring) and start > self._evicted_ns
 
     def frame_results(self):
         """The zone pass's outcomes and covered intervals (``pipeline.framecache.FrameResults``); None when nothing is cached."""
@@ -275,8 +387,9 @@ class LiveCalibration:
         text = f"live {good} ok {missed} missed"
         if constrained(est, self.prior):
             text += f" | {est.ground_error_15m_cm:.1f} cm@15m"
-        if self.jobs_dropped:
-            text += f" | {self.jobs_dropped} unchecked"
+        waiting = len(self._deferred)
+        if waiting:
+            text += f" | {waiting} to check after landing"
         return text
 
     # ----- worker thread -----
@@ -287,7 +400,6 @@ class LiveCalibration:
             pass
         t_cpu = time.thread_time()
         self._prepare()
-        last_view = 0.0
         busy = False  # the zone pass has frames waiting: look at the job queue without waiting
         while True:
             busy = busy and bool(self._zones) and not self._stop.is_set()
@@ -302,11 +414,16 @@ class LiveCalibration:
                     time.sleep(wait)
                 try:
                     self._zone_pass(until_ns=int(event.timestamp_ns + event.duration_ns) + self.camera_offset_ns)  # the job then reads the cache
-                    self._process(event)
-                    busy = True
-                except Exception as exc:  # noqa: BLE001 - one bad waypoint must not end the live view
+                except Exception as exc:  # noqa: BLE001 - the cache is an optimisation: calibrate reads the file instead
+                    self._zones.clear()
                     with self._lock:
-                        self.summaries.append(f"live: waypoint skipped ({type(exc).__name__}: {exc})")
+                        self.summaries.append(f"live: frame cache stopped ({type(exc).__name__}: {exc})")
+                ring = list(self._frames)
+                if self._ring_holds(event, ring):
+                    self._check(event, ring)
+                else:
+                    self._defer(event)  # its frames are gone from the ring: not "missed", checked after landing
+                busy = True
             elif self._zones and not self._stop.is_set():
                 try:
                     busy = self._zone_pass(budget=ZONE_BATCH) > 0
@@ -314,16 +431,9 @@ class LiveCalibration:
                     self._zones.clear()
                     with self._lock:
                         self.summaries.append(f"live: frame cache stopped ({type(exc).__name__}: {exc})")
-            now = time.monotonic()
-            if self.view is not None and now - last_view >= 0.5:
-                last_view = now
-                try:
-                    self._publish_view()
-                except Exception:  # noqa: BLE001 - the view is cosmetic
-                    pass
             self._cpu_s = time.thread_time() - t_cpu
-            if self._stop.is_set() and self._jobs.empty():
-                break
+            if self._stop.is_set():
+                break  # finish() checks what is still queued, after landing
         self._close_zones()
         self._cpu_s = time.thread_time() - t_cpu
 
@@ -345,32 +455,63 @@ class LiveCalibration:
             self.origin = EnuOrigin(lat_deg=f.lat_deg, lon_deg=f.lon_deg, h_m=f.alt_m)
         return fix_track(fixes, list(self._attitudes), self.origin, np.asarray(self.marker.offset_frd_m, float))
 
-    def _process(self, event: RunEvent) -> None:
+    def _process(self, event: RunEvent, frames: list) -> None:
+        """One flown waypoint, judged on what ``calibrate`` will use: a hold long enough to settle gives a hover
+        point; a leg gives a pair per GNSS fix; a leg's short end hold (``points.SHORT_SETTLED_S``) serves its leg."""
         from dronecal_field.pipeline.hover import HoverWindow
+        from dronecal_field.pipeline.points import SHORT_SETTLED_S
 
         start, end = int(event.timestamp_ns), int(event.timestamp_ns + event.duration_ns)
-        frames = list(self._frames)
         track = self._track()
+        off = self.camera_offset_ns
         if event.type == "hover":
             seq = int(event.metadata.get("seq", -1))
             po = self.options.points
             a, b = HoverWindow(0, start, end, "event", seq).stable(po.settle_s, po.tail_s)
-            picked = pick_frames(frames, a + self.camera_offset_ns, b + self.camera_offset_ns, self.options.frames_per_hold)
-            dets = self._detect_picked(picked, frames)
-            size = self.marker.size_m if self.marker.kind == "aruco" else None
-            outcome = hold_outcome(seq, len(self.outcomes), start, end, len(picked), dets, track, self.camera_offset_ns, size, self.options)
+            if (b - a) * 1e-9 < SHORT_SETTLED_S:
+                # A leg's end: calibrate pairs its frames with the leg's fixes, never as a hover point.
+                picked = pick_frames(frames, start + off, end + off, self.options.frames_per_leg)
+                dets = self._leg_detections_in(start + off, end + off, self._detect_picked(picked, frames))
+                self.leg_detections.extend(dets)
+                outcome = leg_outcome(seq, end, len(picked), dets)
+            else:
+                picked = pick_frames(frames, a + off, b + off, self.options.frames_per_hold)
+                dets = self._detect_picked(picked, frames)
+                size = self.marker.size_m if self.marker.kind == "aruco" else None
+                outcome = hold_outcome(seq, len(self.outcomes), start, end, len(picked), dets, track, off, size, self.options)
         else:
             seq = int(event.metadata.get("seq_to", -1))
-            picked = pick_frames(frames, start + self.camera_offset_ns, end + self.camera_offset_ns, self.options.frames_per_leg)
-            dets = self._detect_picked(picked, frames)
-            item = self.mission.items[seq] if 0 <= seq < len(self.mission.items) else None
+            picked = pick_frames(frames, start + off, end + off, self.options.frames_per_leg)
+            dets = self._leg_detections_in(start + off, end + off, self._detect_picked(picked, frames))
+            self._add_leg_points(start, end, dets, track)
             self.leg_detections.extend(dets)
-            if item is None or item.command != CMD_NAV_WAYPOINT or item.hold_s > 0:
+            item = self.mission.items[seq] if 0 <= seq < len(self.mission.items) else None
+            if item is None or item.command != CMD_NAV_WAYPOINT:
+                return
+            if item.hold_s - self.options.points.settle_s - self.options.points.tail_s >= SHORT_SETTLED_S:
                 return  # the hold at its end speaks for that waypoint
             outcome = leg_outcome(seq, end, len(picked), dets)
+        if not picked:
+            outcome = replace(outcome, problem=NO_FRAMES)  # the recording has no frame there: video lost
         self._conclude(outcome, track)
         if self.view is not None and picked:
             self._publish_waypoint_frame(picked, dets)
+
+    def _leg_detections_in(self, a_ns: int, b_ns: int, picked_dets: list) -> list:
+        """Every detection of the leg's frames (camera clock [a_ns, b_ns]): the frame cache's where it has them, else the job's."""
+        cached = [r.detection for t, r in list(self._outcomes.items()) if a_ns <= t <= b_ns and r is not None and r.detection is not None]
+        dets = cached if len(cached) > len(picked_dets) else picked_dets
+        return sorted(dets, key=lambda d: d.timestamp_ns)
+
+    def _add_leg_points(self, start_ns: int, end_ns: int, dets: list, track: FixTrack) -> None:
+        """The leg's 3D-2D pairs, as calibrate makes them (``pipeline.legs.leg_points``) at the current camera offset."""
+        if len(dets) < 4 or len(track.t_ns) < 4:
+            return
+        offset_ns = self.offset.offset_ns if self.offset is not None and self.offset.method != "none" else self.camera_offset_ns
+        points = live_leg_points(start_ns, end_ns, dets, track, offset_ns, self.options.min_fix, index=self._legs_seen)
+        self._legs_seen += 1
+        with self._lock:
+            self._leg_points.extend(points)
 
     # ----- the frame cache: every ring frame around the holds and legs, detected once -----
     def _open_zone(self, event: RunEvent) -> None:
@@ -464,7 +605,9 @@ class LiveCalibration:
         with self._lock:
             self.outcomes.append(outcome)
             outcomes = list(self.outcomes)
-        points = [o.point for o in outcomes if o.point is not None]
+        with self._lock:
+            leg_points = list(self._leg_points)
+        points = [o.point for o in outcomes if o.point is not None] + thin(leg_points, MAX_LEG_POINTS)
         estimate = solve(points, self.width, self.height, waypoints=len(outcomes), previous=self.estimate, prior=self.prior)
         every = max(1, self.options.summary_every)
         offset = self.offset
@@ -533,6 +676,14 @@ class LiveCalibration:
         with self._lock:
             uv = [o.uv_px for o in self.outcomes if len(o.detections)]
         return np.concatenate(uv) if uv else np.zeros((0, 2))
+
+
+def _event_seq(event: RunEvent) -> int | None:
+    seq = event.metadata.get("seq") or event.metadata.get("seq_to")
+    try:
+        return int(seq) if seq is not None else None
+    except (TypeError, ValueError):
+        return None
 
 
 def _detections_only(dets: list) -> WaypointOutcome:
