@@ -114,10 +114,37 @@ def _install_stop_signals() -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from dronecal_field.errors import DronecalError
-
     if argv is None:  # a process of its own (not a test calling main in-process)
         _install_stop_signals()
+        return leave_cleanly(_run_command(args))
+    return _run_command(args)
+
+
+def leave_cleanly(rc: int, grace_s: float = 2.0) -> int:
+    """Exit code ``rc`` once no daemon thread still runs: a thread inside native code (OpenCV, FFmpeg, numba)
+    when the interpreter finalises is unwound by force and aborts the process ("terminate called without an
+    active exception", exit 134). Each gets ``grace_s`` in all to end; if one does not, the process leaves
+    without finalising (every command has closed its files by now; stdout and stderr are flushed)."""
+    import threading
+    import time
+
+    deadline = time.monotonic() + grace_s
+    for thread in threading.enumerate():
+        if thread.daemon and thread is not threading.current_thread():
+            thread.join(timeout=max(0.0, deadline - time.monotonic()))
+    if any(t.daemon and t.is_alive() for t in threading.enumerate() if t is not threading.current_thread()):
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(rc)
+    return rc
+
+
+def _run_command(args) -> int:
+    from dronecal_field.errors import DronecalError
+
     try:
         return int(args.func(args) or 0)
     except DronecalError as exc:

@@ -113,3 +113,61 @@ def test_fly_calibrate_takes_most_detections_from_the_live_pass(tmp_path, capsys
     # the same camera as calibrate on the file alone (the truth: 560 px)
     fx = float(re.search(r"fx (\d+\.\d+)", printed).group(1))
     assert abs(fx / 560.0 - 1) < 0.05, fx
+
+
+@pytest.mark.slow
+def test_video_lost_in_flight_is_an_alarm_and_hold_keeps_the_vehicle_until_frames_return(tmp_path, capsys):
+    """Issue 19: the camera's server dies mid-mission and comes back on the same port 4 s later. ``fly`` says so at once
+    (a red line on stderr), and with ``--on-video-loss hold`` the vehicle waits in GUIDED, then AUTO resumes the mission."""
+    import threading
+    import time
+
+    plan = write_plan(tmp_path / "mission.plan", WAYPOINTS, hold_s=4.0, takeoff_alt_m=2.0, speed_mps=3.0)
+    out = tmp_path / "run.mcap"
+    truth = make_truth_camera(HOME, 4.0, 0.0, 20.0, 560.0, 640, 480, distortion=Distortion(k1=-0.1))
+
+    def camera(mavlink="udpin:127.0.0.1:0", serve="http://127.0.0.1:0/stream.mjpg"):
+        return SimCamera(truth, MarkerSpec(size_m=0.4, offset_frd_m=OFFSET), connect=mavlink, serve_url=serve, fps=15,
+                         noise_sigma_dn=1.0, seed=3).start()
+
+    cams = [camera()]
+    host, port = cams[0].mavlink_address
+    url = cams[0].url
+    config = VehicleConfig(home_lat_deg=HOME[0], home_lon_deg=HOME[1], home_alt_m=HOME[2], speedup=4.0, boot_s=1.0, params=FAST_PARAMS)
+    sim = SimVehicle(config, listen=["udp:127.0.0.1:0"], out=[f"udp:{host}:{port}"]).start()
+    modes_while_lost: list[int] = []
+
+    def outage():
+        while sim.model.current_seq < FIRST_SEQ + 2:
+            time.sleep(0.05)
+        cams[0].stop()
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 4.0:
+            time.sleep(0.25)
+            modes_while_lost.append(int(sim.model.mode))
+        cams.append(camera(f"udpin:{host}:{port}", url))
+
+    watcher = threading.Thread(target=outage, daemon=True)
+    watcher.start()
+    try:
+        rc = main(["fly", "--connect", sim.addresses()[0], "--mission", str(plan), "--video", url, "--out", str(out),
+                   "--marker-size", "0.4", "--marker-offset", ",".join(map(str, OFFSET)), "--start", "--timeout-s", "240",
+                   "--on-video-loss", "hold"])
+    finally:
+        watcher.join(timeout=30)
+        sim.stop()
+        for c in cams:
+            c.stop()
+    printed = capsys.readouterr()
+    assert rc == 0, printed.out[-3000:] + printed.err[-2000:]
+    assert re.search(r"VIDEO LOST at waypoint \d+/8: no frame from the camera", printed.err), printed.err[-2000:]
+    assert "held: GUIDED at its position until frames return" in printed.out
+    assert re.search(r"video back after \d+\.\d s", printed.out) and "resumed: AUTO continues the mission" in printed.out
+    from dronecal_field.mavlink import ardupilot as ap
+
+    assert ap.MODE_GUIDED in modes_while_lost[-4:]  # held while the camera was away
+    with open_run(out) as run:
+        gaps = [e for e in run.iter_events() if e.type == "video_gap"]
+        reached = {int(e.metadata["seq"]) for e in run.iter_events() if e.type == "hover"}
+    assert len(gaps) == 1 and gaps[0].duration_ns > 2e9
+    assert reached == set(range(FIRST_SEQ, FIRST_SEQ + len(WAYPOINTS)))  # the mission went on to its end after the hold

@@ -55,6 +55,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     video.add_argument("--camera-height", type=int, metavar="PX", help="expected image height (default: from the first frame)")
     video.add_argument("--camera-latency", type=float, metavar="S", help="capture-to-arrival delay of the stream, seconds, if known (metadata camera.latency_s; default unknown)")
     video.add_argument("--frame-queue", type=int, default=64, metavar="N", help="frames buffered for the disk before frames are dropped (default 64)")
+    video.add_argument("--on-video-loss", choices=("alarm", "hold"), default="alarm",
+                       help="when the camera's frames stop in flight: alarm (default: a red line and a bell, nothing commanded) or hold "
+                            "(also switch the vehicle from AUTO to GUIDED, holding position, and back to AUTO when frames return)")
     marker = parser.add_argument_group("marker (default: plan.json beside the mission)")
     marker.add_argument("--marker-kind", choices=("aruco", "led"), help="marker kind (default aruco)")
     marker.add_argument("--marker-dictionary", metavar="NAME", help="ArUco dictionary (default DICT_4X4_50)")
@@ -347,7 +350,8 @@ def run(args: argparse.Namespace) -> int:
             print("started: GUIDED, armed, MISSION_START sent", flush=True)
         else:
             print("waiting for the pilot to arm and switch to AUTO (Ctrl-C ends the recording; nothing is commanded)", flush=True)
-        if not _record_until_done(recorder, mission, args.timeout_s, live, watch, keeper):
+        loss = VideoLossAlarm(link, hold=args.on_video_loss == "hold", view=None if live is None else live.view)
+        if not _record_until_done(recorder, mission, args.timeout_s, live, watch, keeper, loss):
             summary = recorder.stop().summary()
             recorder = None
             closed_mono = time.monotonic()
@@ -463,7 +467,62 @@ def _video_metadata(metadata, source, args):
     return replace(metadata, camera_latency_s=latency, extra=extra)
 
 
-def _record_until_done(recorder, mission, timeout_s: float | None = None, live=None, watch=None, keeper=None) -> bool:
+class VideoLossAlarm:
+    """Frames stopping in flight is an alarm: a red line and a bell on the console, an alert in the live view and,
+    with ``--on-video-loss hold`` only, the vehicle held in GUIDED until frames return (then AUTO resumes the mission)."""
+
+    REPEAT_S = 15.0
+
+    def __init__(self, link, hold: bool = False, view=None) -> None:
+        self.link, self.hold, self.view = link, hold, view
+        self.lost_since: float | None = None
+        self.last_said = 0.0
+        self.held = False
+        self.losses = 0
+
+    def update(self, status, now: float) -> list[tuple[str, bool]]:
+        """(line, is an alarm) to print for this status (recorder.RecorderStatus) at monotonic ``now``."""
+        from dronecal_field.errors import LinkError
+        from dronecal_field.mavlink import ardupilot as ap
+
+        lines: list[tuple[str, bool]] = []
+        if not status.video_ok and self.lost_since is None:
+            self.lost_since, self.last_said = now, now
+            self.losses += 1
+            lines.append((f"VIDEO LOST at waypoint {status.waypoint}/{status.waypoints}: no frame from the camera; "
+                          "waypoints flown now have no images and must be flown again"
+                          + ("" if self.hold else " (fly --on-video-loss hold would hold the vehicle until frames return)"), True))
+            if self.hold and status.armed and status.mode == "AUTO":
+                try:
+                    ok = self.link.set_mode("GUIDED", timeout_s=2.0) == ap.MAV_RESULT_ACCEPTED
+                except LinkError:
+                    ok = False
+                self.held = ok
+                lines.append(("held: GUIDED at its position until frames return (--on-video-loss hold)", False) if ok
+                             else ("HOLD REFUSED by the vehicle: it flies on in AUTO; take over to hold it", True))
+        elif not status.video_ok and now - self.last_said >= self.REPEAT_S:
+            self.last_said = now
+            lines.append((f"VIDEO STILL LOST ({now - self.lost_since:.0f} s)" + (": the vehicle is held" if self.held else ""), True))
+        elif status.video_ok and self.lost_since is not None:
+            lines.append((f"video back after {now - self.lost_since:.1f} s (the gap is marked in the run)", False))
+            self.lost_since = None
+            if self.held:
+                self.held = False
+                try:
+                    ok = self.link.set_mode("AUTO", timeout_s=2.0) == ap.MAV_RESULT_ACCEPTED
+                except LinkError:
+                    ok = False
+                lines.append(("resumed: AUTO continues the mission", False) if ok
+                             else ("AUTO REFUSED: the vehicle still holds in GUIDED; switch to AUTO to go on", True))
+        if lines and self.view is not None:
+            try:
+                self.view.publish_status({"alert": " | ".join(text for text, _ in lines), "video_ok": bool(status.video_ok)})
+            except Exception:  # noqa: BLE001 - the view is cosmetic; the console said it
+                pass
+        return lines
+
+
+def _record_until_done(recorder, mission, timeout_s: float | None = None, live=None, watch=None, keeper=None, loss=None) -> bool:
     """Print the status line each second until the mission is over (True) or ``timeout_s`` passed (False).
 
     A mission changed by another client (``watch``, a MissionWatch) is said once, loudly; recording goes on.
@@ -486,11 +545,18 @@ def _record_until_done(recorder, mission, timeout_s: float | None = None, live=N
         if watch is not None and watch.changed and not warned:
             warned = True
             print(f"\nWARNING: {watch.describe()}", file=sys.stderr, flush=True)
+        if loss is not None and (not recorder.video_ok or loss.lost_since is not None):
+            for text, alarm in loss.update(recorder.status(), now):
+                line = ("\a\x1b[31m" + text + "\x1b[0m") if tty and alarm else text
+                print(("\r" + line.ljust(120) + "\n") if tty else line, end="" if tty else "\n", file=sys.stderr if alarm else sys.stdout, flush=True)
         if now - last_print >= 1.0:
+            late = now - last_print - 1.0 if last_print else 0.0
             last_print = now
             if keeper is not None and (again := keeper.check()):
                 print(f"\nnote: asked the vehicle again for {', '.join(again)} (it had stopped sending them: rebooted, or a request lost)", flush=True)
             line = format_status(recorder.status(), color=tty)
+            if late > 1.0:  # the machine is too busy for a status a second: say so rather than look frozen
+                line += f" | STATUS {late:.1f} s LATE"
             if live is not None:
                 for summary in live.new_summaries():
                     print(("\r" + summary.ljust(120) + "\n") if tty else summary, end="" if tty else "\n", flush=True)
