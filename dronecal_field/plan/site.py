@@ -126,6 +126,8 @@ class OptionSpec:
 
 def _pos_float(name: str) -> Callable[[Any], float]:
     def parse(value: Any) -> float:
+        if isinstance(value, bool):  # TOML true is not 1 m
+            raise InputError(f"{name} {str(value).lower()} is a true/false, not a number; write the number")
         try:
             v = float(value)
         except (TypeError, ValueError):
@@ -139,6 +141,8 @@ def _pos_float(name: str) -> Callable[[Any], float]:
 
 def _int(name: str) -> Callable[[Any], int]:
     def parse(value: Any) -> int:
+        if isinstance(value, bool) or (isinstance(value, float) and not (math.isfinite(value) and value.is_integer())):
+            raise InputError(f"{name} {value!r} is not an integer; write a whole number")  # 1.9 is not read as 1
         try:
             return int(value)
         except (TypeError, ValueError):
@@ -209,6 +213,22 @@ OPTIONS: tuple[OptionSpec, ...] = (
 )
 OPTION_BY_KEY: dict[str, OptionSpec] = {o.key: o for o in OPTIONS}
 
+# Site-file keys that are other names of an option (the flag's own name).
+KEY_ALIASES = {"marker_dictionary": "aruco_dict"}
+
+# Sane ranges (low, high, low_open) of the numeric options: a value outside is a typo or a unit
+# error, refused in one line before any work (1e308 min of endurance, 10^8 trials).
+RANGES: dict[str, tuple[float, float, bool]] = {
+    "mount_height": (0.0, 1000.0, True), "roll": (-180.0, 180.0, False), "azimuth": (-360.0, 360.0, False), "tilt": (-90.0, 90.0, False),
+    "ground_alt": (-1000.0, 10000.0, False), "ground_amsl": (-1000.0, 10000.0, False), "geoid_separation": (-150.0, 150.0, False),
+    "focal_mm": (0.0, 10000.0, True), "sensor_width": (0.0, 1000.0, True), "pixel_pitch": (0.0, 1000.0, True), "fps": (0.0, 1000.0, True),
+    "exposure_s": (0.0, 1.0, True), "marker_size": (0.0, 10.0, True), "min_marker_px": (1.0, 10000.0, False),
+    "min_agl": (0.0, 1000.0, False), "max_agl": (0.0, 1000.0, True), "max_range": (0.0, 100000.0, True), "keep_out": (0.0, 1000.0, False),
+    "speed": (0.0, 50.0, True), "hover": (0.0, 3600.0, False), "endurance": (0.0, 600.0, True), "gnss_hz": (0.0, 100.0, True),
+    "trials": (2, 100_000, False), "seed": (0, 2**32 - 1, False), "sigma_px": (0.0, 1000.0, False), "sigma_h": (0.0, 100.0, False),
+    "sigma_v": (0.0, 100.0, False), "max_flight_time": (0.0, 600.0, True),
+}
+
 
 def load_site_file(path: str | os.PathLike) -> dict[str, Any]:
     """Raw values of a TOML site file; unknown keys are an InputError naming the valid ones.
@@ -219,20 +239,29 @@ def load_site_file(path: str | os.PathLike) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"site file {path} does not exist: give a TOML file like missions/security-4k.toml")
+    if not path.stat().st_size <= 1_000_000:
+        raise InputError(f"site file {path} is larger than 1 MB: give the site's TOML file")
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        data = tomllib.loads(path.read_text(encoding="utf-8-sig"))  # a BOM (Windows editors) is fine
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"site file {path} is not valid TOML ({exc}): fix the line it names") from None
     flat: dict[str, Any] = {}
+    where: dict[str, str] = {}
 
-    def walk(d: dict[str, Any]) -> None:
+    def walk(d: dict[str, Any], table: str) -> None:
         for k, v in d.items():
             if isinstance(v, dict):
-                walk(v)
-            else:
-                flat[k.replace("-", "_")] = v
+                walk(v, f"{table}.{k}" if table else k)
+                continue
+            key = k.replace("-", "_")
+            key = KEY_ALIASES.get(key, key)
+            here = f"[{table}]" if table else "the top level"
+            if key in flat:
+                raise InputError(f"site file {path}: key {key} is given twice (in {where[key]} and in {here}): keep one")
+            flat[key] = v
+            where[key] = here
 
-    walk(data)
+    walk(data, "")
     unknown = sorted(k for k in flat if k not in OPTION_BY_KEY and k not in ("name", "description"))
     if unknown:
         raise InputError(f"site file {path}: unknown key(s) {', '.join(unknown)}: valid keys are the plan flags, e.g. {', '.join(o.key for o in OPTIONS[:6])}")
@@ -251,6 +280,14 @@ def resolve_options(values: dict[str, Any]) -> dict[str, Any]:
             out[spec.key] = spec.parse(raw)
         except InputError as exc:
             raise InputError(f"{spec.flag}: {exc}") from None
+        bounds = RANGES.get(spec.key)
+        value = out[spec.key]
+        if bounds is not None and isinstance(value, (int, float)) and not isinstance(value, bool):
+            low, high, low_open = bounds
+            if not (math.isfinite(value) and (value > low if low_open else value >= low) and value <= high):
+                shown = f"{value}" if isinstance(value, int) else f"{value:g}"
+                raise InputError(f"{spec.flag} {shown} is outside {'(' if low_open else '['}{low:g}, {high:g}]: "
+                                 f"check the unit ({spec.help.split(';')[0]})")
     out["name"] = values.get("name")
     return out
 
