@@ -72,13 +72,39 @@ def write_camera(
     os.replace(tmp, path)
 
 
+MAX_CAMERA_FILE_BYTES = 10_000_000  # a camera.yaml is a few kB
+MAX_IMAGE_SIDE_PX = 65536
+# OpenCV's distortion vectors: 4 or 5 (Brown-Conrady, this tool's model), 8 (rational), 12 (thin prism), 14 (tilted).
+OPENCV_DISTORTION_COUNTS = (4, 5, 8, 12, 14)
+
+
+def _sniff_foreign(path: Path) -> None:
+    """One line for the other YAML files ``calibrate`` writes beside camera.yaml, which are not camera files."""
+    with path.open("rb") as f:
+        head = f.read(65536).decode("utf-8", errors="replace")
+    if "distortion_model:" in head and "projection_matrix:" in head:
+        raise InputError(f"{path} is the ROS camera_info.yaml (for ROS drivers), not a camera file: give the camera.yaml beside it")
+    if "H_image_from_ground" in head:
+        raise InputError(f"{path} is the ground homography (image <-> ground plane), not a camera file: give the camera.yaml beside it")
+
+
 def read_camera(path: str | os.PathLike) -> Camera:
-    """Read a camera file; a missing file or key is an InputError naming it."""
+    """Read a camera file; a missing file or key is an InputError naming it.
+
+    Strict: an OpenCV distortion vector of 4/5 coefficients is read; 8, 12 or 14 only when the
+    coefficients beyond the fifth are zero (this tool's model has five); a camera_matrix with
+    skew or a last row other than (0, 0, 1), and image sizes outside 1..65536 px, are refused.
+    """
     import cv2
 
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise InputError(f"camera file {path} does not exist: pass the camera.yaml written by calibrate or the simulator")
+    if not path.is_file():
+        raise InputError(f"camera file {path} is not a regular file (a folder, pipe or device): pass the camera.yaml written by calibrate")
+    if path.stat().st_size > MAX_CAMERA_FILE_BYTES:
+        raise InputError(f"camera file {path} is {path.stat().st_size / 1e6:.0f} MB, far more than a camera.yaml: pass the camera.yaml written by calibrate")
+    _sniff_foreign(path)
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:  # a binary or broken file surfaces as SystemError from the binding
@@ -98,10 +124,10 @@ def read_camera(path: str | os.PathLike) -> Camera:
                 raise InputError(f"camera file {path}: '{key}' has {m.size} values, expected {int(np.prod(shape))}")
             return m.reshape(shape) if shape is not None else m
 
-        width = int(fs.getNode("image_width").real())
-        height = int(fs.getNode("image_height").real())
-        if width <= 0 or height <= 0:
-            raise InputError(f"camera file {path} needs positive image_width and image_height")
+        w_real, h_real = fs.getNode("image_width").real(), fs.getNode("image_height").real()
+        if not all(np.isfinite(v) and v == int(v) and 1 <= v <= MAX_IMAGE_SIDE_PX for v in (w_real, h_real)):
+            raise InputError(f"camera file {path}: image_width {w_real:g}, image_height {h_real:g} must be whole pixels in 1..{MAX_IMAGE_SIDE_PX}: fix them")
+        width, height = int(w_real), int(h_real)
         K = mat("camera_matrix", (3, 3))
         dist_node = fs.getNode("distortion_coefficients")
         dist = np.zeros(5) if dist_node.empty() else np.asarray(dist_node.mat(), float).ravel()
@@ -117,6 +143,21 @@ def read_camera(path: str | os.PathLike) -> Camera:
         raise InputError(f"camera file {path}: rotation_world_to_camera is not a rotation (R R^T != I or det < 0): regenerate it or fix the matrix")
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise InputError(f"camera file {path}: focal length fx {K[0, 0]:g}, fy {K[1, 1]:g} px must be positive: fix camera_matrix")
+    if abs(K[0, 1]) > 1e-9 * K[0, 0]:
+        raise InputError(f"camera file {path}: camera_matrix has skew {K[0, 1]:g} (K[0,1]); this tool's model has none: recalibrate, or set it to 0 if it is negligible")
+    if not (K[1, 0] == 0 and K[2, 0] == 0 and K[2, 1] == 0 and K[2, 2] == 1):
+        raise InputError(f"camera file {path}: camera_matrix rows 2-3 must be [0, fy, cy] and [0, 0, 1] (found K[2,2] = {K[2, 2]:g}): "
+                         "divide the matrix by K[2,2] or regenerate it")
+    if not (max(K[0, 0], K[1, 1]) < 100 * MAX_IMAGE_SIDE_PX and abs(K[0, 2]) < 10 * width and abs(K[1, 2]) < 10 * height):
+        raise InputError(f"camera file {path}: camera_matrix fx {K[0, 0]:g}, cx {K[0, 2]:g}, cy {K[1, 2]:g} px do not fit a {width}x{height} image: fix camera_matrix")
+    dist = np.asarray(dist, float).ravel()
+    if dist.size not in OPENCV_DISTORTION_COUNTS:
+        raise InputError(f"camera file {path}: distortion_coefficients has {dist.size} values; OpenCV's are 4, 5, 8, 12 or 14 (k1 k2 p1 p2 [k3 ...]): fix it")
+    if not np.all(np.isfinite(dist)):
+        raise InputError(f"camera file {path}: distortion_coefficients hold NaN or inf: regenerate it")
+    if dist.size > 5 and np.any(dist[5:] != 0):
+        raise InputError(f"camera file {path}: distortion_coefficients has {dist.size} values with k4.. non-zero (OpenCV's rational/thin-prism/tilted model); "
+                         "this tool's model has five (k1 k2 p1 p2 k3): recalibrate with it (calibrate) instead of dropping them")
     return Camera(
         intrinsics=Intrinsics(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=width, height=height),
         distortion=Distortion.from_array(dist),

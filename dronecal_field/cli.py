@@ -285,8 +285,8 @@ def check_input_file(flag: str, path: str | os.PathLike | None) -> None:
     p = Path(path)
     if not p.exists():
         raise InputError(f"{flag} {p} does not exist: check the path")
-    if not p.is_file():
-        raise InputError(f"{flag} {p} is not a file: give the file itself")
+    if not p.is_file():  # a folder, or a FIFO (would wait for a writer for ever) or a device (/dev/zero never ends)
+        raise InputError(f"{flag} {p} is not a regular file: give the file itself")
 
 
 def check_marker(dictionary: str, marker_id: int | None, *, dict_flag: str = "--marker-dictionary", id_flag: str = "--marker-id") -> None:

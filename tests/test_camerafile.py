@@ -75,3 +75,71 @@ def test_writing_a_camera_into_a_missing_folder_is_one_input_error(tmp_path):
     with pytest.raises(InputError, match="does not exist"):
         write_camera(tmp_path / "missing" / "camera.yaml", paper_camera(distorted=False))
     assert not (tmp_path / "missing").exists()
+
+
+def _edited(tmp_path, name: str, count: int | None = None, values: str | None = None, **replace: str):
+    """The written camera.yaml with its distortion vector and other text replaced."""
+    cam = pole_camera(900.0, 1920, 1080, (0.0, 0.0, 4.0), 20.0, distortion=Distortion(k1=-0.2, k2=0.05))
+    path = tmp_path / f"{name}.yaml"
+    write_camera(path, cam)
+    text = path.read_text()
+    if count is not None:
+        head, rest = text.split("distortion_coefficients:", 1)
+        block, tail = rest.split("data:", 1)
+        tail = tail.split("]", 1)[1]
+        text = head + f"distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: {count}\n   dt: d\n   data: [ {values} ]" + tail
+    for old, new in replace.items():
+        assert old in text, old
+        text = text.replace(old, new)
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("count, values, ok", [
+    (4, "-0.2, 0.05, 0., 0.", True),
+    (5, "-0.2, 0.05, 0., 0., 0.01", True),
+    (8, "-0.2, 0.05, 0., 0., 0.01, 0., 0., 0.", True),   # rational model with k4..k6 = 0: the same camera
+    (8, "-0.2, 0.05, 0., 0., 0.01, 0.3, 0., 0.", False),  # k4 != 0: not silently cut to 5
+    (12, "-0.2, 0.05, 0., 0., 0.01, 0., 0., 0., 0.001, 0., 0., 0.", False),
+    (14, "-0.2, 0.05, 0., 0., 0.01, 0., 0., 0., 0., 0., 0., 0., 0.01, 0.", False),
+    (6, "-0.2, 0.05, 0., 0., 0.01, 0.", False),
+])
+def test_distortion_counts_are_read_or_refused_never_cut(tmp_path, count, values, ok):
+    path = _edited(tmp_path, f"d{count}", count, values)
+    if ok:
+        assert read_camera(path).distortion.k1 == pytest.approx(-0.2)
+    else:
+        with pytest.raises(InputError, match="distortion_coefficients has"):
+            read_camera(path)
+
+
+def test_skew_a_scaled_matrix_and_absurd_sizes_are_refused(tmp_path):
+    cam_path = _edited(tmp_path, "ok")
+    K_line = next(line for line in cam_path.read_text().splitlines() if line.strip().startswith("data: [ 900."))
+    skew = _edited(tmp_path, "skew", **{K_line: K_line.replace("900., 0.,", "900., 3.,", 1)})
+    with pytest.raises(InputError, match="skew"):
+        read_camera(skew)
+    scaled = _edited(tmp_path, "k22", **{K_line: K_line.rstrip(" ]").rsplit(",", 1)[0] + ", 2. ]"})
+    with pytest.raises(InputError, match=r"K\[2,2\] = 2"):
+        read_camera(scaled)
+    huge = _edited(tmp_path, "huge", **{"image_width: 1920": "image_width: 2000000000"})
+    with pytest.raises(InputError, match="image_width"):
+        read_camera(huge)
+
+
+def test_the_tools_other_yaml_files_are_named_not_read(tmp_path):
+    info = tmp_path / "camera_info.yaml"
+    info.write_text("image_width: 1280\nimage_height: 720\ncamera_name: dronecal\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
+                    "  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]\ndistortion_model: plumb_bob\nprojection_matrix:\n  rows: 3\n  cols: 4\n  data: []\n")
+    homography = tmp_path / "ground_homography.yaml"
+    homography.write_text("# Image <-> ground plane\nenu_origin: [1, 2, 3]\nH_image_from_ground:\n  rows: 3\n  cols: 3\n  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]\n")
+    with pytest.raises(InputError, match="camera_info.yaml .*give the camera.yaml beside it"):
+        read_camera(info)
+    with pytest.raises(InputError, match="ground homography"):
+        read_camera(homography)
+    fifo = tmp_path / "fifo.yaml"
+    import os
+
+    os.mkfifo(fifo)
+    with pytest.raises(InputError, match="not a regular file"):
+        read_camera(fifo)

@@ -22,6 +22,7 @@ import io
 import json
 import math
 import os
+import stat
 import struct
 import zlib
 from dataclasses import dataclass
@@ -132,6 +133,12 @@ class Run:
 
         self.path = Path(path)
         self._name = self.path.name
+        try:
+            mode = os.stat(self.path).st_mode
+        except OSError as exc:
+            raise InputError(f"cannot open run file {self.path}: {exc.strerror}") from exc
+        if not stat.S_ISREG(mode):  # opening a FIFO waits for a writer for ever; a device never ends
+            raise InputError(f"run file {self.path} is not a regular file (a {'folder' if stat.S_ISDIR(mode) else 'pipe or device'}): give the .mcap file")
         try:
             self._f = open(self.path, "rb")
         except OSError as exc:
