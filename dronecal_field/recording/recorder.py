@@ -604,6 +604,8 @@ class Recorder:
                 if self._gap_start_ns is None and silent_s > self.video_timeout_s:
                     self._gap_start_ns = time.time_ns() - int(silent_s * 1e9)
                 if (self._gap_start_ns is not None or getattr(self.video, "ended", False)) and now - last_reopen > 1.0:
+                    if self._gap_start_ns is None:  # the stream ended: a reconnect is a gap however short
+                        self._gap_start_ns = time.time_ns() - int(silent_s * 1e9)
                     last_reopen = now
                     try:
                         self.video.reopen()

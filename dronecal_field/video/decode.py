@@ -85,3 +85,27 @@ def decode_keyframe_gray(data: bytes, fmt: str):
     f = frames[0]
     plane = f.planes[0]
     return np.ascontiguousarray(np.frombuffer(plane, np.uint8).reshape(f.height, plane.line_size)[:, : f.width])
+
+
+def keyframe_error(data: bytes, fmt: str) -> str | None:
+    """Why one keyframe access unit does not decode cleanly on its own (truncated, corrupt), or None when it does.
+
+    One decoder thread with FFmpeg's ``err_detect=explode``: an error the
+    decoder finds (a slice that runs out of bits, as in a keyframe cut by a
+    server's too-small buffer) fails the decode instead of being concealed.
+    H.264 finds every cut slice this way (CABAC's end check); H.265 only those
+    the decoder notices (a syntax element out of range), so a clean result is
+    no proof for H.265.
+    """
+    import av
+
+    ctx = av.CodecContext.create(CODEC_OF_FORMAT[fmt], "r")
+    ctx.thread_count = 1
+    ctx.options = {"err_detect": "explode"}
+    try:
+        frames = list(ctx.decode(av.Packet(data))) + list(ctx.decode(None))
+    except av.FFmpegError as exc:
+        return f"{type(exc).__name__}: {exc}"
+    if not frames:
+        return "no picture decoded"
+    return None

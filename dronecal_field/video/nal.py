@@ -194,6 +194,27 @@ def is_keyframe(data: bytes, fmt: str) -> bool:
     return False
 
 
+def starts_picture(data: bytes, fmt: str) -> bool | None:
+    """Whether a packet's first slice is the first slice of a picture (a new access unit); None without a slice.
+
+    H.264: ``first_mb_in_slice`` is 0 (its ue(v) code is the single bit 1, the
+    top bit after the one-byte NAL header); H.265:
+    ``first_slice_segment_in_pic_flag`` (the top bit after the two-byte
+    header). Only the headers up to the first slice are looked at.
+    """
+    vcl = VCL_TYPES[fmt]
+    header = 1 if fmt == "h264" else 2
+    i = data.find(b"\x00\x00\x01")
+    while 0 <= i < len(data) - 3:
+        start = i + 3
+        if nal_type(data[start : start + 1], fmt) in vcl:
+            if start + header >= len(data):
+                return None
+            return bool(data[start + header] & 0x80)
+        i = data.find(b"\x00\x00\x01", start)
+    return None
+
+
 def video_frame_of(frame: Frame) -> VideoFrame:
     """A Frame read back from ``/camera/video`` as a VideoFrame (keyframe found from its NAL units)."""
     if isinstance(frame, VideoFrame):
