@@ -31,7 +31,33 @@ def _weight(sq: float, loss: int, scale: float) -> float:
 
 
 @njit(cache=True, fastmath=True, nogil=True)
-def _accumulate(
+def _squared_residuals(
+    intr: np.ndarray,  # (4,)
+    dist: np.ndarray,  # (5,)
+    R: np.ndarray,  # (3, 3)
+    t: np.ndarray,  # (3,)
+    X: np.ndarray,  # (N, 3)
+    y: np.ndarray,  # (N, 2)
+    sq: np.ndarray,  # (N,) out
+) -> None:
+    """Squared reprojection residual of every point: all a trial step needs to be judged."""
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    for n in range(y.shape[0]):
+        X0, X1, X2 = X[n, 0], X[n, 1], X[n, 2]
+        iz = 1.0 / (R[2, 0] * X0 + R[2, 1] * X1 + R[2, 2] * X2 + t[2])
+        xn = (R[0, 0] * X0 + R[0, 1] * X1 + R[0, 2] * X2 + t[0]) * iz
+        yn = (R[1, 0] * X0 + R[1, 1] * X1 + R[1, 2] * X2 + t[1]) * iz
+        r2 = xn * xn + yn * yn
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xy2 = 2.0 * xn * yn
+        ru = y[n, 0] - (fx * (xn * radial + p1 * xy2 + p2 * (r2 + 2.0 * xn * xn)) + cx)
+        rv = y[n, 1] - (fy * (yn * radial + p1 * (r2 + 2.0 * yn * yn) + p2 * xy2) + cy)
+        sq[n] = ru * ru + rv * rv
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _jacobian_rows(
     intr: np.ndarray,  # (4,)
     dist: np.ndarray,  # (5,)
     R: np.ndarray,  # (3, 3)
@@ -42,23 +68,17 @@ def _accumulate(
     sel: np.ndarray,  # (m,)
     fx_col: int,
     aspect: float,
-    JtJ: np.ndarray,  # (m, m) out
-    g: np.ndarray,  # (m,) out
-    sq: np.ndarray,  # (N,) out
+    J: np.ndarray,  # (m, 2N) out: sqrt(w)-weighted Jacobian, one row per free parameter
+    r: np.ndarray,  # (2N,) out: sqrt(w)-weighted residuals (u, v of point n at 2n, 2n+1)
+    sq: np.ndarray,  # (N,) out: unweighted squared residuals
 ) -> None:
-    """Normal equations of one problem at one parameter value."""
+    """The weighted Jacobian of one problem, stored by parameter so its products are contiguous dot products."""
     N = y.shape[0]
     m = sel.shape[0]
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     jf_u = np.empty(15)
     jf_v = np.empty(15)
-    ju = np.empty(m)
-    jv = np.empty(m)
-    for a in range(m):
-        g[a] = 0.0
-        for b in range(m):
-            JtJ[a, b] = 0.0
     for n in range(N):
         X0, X1, X2 = X[n, 0], X[n, 1], X[n, 2]
         ax = R[0, 0] * X0 + R[0, 1] * X1 + R[0, 2] * X2
@@ -76,9 +96,9 @@ def _accumulate(
         ru = y[n, 0] - (fx * xd + cx)
         rv = y[n, 1] - (fy * yd + cy)
         sq[n] = ru * ru + rv * rv
-        wn = w[n]
-        if wn == 0.0:
-            continue
+        sw = np.sqrt(w[n])
+        r[2 * n] = sw * ru
+        r[2 * n + 1] = sw * rv
         drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
         dxd_dy = xy2 * drad + 2.0 * p1 * xn + 2.0 * p2 * yn
         a00 = fx * (radial + 2.0 * xn * xn * drad + 2.0 * p1 * yn + 6.0 * p2 * xn) * iz
@@ -118,20 +138,82 @@ def _accumulate(
         jf_v[13] = a11
         jf_v[14] = gv2
         for a in range(m):
-            ju[a] = jf_u[sel[a]]
-            jv[a] = jf_v[sel[a]]
+            J[a, 2 * n] = sw * jf_u[sel[a]]
+            J[a, 2 * n + 1] = sw * jf_v[sel[a]]
         if fx_col >= 0:
-            ju[fx_col] += aspect * jf_u[1]
-            jv[fx_col] += aspect * jf_v[1]
-        for a in range(m):
-            wu = wn * ju[a]
-            wv = wn * jv[a]
-            g[a] += wu * ru + wv * rv
-            for b in range(a, m):
-                JtJ[a, b] += wu * ju[b] + wv * jv[b]
+            J[fx_col, 2 * n] += sw * aspect * jf_u[1]
+            J[fx_col, 2 * n + 1] += sw * aspect * jf_v[1]
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _normal_from_rows(J: np.ndarray, r: np.ndarray, JtJ: np.ndarray, g: np.ndarray) -> None:
+    """J^T J (m, m) and J^T r (m,) from the rows of J (m, 2N)."""
+    m, n2 = J.shape
     for a in range(m):
-        for b in range(a + 1, m):
-            JtJ[b, a] = JtJ[a, b]
+        s = 0.0
+        for c in range(n2):
+            s += J[a, c] * r[c]
+        g[a] = s
+        for b in range(a, m):
+            s = 0.0
+            for c in range(n2):
+                s += J[a, c] * J[b, c]
+            JtJ[a, b] = s
+            JtJ[b, a] = s
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _accumulate(
+    intr: np.ndarray,  # (4,)
+    dist: np.ndarray,  # (5,)
+    R: np.ndarray,  # (3, 3)
+    t: np.ndarray,  # (3,)
+    X: np.ndarray,  # (N, 3)
+    y: np.ndarray,  # (N, 2)
+    w: np.ndarray,  # (N,)
+    sel: np.ndarray,  # (m,)
+    fx_col: int,
+    aspect: float,
+    JtJ: np.ndarray,  # (m, m) out
+    g: np.ndarray,  # (m,) out
+    sq: np.ndarray,  # (N,) out
+) -> None:
+    """Normal equations of one problem at one parameter value (allocates its Jacobian; the solver reuses one)."""
+    N = y.shape[0]
+    J = np.empty((sel.shape[0], 2 * N))
+    r = np.empty(2 * N)
+    _jacobian_rows(intr, dist, R, t, X, y, w, sel, fx_col, aspect, J, r, sq)
+    _normal_from_rows(J, r, JtJ, g)
+
+
+@njit(cache=True, fastmath=True, nogil=True)
+def _cholesky_solve(H: np.ndarray, b: np.ndarray, L: np.ndarray, x: np.ndarray) -> bool:
+    """Solve H x = b for symmetric positive definite H (m, m) by Cholesky; False if H is not positive definite."""
+    m = H.shape[0]
+    for j in range(m):
+        s = H[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not (s > 0.0) or not np.isfinite(s):
+            return False
+        d = np.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, m):
+            s = H[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / d
+    for i in range(m):
+        s = b[i]
+        for k in range(i):
+            s -= L[i, k] * x[k]
+        x[i] = s / L[i, i]
+    for i in range(m - 1, -1, -1):
+        s = x[i]
+        for k in range(i + 1, m):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
+    return True
 
 
 @njit(cache=True, fastmath=True, nogil=True)
@@ -167,32 +249,30 @@ def _cost(w: np.ndarray, sq: np.ndarray) -> float:
 def _solve_one(
     intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray,
     X: np.ndarray, y: np.ndarray, A: np.ndarray, sel: np.ndarray, fx_col: int, aspect: float,
-    max_iterations: int, tolerance: float, loss: int, scale: float,
+    max_iterations: int, tolerance: float, loss: int, scale: float, damping: float,
+    J: np.ndarray, r: np.ndarray, w: np.ndarray, sq: np.ndarray, sq_t: np.ndarray,
+    JtJ: np.ndarray, g: np.ndarray, H: np.ndarray, L: np.ndarray, delta: np.ndarray,
+    intr_t: np.ndarray, dist_t: np.ndarray, R_t: np.ndarray, t_t: np.ndarray, dR: np.ndarray, full: np.ndarray,
 ) -> tuple[float, int]:
-    """Levenberg-Marquardt for one problem, in place on intr, dist, R, t; returns (cost, iterations)."""
+    """Levenberg-Marquardt for one problem, in place on intr, dist, R, t; returns (cost, iterations).
+
+    The arrays after ``scale`` are workspace (J (m, 2N), r (2N,), w, sq, sq_t (N,), JtJ, H, L (m, m),
+    g, delta (m,), intr_t (4,), dist_t (5,), R_t, dR (3, 3), t_t (3,), full (15,)), reused across
+    problems. A trial step is judged on its residuals alone; the Jacobian is formed only where a
+    step is accepted and the solve goes on.
+    """
     N = y.shape[0]
     m = sel.shape[0]
-    JtJ = np.empty((m, m))
-    g = np.empty(m)
-    sq = np.empty(N)
-    JtJ_t = np.empty((m, m))
-    g_t = np.empty(m)
-    sq_t = np.empty(N)
-    H = np.empty((m, m))
-    w = np.ones(N)
-    intr_t = np.empty(4)
-    dist_t = np.empty(5)
-    R_t = np.empty((3, 3))
-    t_t = np.empty(3)
-    dR = np.empty((3, 3))
-    full = np.empty(15)
-    _accumulate(intr, dist, R, t, X, y, w, sel, fx_col, aspect, JtJ, g, sq)
+    for n in range(N):
+        w[n] = 1.0
+    _jacobian_rows(intr, dist, R, t, X, y, w, sel, fx_col, aspect, J, r, sq)
     if loss != 0:
         for n in range(N):
             w[n] = _weight(sq[n], loss, scale)
-        _accumulate(intr, dist, R, t, X, y, w, sel, fx_col, aspect, JtJ, g, sq)
+        _jacobian_rows(intr, dist, R, t, X, y, w, sel, fx_col, aspect, J, r, sq)
+    _normal_from_rows(J, r, JtJ, g)
     cost = _cost(w, sq)
-    lam = 1e-3
+    lam = damping
     fails = 0
     it = 0
     for it in range(1, max_iterations + 1):
@@ -200,43 +280,44 @@ def _solve_one(
             for b in range(m):
                 H[a, b] = JtJ[a, b]
             H[a, a] += lam * max(JtJ[a, a], 1e-12)
-        delta = np.linalg.solve(H, g)
-        for i in range(15):
-            s = 0.0
-            for a in range(m):
-                s += A[i, a] * delta[a]
-            full[i] = s
-        for i in range(4):
-            intr_t[i] = intr[i] + full[i]
-        for i in range(5):
-            dist_t[i] = dist[i] + full[4 + i]
-        _rodrigues(full[9], full[10], full[11], dR)
-        for i in range(3):
-            t_t[i] = t[i] + full[12 + i]
-            for j in range(3):
-                R_t[i, j] = dR[i, 0] * R[0, j] + dR[i, 1] * R[1, j] + dR[i, 2] * R[2, j]
-        _accumulate(intr_t, dist_t, R_t, t_t, X, y, w, sel, fx_col, aspect, JtJ_t, g_t, sq_t)
-        # judged with the weights the step was computed with, so reweighting cannot fake progress
-        cost_t = _cost(w, sq_t)
+        cost_t = np.inf
+        if _cholesky_solve(H, g, L, delta):
+            for i in range(15):
+                s = 0.0
+                for a in range(m):
+                    s += A[i, a] * delta[a]
+                full[i] = s
+            for i in range(4):
+                intr_t[i] = intr[i] + full[i]
+            for i in range(5):
+                dist_t[i] = dist[i] + full[4 + i]
+            _rodrigues(full[9], full[10], full[11], dR)
+            for i in range(3):
+                t_t[i] = t[i] + full[12 + i]
+                for j in range(3):
+                    R_t[i, j] = dR[i, 0] * R[0, j] + dR[i, 1] * R[1, j] + dR[i, 2] * R[2, j]
+            _squared_residuals(intr_t, dist_t, R_t, t_t, X, y, sq_t)
+            # judged with the weights the step was computed with, so reweighting cannot fake progress
+            cost_t = _cost(w, sq_t)
         if cost_t < cost and np.isfinite(cost_t):
             rel = (cost - cost_t) / max(cost, 1e-300)
             intr[:] = intr_t
             dist[:] = dist_t
             R[:, :] = R_t
             t[:] = t_t
-            JtJ[:, :] = JtJ_t
-            g[:] = g_t
             sq[:] = sq_t
             cost = cost_t
-            if loss != 0:
-                for n in range(N):
-                    w[n] = _weight(sq[n], loss, scale)
-                _accumulate(intr, dist, R, t, X, y, w, sel, fx_col, aspect, JtJ, g, sq)
-                cost = _cost(w, sq)
             lam = max(lam / 10.0, 1e-9)
             fails = 0
             if rel < tolerance or cost <= 1e-24:
                 break
+            if loss != 0:
+                for n in range(N):
+                    w[n] = _weight(sq[n], loss, scale)
+            _jacobian_rows(intr, dist, R, t, X, y, w, sel, fx_col, aspect, J, r, sq)
+            _normal_from_rows(J, r, JtJ, g)
+            if loss != 0:
+                cost = _cost(w, sq)
         else:
             lam *= 10.0
             fails += 1
@@ -247,6 +328,106 @@ def _solve_one(
     for n in range(N):
         total += sq[n]
     return total, it
+
+
+@njit(cache=True, nogil=True)
+def _project_into(intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, X0: float, X1: float, X2: float) -> tuple[float, float]:
+    """Pixel (u, v) of one world point (the algebra of ``core.camera.project_batch``)."""
+    iz = 1.0 / (R[2, 0] * X0 + R[2, 1] * X1 + R[2, 2] * X2 + t[2])
+    xn = (R[0, 0] * X0 + R[0, 1] * X1 + R[0, 2] * X2 + t[0]) * iz
+    yn = (R[1, 0] * X0 + R[1, 1] * X1 + R[1, 2] * X2 + t[1]) * iz
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xy = xn * yn
+    xd = xn * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xn * xn)
+    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xy
+    return intr[0] * xd + intr[2], intr[1] * yd + intr[3]
+
+
+@njit(cache=True, nogil=True)
+def _undistort(xd: float, yd: float, dist: np.ndarray, iterations: int) -> tuple[float, float]:
+    """Undistorted normalised (x, y) by Newton's method (``core.camera.undistort_normalised`` for one point)."""
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    x, y = xd, yd
+    for _ in range(iterations):
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xy = x * y
+        ex = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x * x) - xd
+        ey = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * xy - yd
+        drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+        a = radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
+        b = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+        d = radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
+        det = a * d - b * b
+        if np.abs(det) < 1e-12:
+            det = 1e-12
+        x, y = x - (d * ex - b * ey) / det, y - (a * ey - b * ex) / det
+    return x, y
+
+
+@njit(cache=True, nogil=True)
+def _intersect_into(intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, uv: np.ndarray, z_plane: float, out: np.ndarray) -> None:
+    """World points out (P, 3) where the rays of pixels uv (P, 2) meet the plane z = z_plane; NaN where they miss."""
+    c0 = -(R[0, 0] * t[0] + R[1, 0] * t[1] + R[2, 0] * t[2])
+    c1 = -(R[0, 1] * t[0] + R[1, 1] * t[1] + R[2, 1] * t[2])
+    c2 = -(R[0, 2] * t[0] + R[1, 2] * t[1] + R[2, 2] * t[2])
+    for p in range(uv.shape[0]):
+        x, y = _undistort((uv[p, 0] - intr[2]) / intr[0], (uv[p, 1] - intr[3]) / intr[1], dist, 20)
+        d0 = R[0, 0] * x + R[1, 0] * y + R[2, 0]
+        d1 = R[0, 1] * x + R[1, 1] * y + R[2, 1]
+        d2 = R[0, 2] * x + R[1, 2] * y + R[2, 2]
+        norm = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        d0, d1, d2 = d0 / norm, d1 / norm, d2 / norm
+        s = (z_plane - c2) / d2
+        if not s > 0:
+            s = np.nan
+        out[p, 0] = c0 + s * d0
+        out[p, 1] = c1 + s * d1
+        out[p, 2] = c2 + s * d2
+
+
+@njit(cache=True, nogil=True)
+def _rms_projection_difference(intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, uv_ref: np.ndarray) -> float:
+    """RMS over points X (M, 3) of the pixel distance between this camera's projection and uv_ref (M, 2); NaN for M = 0."""
+    if X.shape[0] == 0:
+        return np.nan
+    s = 0.0
+    for n in range(X.shape[0]):
+        u, v = _project_into(intr, dist, R, t, X[n, 0], X[n, 1], X[n, 2])
+        du, dv = u - uv_ref[n, 0], v - uv_ref[n, 1]
+        s += du * du + dv * dv
+    return np.sqrt(s / X.shape[0])
+
+
+@njit(cache=True, nogil=True)
+def intersect_plane_z(
+    intr: np.ndarray,  # (K, 4)
+    dist: np.ndarray,  # (K, 5)
+    R: np.ndarray,  # (K, 3, 3)
+    t: np.ndarray,  # (K, 3)
+    uv: np.ndarray,  # (P, 2) pixels, the same for every camera
+    z_plane: float,
+    out: np.ndarray,  # (K, P, 3) out: world metres, NaN where a ray misses the plane
+) -> None:
+    """``core.camera.intersect_plane_z`` compiled, for pixels shared by K cameras."""
+    for k in range(R.shape[0]):
+        _intersect_into(intr[k], dist[k], R[k], t[k], uv, z_plane, out[k])
+
+
+# Problems solved one after another by a thread, sharing one workspace.
+BLOCK = 8
+
+
+@njit(cache=True, nogil=True)
+def _workspace(m: int, N: int):
+    """The arrays _solve_one works in, for m free parameters and N points."""
+    return (
+        np.empty((m, 2 * N)), np.empty(2 * N), np.empty(N), np.empty(N), np.empty(N),
+        np.empty((m, m)), np.empty(m), np.empty((m, m)), np.empty((m, m)), np.empty(m),
+        np.empty(4), np.empty(5), np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty(15),
+    )
 
 
 @njit(cache=True, parallel=True, nogil=True)
@@ -268,14 +449,62 @@ def solve_batch(
     cost: np.ndarray,  # (K,) out: unweighted sum of squared residuals
     iterations: np.ndarray,  # (K,) out
 ) -> None:
-    """Solve K independent calibration problems in place, in parallel."""
+    """Solve K independent calibration problems in place, in parallel (blocks of BLOCK problems per workspace)."""
     K = R.shape[0]
     shared = X.shape[0] == 1
-    for k in prange(K):
-        Xk = X[0] if shared else X[k]
-        c, it = _solve_one(intr[k], dist[k], R[k], t[k], Xk, y[k], A, sel, fx_col, aspect, max_iterations, tolerance, loss, scale)
-        cost[k] = c
-        iterations[k] = it
+    for block in prange((K + BLOCK - 1) // BLOCK):
+        J, r, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full = _workspace(sel.shape[0], y.shape[1])
+        for k in range(block * BLOCK, min(K, (block + 1) * BLOCK)):
+            Xk = X[0] if shared else X[k]
+            c, it = _solve_one(
+                intr[k], dist[k], R[k], t[k], Xk, y[k], A, sel, fx_col, aspect,
+                max_iterations, tolerance, loss, scale, 1e-3,
+                J, r, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full,
+            )
+            cost[k] = c
+            iterations[k] = it
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def monte_carlo_trials(
+    intr: np.ndarray,  # (K, 4) in: the reference camera's; out: each trial's estimate
+    dist: np.ndarray,  # (K, 5) in/out
+    R: np.ndarray,  # (K, 3, 3) in/out
+    t: np.ndarray,  # (K, 3) in/out
+    X: np.ndarray,  # (K, N, 3) perturbed world points, metres
+    y: np.ndarray,  # (K, N, 2) perturbed pixels
+    A: np.ndarray,  # (15, m)
+    sel: np.ndarray,  # (m,)
+    fx_col: int,
+    aspect: float,
+    max_iterations: int,
+    tolerance: float,
+    points: np.ndarray,  # (N, 3) the unperturbed points, metres
+    uv_points: np.ndarray,  # (N, 2) the reference camera's pixels of points
+    ground: np.ndarray,  # (M, 3) ground points in view, metres
+    uv_ground: np.ndarray,  # (M, 2) the reference camera's pixels of ground
+    uv_probe: np.ndarray,  # (P, 2) pixels whose rays are intersected with the ground plane
+    z_plane: float,
+    cost: np.ndarray,  # (K,) out: sum of squared residuals (px^2)
+    iterations: np.ndarray,  # (K,) out
+    proj: np.ndarray,  # (K,) out: RMS pixel difference to the reference over points (px)
+    ground_proj: np.ndarray,  # (K,) out: the same over ground (NaN when M = 0)
+    hits: np.ndarray,  # (K, P, 3) out: where each estimate's rays of uv_probe meet the ground
+) -> None:
+    """K Monte-Carlo trials in one parallel pass: each is calibrated (as solve_batch, linear loss) and scored against the reference."""
+    K = R.shape[0]
+    for block in prange((K + BLOCK - 1) // BLOCK):
+        J, r, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full = _workspace(sel.shape[0], y.shape[1])
+        for k in range(block * BLOCK, min(K, (block + 1) * BLOCK)):
+            c, it = _solve_one(
+                intr[k], dist[k], R[k], t[k], X[k], y[k], A, sel, fx_col, aspect, max_iterations, tolerance, 0, 1.0, 1e-3,
+                J, r, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full,
+            )
+            cost[k] = c
+            iterations[k] = it
+            proj[k] = _rms_projection_difference(intr[k], dist[k], R[k], t[k], points, uv_points)
+            ground_proj[k] = _rms_projection_difference(intr[k], dist[k], R[k], t[k], ground, uv_ground)
+            _intersect_into(intr[k], dist[k], R[k], t[k], uv_probe, z_plane, hits[k])
 
 
 @njit(cache=True, nogil=True)

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dronecal_field.core.calibrate import BatchState, CalibrationModel, levenberg_marquardt, resolve_model
+from dronecal_field.core.calibrate import BatchState, CalibrationModel, _free_columns, resolve_model
 from dronecal_field.core.camera import (
     PARAM_NAMES,
     Camera,
@@ -137,16 +137,25 @@ def _sigmas(points: np.ndarray, sigma_3d, sigma_2d) -> tuple[np.ndarray, np.ndar
     return s3, s2
 
 
-def _ground_pixels(camera: Camera, ground_z: float, nu: int = 10, nv: int = 8) -> np.ndarray:
-    """(M, 2) pixels of a grid over the image whose rays meet the ground in front of the camera."""
+def _ground_pixels(camera: Camera, ground_z: float, nu: int = 10, nv: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (M, 2) of a grid over the image whose rays meet the ground in front of the camera, and those ground points (M, 3)."""
     u = np.linspace(0.05, 0.95, nu) * (camera.width - 1)
     v = np.linspace(0.05, 0.95, nv) * (camera.height - 1)
     uv = np.stack(np.meshgrid(u, v), -1).reshape(-1, 2)
-    g = intersect_plane_z(*camera.batch_arrays()[:3], camera.batch_arrays()[3], uv[None], ground_z)[0]
+    g = _intersect_ground(camera, uv, ground_z)
     ok = np.all(np.isfinite(g), axis=1)
     dist = np.linalg.norm(g[:, :2] - camera.pose.position_world[:2], axis=1)
     ok &= dist < 200.0
-    return uv[ok]
+    return uv[ok], g[ok]
+
+
+def _intersect_ground(camera: Camera, uv: np.ndarray, ground_z: float) -> np.ndarray:
+    """World points (M, 3) where the camera's rays of pixels uv (M, 2) meet the plane z = ground_z (NaN if they miss)."""
+    from dronecal_field.core import kernels
+
+    out = np.empty((1, len(uv), 3))
+    kernels.intersect_plane_z(*camera.batch_arrays(), np.ascontiguousarray(uv, float), float(ground_z), out)
+    return out[0]
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,13 +169,11 @@ class _Probes:
 
 
 def _make_probes(camera: Camera, points: np.ndarray, ground_z: float) -> _Probes:
-    arrays = camera.batch_arrays()
-    uv_g = _ground_pixels(camera, ground_z)
-    g = intersect_plane_z(*arrays, uv_g[None], ground_z)[0] if len(uv_g) else np.zeros((0, 3))
+    uv_g, g = _ground_pixels(camera, ground_z)
     probe = ground_probe(camera, ground_z)
     probe_pts = np.vstack([probe.point[None], probe.track])
     return _Probes(
-        points_world=points,
+        points_world=np.ascontiguousarray(points, float),
         uv_ref_points=camera.project(points),
         ground_world=g,
         uv_ref_ground=uv_g,
@@ -175,22 +182,38 @@ def _make_probes(camera: Camera, points: np.ndarray, ground_z: float) -> _Probes
     )
 
 
-def _projection_metrics(state: BatchState, probes: _Probes, ground_z: float) -> dict[str, np.ndarray]:
-    """Per-trial projection errors (K,) of estimated cameras against the reference."""
-    args = (state.intrinsics, state.distortion, state.R, state.t)
-    uv = project_batch(*args, probes.points_world[None])
-    proj = np.sqrt(np.mean(np.sum((uv - probes.uv_ref_points) ** 2, -1), -1))
-    if len(probes.ground_world):
-        uvg = project_batch(*args, probes.ground_world[None])
-        gproj = np.sqrt(np.mean(np.sum((uvg - probes.uv_ref_ground) ** 2, -1), -1))
-    else:
-        gproj = np.full(state.R.shape[0], np.nan)
-    hits = intersect_plane_z(*args, probes.uv_probe[None], ground_z)  # (K, 3, 3)
-    pos_err_cm = 100.0 * np.linalg.norm(hits[:, 0, :2] - probes.probe.point[:2], axis=-1)
-    d_true = np.linalg.norm(probes.probe.track[1] - probes.probe.track[0])
+def _ground_metrics(hits: np.ndarray, probe: GroundProbe) -> dict[str, np.ndarray]:
+    """Per-trial ground position error 15 m out (cm) and speed error (km/h) from where each camera's probe rays meet the ground (K, 3, 3)."""
+    pos_err_cm = 100.0 * np.linalg.norm(hits[:, 0, :2] - probe.point[:2], axis=-1)
+    d_true = np.linalg.norm(probe.track[1] - probe.track[0])
     d_est = np.linalg.norm(hits[:, 2] - hits[:, 1], axis=-1)
     speed_err = np.abs(d_est - d_true) / SPEED_BASE_S * 3.6
-    return {"projection": proj, "ground_projection": gproj, "pos15": pos_err_cm, "speed15": speed_err}
+    return {"pos15": pos_err_cm, "speed15": speed_err}
+
+
+def _solve_trials(camera: Camera, Q: np.ndarray, q: np.ndarray, A: np.ndarray, probes: _Probes, ground_z: float, max_iterations: int, tolerance: float) -> tuple[BatchState, np.ndarray, dict[str, np.ndarray]]:
+    """Calibrate every trial of a chunk from the reference camera and score it: (estimates, cost (K,) px^2, per-trial metrics).
+
+    Q (K, N, 3) perturbed world points, q (K, N, 2) perturbed pixels. One
+    compiled pass, parallel over trials: the Levenberg-Marquardt of
+    ``core.calibrate.levenberg_marquardt`` (linear loss), then each estimate's
+    projection error against the reference and its rays to the ground probe.
+    """
+    from dronecal_field.core import kernels
+
+    kernels.announce_compile_once()
+    K = Q.shape[0]
+    state = BatchState.from_camera(camera, K)
+    sel, fx_col, aspect = _free_columns(A)
+    cost, iterations = np.empty(K), np.empty(K, dtype=np.int64)
+    proj, gproj, hits = np.empty(K), np.empty(K), np.empty((K, len(probes.uv_probe), 3))
+    kernels.monte_carlo_trials(
+        state.intrinsics, state.distortion, state.R, state.t, Q, q,
+        np.ascontiguousarray(A, dtype=float), sel, fx_col, aspect, int(max_iterations), float(tolerance),
+        probes.points_world, probes.uv_ref_points, probes.ground_world, probes.uv_ref_ground, probes.uv_probe, float(ground_z),
+        cost, iterations, proj, gproj, hits,
+    )
+    return state, cost, {"projection": proj, "ground_projection": gproj, **_ground_metrics(hits, probes.probe)}
 
 
 def _param_samples(state: BatchState, reference: Camera) -> dict[str, np.ndarray]:
@@ -269,18 +292,25 @@ def monte_carlo(
     rng = np.random.default_rng(seed)
 
     chunk_size = trials_per_chunk(chunk_size, P.shape[0])
+    # noise drawn into buffers reused by every chunk (the same numbers as drawing new arrays)
+    Q_buf = np.empty((min(chunk_size, trials), P.shape[0], 3))
+    q_buf = np.empty((min(chunk_size, trials), P.shape[0], 2))
     rms_all, metrics_all, params_all, failed = [], [], [], 0
     for start in range(0, trials, chunk_size):
         k = min(chunk_size, trials - start)
-        Q = P[None] + rng.standard_normal((k, P.shape[0], 3)) * s3[None]
-        q = uv_ref[None] + rng.standard_normal((k, P.shape[0], 2)) * s2[None, :, None]
-        state = BatchState.from_camera(camera, k)
-        state, cost, _ = levenberg_marquardt(state, Q, q, A, max_iterations=max_iterations, tolerance=mc_tolerance)
+        Q, q = Q_buf[:k], q_buf[:k]
+        rng.standard_normal(out=Q)
+        Q *= s3
+        Q += P
+        rng.standard_normal(out=q)
+        q *= s2[:, None]
+        q += uv_ref
+        state, cost, metrics = _solve_trials(camera, Q, q, A, probes, ground_z, max_iterations, mc_tolerance)
         rms = np.sqrt(cost / P.shape[0])
         ok = np.isfinite(rms)
         failed += int((~ok).sum())
         rms_all.append(rms)
-        metrics_all.append(_projection_metrics(state, probes, ground_z))
+        metrics_all.append(metrics)
         params_all.append(_param_samples(state, camera))
 
     rms = np.concatenate(rms_all)
