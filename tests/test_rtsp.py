@@ -292,3 +292,87 @@ def test_a_server_restart_mid_stream_is_one_gap_event_and_the_stamps_stay_on_one
     from dronecal_field.video.nal import is_keyframe
 
     assert is_keyframe(frames[0].data, "h264") and is_keyframe(frames[jump + 1].data, "h264")
+
+
+def _clip_with_cut_keyframes(path, n: int = 150, gop: int = 25, keep: float = 0.5, size=(320, 240), fps: int = 25) -> None:
+    """A real H.264 Matroska clip whose keyframe slices are cut to ``keep`` of their bytes (their NAL lengths fixed),
+    as a server with a send buffer smaller than a keyframe delivers them."""
+    from fractions import Fraction
+
+    import av
+    import numpy as np
+
+    from dronecal_field.video.nal import nal_type as type_of
+    from dronecal_field.video.nal import split_length_prefixed
+
+    rng = np.random.default_rng(5)
+    background = rng.integers(40, 200, (size[1], size[0], 3), dtype=np.uint8)  # noise: keyframes of real size
+    with av.open(str(path), "w") as out:
+        stream = out.add_stream("libx264", rate=fps)
+        stream.width, stream.height, stream.pix_fmt = size[0], size[1], "yuv420p"
+        stream.options = {"bf": "0", "g": str(gop), "keyint_min": str(gop), "crf": "20"}
+
+        def mux(packets):
+            for p in packets:
+                if p.is_keyframe and p.size:
+                    data = bytes(p)
+                    annexb = data.startswith((b"\x00\x00\x01", b"\x00\x00\x00\x01"))
+                    units = split_annexb(data) if annexb else split_length_prefixed(data, 4)
+                    nals = [n[: max(8, int(len(n) * keep))] if type_of(n, "h264") == 5 else n for n in units]
+                    cut = av.Packet(b"".join((b"\x00\x00\x00\x01" if annexb else len(x).to_bytes(4, "big")) + x for x in nals))
+                    cut.pts, cut.dts, cut.time_base, cut.is_keyframe = p.pts, p.dts, p.time_base, True
+                    cut.stream = stream
+                    p = cut
+                out.mux(p)
+
+        for i in range(n):
+            img = background.copy()
+            img[40:120, 10 + i % 200 : 90 + i % 200] = 250
+            frame = av.VideoFrame.from_ndarray(img, format="rgb24")
+            frame.pts, frame.time_base = i, Fraction(1, fps)
+            mux(stream.encode(frame))
+        mux(stream.encode(None))
+
+
+def test_keyframes_cut_short_are_counted_and_the_preflight_probe_warns(server, tmp_path):
+    from dronecal_field.video.probe import probe_packet_stream
+
+    clip = tmp_path / "cut.mkv"
+    _clip_with_cut_keyframes(clip)
+    srv = server("--file", str(clip), "--codec", "h264")
+    source = open_packet_source(srv.url)
+    try:
+        first = source.read(timeout_s=10.0)
+        assert first is not None and first.keyframe
+        probe = probe_packet_stream(source, first, probe_s=1.0, rtcp_wait_s=0.0)
+        frames = _read(source, 60)
+    finally:
+        source.close()
+    # The demuxer passes the cut keyframes as good packets; the decoder does not.
+    assert source.monitor.corrupt == 0 and source.units_undecodable >= 3
+    assert probe.keyframes_undecodable >= 1 and probe.warning is not None and "do not decode" in probe.warning, probe
+    assert source.keyframes_checked >= 3
+    assert source.units_undecodable == source.keyframes_checked  # every keyframe of this stream is cut, every one is found
+    corrupt = [i for i in source.incidents() if i.kind == "video_corrupt"]
+    assert len(corrupt) == source.units_undecodable
+    assert len(frames) == 60
+
+
+@pytest.mark.parametrize("codec", ["h264", "h265"])
+def test_the_preflight_rate_is_the_streams_not_the_opening_burst(server, codec):
+    from dronecal_field.video.probe import probe_packet_stream
+
+    srv = server("--codec", codec, "--fps", "25")
+    source = open_packet_source(srv.url)
+    try:
+        first = source.read(timeout_s=10.0)
+        t0 = time.monotonic()
+        probe = probe_packet_stream(source, first, probe_s=1.0, rtcp_wait_s=0.0)
+        elapsed = time.monotonic() - t0
+    finally:
+        source.close()
+    assert probe.burst_frames >= 10  # FFmpeg read ~1 s while opening, handed over at once
+    arrival_rate = (probe.frames - 1) / elapsed  # what counting arrivals says: the burst inflates it
+    assert arrival_rate > 30.0, arrival_rate
+    assert abs(probe.fps - 25.0) <= 0.05 * 25.0, probe
+    assert probe.keyframes_undecodable == 0 and probe.warning is None and probe.keyframes_decoded >= 1

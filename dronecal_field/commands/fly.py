@@ -174,16 +174,15 @@ def _probe_video(url: str, first_timeout_s: float = 5.0, probe_s: float = 1.0, r
     if first is None:
         return source, None, VideoStatus(url=url, frames=0)
     if first.format in ("h264", "h265"):
-        frames, t0 = 1, time.monotonic()
-        while time.monotonic() - t0 < probe_s or (source.live and source.clock != "rtcp" and time.monotonic() - t0 < rtcp_wait_s):
-            if source.read(timeout_s=probe_s) is not None:
-                frames += 1
-        fps = (frames - 1) / max(time.monotonic() - t0, 1e-6)
+        from dronecal_field.video.probe import probe_packet_stream
+
+        probe = probe_packet_stream(source, first, probe_s=probe_s, rtcp_wait_s=rtcp_wait_s)  # the stream's rate, a keyframe decoded
         if source.b_frames or source.monitor.reordered:
             return source, None, VideoStatus(
-                url=url, frames=frames, error="the camera sends B-frames (frames out of order); set its encoder to no B-frames (IP frames only, e.g. H.264 baseline)"
+                url=url, frames=probe.frames, error="the camera sends B-frames (frames out of order); set its encoder to no B-frames (IP frames only, e.g. H.264 baseline)"
             )
-        return source, first, VideoStatus(url=url, frames=frames, fps=fps, width=source.width, height=source.height)
+        return source, first, VideoStatus(url=url, frames=probe.frames, fps=probe.fps or 0.0, width=source.width, height=source.height,
+                                          warning=probe.warning)
     import cv2
     import numpy as np
 

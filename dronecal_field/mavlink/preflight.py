@@ -183,6 +183,8 @@ class VideoStatus:
         Image size of the first frame, pixels.
     error : str or None
         Why it could not be opened.
+    warning : str or None
+        What is wrong with a stream that works (keyframes that do not decode).
     """
 
     url: str
@@ -191,6 +193,7 @@ class VideoStatus:
     width: int | None = None
     height: int | None = None
     error: str | None = None
+    warning: str | None = None
 
 
 def _distance_m(lat1: float, lon1: float, lat2: float, lon2: float) -> float:
@@ -377,7 +380,11 @@ def evaluate_preflight(
     elif video.frames == 0:
         out.append(CheckResult("video", False, f"{video.url} opened but sent no frame; check the camera stream"))
     else:
-        out.append(CheckResult("video", True, f"{video.width}x{video.height}, {video.fps:.1f} fps"))
+        seen = f"{video.width}x{video.height}, {video.fps:.1f} fps"
+        if video.warning:
+            out.append(CheckResult("video", True, f"WARNING: {seen}, but {video.warning}", warning=True))
+        else:
+            out.append(CheckResult("video", True, seen))
     return out
 
 
