@@ -376,3 +376,24 @@ def test_the_preflight_rate_is_the_streams_not_the_opening_burst(server, codec):
     assert arrival_rate > 30.0, arrival_rate
     assert abs(probe.fps - 25.0) <= 0.05 * 25.0, probe
     assert probe.keyframes_undecodable == 0 and probe.warning is None and probe.keyframes_decoded >= 1
+
+
+def test_a_recording_that_starts_mid_gop_starts_at_the_next_keyframe(server):
+    srv = server("--gop", "50")  # a keyframe every 2 s
+    source = open_packet_source(srv.url)
+    try:
+        first = source.read(timeout_s=10.0)
+        assert first is not None and first.keyframe  # a session starts at a keyframe
+        frames = _read(source, 60)
+        assert not frames[-1].keyframe  # we are inside a GOP
+        start_ns = time.time_ns()
+        source.lock_clock(start_ns)  # the recording starts here
+        recorded = _read(source, 60)
+    finally:
+        source.close()
+    assert recorded[0].keyframe and recorded[0].timestamp_ns >= start_ns
+    # What came between the start and that keyframe was dropped and counted: up to one GOP (50 frames).
+    assert 1 <= source.frames_before_keyframe <= 50
+    skipped = (recorded[0].pts_ns - frames[-1].pts_ns) // 40_000_000 - 1
+    assert skipped >= source.frames_before_keyframe  # (and those stamped before the start were not recorded anyway)
+    assert {b.pts_ns - a.pts_ns for a, b in zip(recorded, recorded[1:])} == {40_000_000}
