@@ -242,3 +242,70 @@ def test_demo_stopped_stops_its_children_and_leaves_no_temporary_folder(tmp_path
     assert "Traceback" not in stderr and "stopped by SIGTERM" in stderr
     assert _wait_for(lambda: not _our_processes(str(out)), 30), _our_processes(str(out))
     assert not [p.name for p in out.glob(".*tmp-*")]
+
+
+# --------------------------------------------------------------------------
+# runs that lie: contradicting metadata, payloads that do not decode, two runs joined
+
+
+def _copy_run(src: Path, out: Path, width: int | None = None, height: int | None = None, garbage_every: int = 0) -> tuple[int, int]:
+    """Rewrite ``src`` with RunWriter (optionally another stated size, and a non-protobuf payload on
+    /gnss/fix, /camera/image and /events every ``garbage_every`` messages); (fixes, frames) written."""
+    from dataclasses import replace
+
+    from dronecal_field.runfile import messages as pm
+    from dronecal_field.runfile.reader import open_run
+    from dronecal_field.runfile.writer import RunWriter
+
+    with open_run(src) as run:
+        meta = replace(run.metadata, width=width or run.metadata.width, height=height or run.metadata.height)
+        fixes, frames, events = list(run.iter_fixes()), list(run.iter_frames()), list(run.iter_events())
+    with RunWriter(out, meta, background_flush=False) as w:
+        for i, fix in enumerate(fixes):
+            w.write_fix(fix)
+            if garbage_every and i % garbage_every == 0:
+                with w._lock:
+                    w._add_locked(w._channels[pm.FIX_TOPIC], fix.timestamp_ns, b"\xff\x01 not a LocationFix")
+        for i, frame in enumerate(frames):
+            w.write_frame(frame)
+            if garbage_every and i % garbage_every == 0:
+                with w._lock:
+                    w._add_locked(w._channels[pm.IMAGE_TOPIC], frame.timestamp_ns, b"\xff\x01 not an image")
+        for event in events:
+            w.write_event(event)
+            if garbage_every:
+                with w._lock:
+                    w._add_locked(w._channels[pm.EVENTS_TOPIC], event.timestamp_ns, b"\xff\x02")
+    return len(fixes), len(frames)
+
+
+def test_runs_that_lie_are_refused_corrected_or_skipped_and_counted(tmp_path: Path) -> None:
+    from dronecal_field.errors import ContractError
+    from dronecal_field.runfile.reader import open_run
+
+    nominal = ROOT / "replays" / "nominal.mcap"
+    huge = tmp_path / "huge.mcap"
+    _copy_run(nominal, huge, width=100_000)
+    with pytest.raises(ContractError, match="camera.width' = 100000"):
+        open_run(huge)
+    wrong = tmp_path / "wrong-size.mcap"
+    _copy_run(nominal, wrong, width=1280, height=720)  # frames are 640x360
+    with open_run(wrong) as run:
+        assert (run.metadata.width, run.metadata.height) == (640, 360)
+        assert any("1280x720 but the frames are 640x360" in w for w in run.warnings)
+    garbage = tmp_path / "garbage.mcap"
+    n_fixes, n_frames = _copy_run(nominal, garbage, garbage_every=50)
+    with open_run(garbage) as run:
+        assert len(list(run.iter_fixes())) == n_fixes and sum(1 for _ in run.iter_frames()) == n_frames
+        assert len(list(run.iter_events())) > 0
+        assert run.undecodable["/gnss/fix"] == len(range(0, n_fixes, 50)) and run.undecodable["/camera/image"] > 0
+        assert any("do not decode" in w for w in run.warnings)
+    joined = tmp_path / "joined.mcap"
+    joined.write_bytes(nominal.read_bytes() + (ROOT / "replays" / "latency.mcap").read_bytes())
+    with pytest.raises(ContractError, match="second MCAP file starts at byte"):
+        open_run(joined)
+    fifo = tmp_path / "fifo.mcap"
+    os.mkfifo(fifo)
+    proc = subprocess.run([*PY, "calibrate", str(fifo), "--out", str(tmp_path / "cal")], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert "not a regular file" in proc.stderr

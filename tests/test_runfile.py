@@ -40,7 +40,7 @@ def _meta(**kw) -> RunMetadata:
 
 
 def _jpeg(i: int) -> bytes:
-    img = np.zeros((48, 64, 3), np.uint8)
+    img = np.zeros((480, 640, 3), np.uint8)  # the size the metadata states
     cv2.putText(img, str(i), (5, 35), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (255, 255, 255), 2)
     ok, buf = cv2.imencode(".jpg", img)
     assert ok

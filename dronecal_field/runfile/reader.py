@@ -149,6 +149,7 @@ class Run:
             self.truncated_at: int | None = None
             self.warnings: list[str] = []
             self.recording_stopped: str | None = None  # the writer's own note of an early stop (a full disk)
+            self.undecodable: dict[str, int] = {}  # topic -> messages whose payload did not decode (skipped)
             self.damaged_spans: set[tuple[int, int, int]] = set()  # (byte offset, start_ns, end_ns) of chunks skipped
             self.units_read = 0
             self._events: list[RunEvent] | None = None  # /events, once read
@@ -159,6 +160,7 @@ class Run:
             self._attachments: list[tuple[str, int]] = []  # (name, record offset)
             self._open()
             self.metadata = self._check_contract()
+            self._check_frame_size()
         except BaseException:
             self._f.close()
             raise
@@ -214,10 +216,21 @@ class Run:
             return "arrival", None
         return "arrival", (value if math.isfinite(value) else None)
 
+    def _decode(self, topic: str, decode: Callable[[bytes, int], Any], data: bytes, log_time: int) -> Any:
+        """A message decoded, or None when its payload does not decode: skipped and counted, like a damaged chunk."""
+        try:
+            return decode(data, log_time)
+        except Exception:  # noqa: BLE001 - any payload that is not the schema's message
+            self.undecodable[topic] = self.undecodable.get(topic, 0) + 1
+            self._warn_once(f"messages on {topic} that do not decode as its schema are skipped (counted in undecodable)")
+            return None
+
     def iter_fixes(self) -> Iterator[GnssFix]:
-        """GNSS fixes of ``/gnss/fix`` in log-time order."""
+        """GNSS fixes of ``/gnss/fix`` in log-time order (a payload that does not decode is skipped and counted)."""
         for _, data, log_time in self._iter_topic({pm.FIX_TOPIC}):
-            yield pm.fix_from_bytes(data, log_time)
+            fix = self._decode(pm.FIX_TOPIC, pm.fix_from_bytes, data, log_time)
+            if fix is not None:
+                yield fix
 
     @property
     def video(self) -> bool:
@@ -241,7 +254,9 @@ class Run:
         decode = pm.frame_from_video_bytes if self.video else pm.frame_from_bytes
         if windows is None:
             for _, data, log_time in self._iter_topic({topic}):
-                yield decode(data, log_time)
+                frame = self._decode(topic, decode, data, log_time)
+                if frame is not None:
+                    yield frame
             return
         merged = _merge_windows(windows)
         if not merged:
@@ -257,8 +272,8 @@ class Run:
 
         if not self.video:
             for _, data, log_time in self._iter_topic({topic}, wide):
-                frame = decode(data, log_time)
-                if inside(frame.timestamp_ns):
+                frame = self._decode(topic, decode, data, log_time)
+                if frame is not None and inside(frame.timestamp_ns):
                     yield frame
             return
         from dronecal_field.video.nal import video_frame_of
@@ -267,7 +282,10 @@ class Run:
         # run-up a decoder needs to reach a window's first frame.
         run_up: list[Frame] = []
         for _, data, log_time in self._iter_topic({topic}, wide):
-            frame = video_frame_of(decode(data, log_time))
+            raw = self._decode(topic, decode, data, log_time)
+            if raw is None:
+                continue
+            frame = video_frame_of(raw)
             if inside(frame.timestamp_ns):
                 yield from run_up
                 run_up = []
@@ -287,14 +305,17 @@ class Run:
             if not self._has_topic(pm.EVENTS_TOPIC):
                 self._events = []
             else:
-                self._events = [pm.event_from_bytes(data, log_time) for _, data, log_time in self._iter_topic({pm.EVENTS_TOPIC})]
+                decoded = (self._decode(pm.EVENTS_TOPIC, pm.event_from_bytes, data, log_time) for _, data, log_time in self._iter_topic({pm.EVENTS_TOPIC}))
+                self._events = [e for e in decoded if e is not None]
         yield from self._events
 
     def iter_attitude(self) -> Iterator[Attitude]:
         """Vehicle attitude from ``/vehicle/attitude``, else from ``/mavlink/ATTITUDE``."""
         if self._has_topic(pm.ATTITUDE_TOPIC):
             for _, data, log_time in self._iter_topic({pm.ATTITUDE_TOPIC}):
-                yield pm.attitude_from_bytes(data, log_time)
+                att = self._decode(pm.ATTITUDE_TOPIC, pm.attitude_from_bytes, data, log_time)
+                if att is not None:
+                    yield att
             return
         for _, t_ns, fields in self.iter_mavlink({"ATTITUDE"}):
             try:
@@ -390,6 +411,8 @@ class Run:
             return False
         if summary is None or not summary.chunk_indexes or not summary.channels:
             return False
+        if not self._data_end_precedes_summary():
+            return False  # a summary that does not belong to this data section (runs joined with cat): the scan decides
         if any(ch.schema_id and ch.schema_id not in summary.schemas for ch in summary.channels.values()):
             return False  # channels without their schemas: the data section has both
         for sid, s in summary.schemas.items():
@@ -421,6 +444,38 @@ class Run:
             self._scan()
         return True
 
+    def _check_frame_size(self) -> None:
+        """Metadata camera.width/height against the first frame's own size: the frames win, with a warning."""
+        from dataclasses import replace
+
+        if self.camera_topic != pm.IMAGE_TOPIC or self.metadata.width is None:
+            return
+        for _, data, log_time in self._iter_topic({pm.IMAGE_TOPIC}):
+            frame = self._decode(pm.IMAGE_TOPIC, pm.frame_from_bytes, data, log_time)
+            if frame is None:
+                continue
+            size = image_size(frame.data)
+            if size is not None and size != (self.metadata.width, self.metadata.height):
+                self.warnings.append(
+                    f"metadata camera.width x height = {self.metadata.width}x{self.metadata.height} but the frames are "
+                    f"{size[0]}x{size[1]}: the frames' size is used (fix the writer's metadata)")
+                self.metadata = replace(self.metadata, width=size[0], height=size[1])
+            return
+
+    def _data_end_precedes_summary(self) -> bool:
+        """The footer's summary starts right after a DataEnd record, as in a file written as one."""
+        f = self._f
+        f.seek(self._size - 8 - 29)
+        footer = f.read(29)
+        if len(footer) < 29 or footer[0] != _OP_FOOTER:
+            return False
+        summary_start = struct.unpack("<Q", footer[9:17])[0]
+        if summary_start < 8 + 13 or summary_start > self._size:
+            return False
+        f.seek(summary_start - 13)
+        head = f.read(9)
+        return len(head) == 9 and head[0] == _OP_DATA_END and struct.unpack("<Q", head[1:9])[0] == 4
+
     def _scan(self) -> None:
         """One pass over record headers: units, metadata, attachments, top-level channels.
 
@@ -450,6 +505,7 @@ class Run:
                 self._units.append(_Unit(offset=pos, length=length, start_ns=start_ns, end_ns=end_ns, channel_ids=None))
             elif opcode in (_OP_DATA_END, _OP_FOOTER):
                 complete = True
+                self._refuse_a_second_run(pos)
                 break
             elif opcode in (_OP_METADATA, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE):
                 try:
@@ -484,6 +540,32 @@ class Run:
         if not complete:
             self.truncated = True
             self.truncated_at = pos
+
+    def _refuse_a_second_run(self, data_end_at: int) -> None:
+        """A file that goes on after its own end with another MCAP file (two runs joined with ``cat``): refused.
+
+        Reads from this run's DataEnd to the end of the file (its summary, a few kB, for a single run).
+        """
+        f = self._f
+        f.seek(data_end_at)
+        block = 1 << 20
+        offset = data_end_at
+        tail = b""
+        while True:
+            chunk = f.read(block)
+            if not chunk:
+                return
+            buf = tail + chunk
+            start = 0
+            while (i := buf.find(MAGIC, start)) >= 0:
+                at = offset - len(tail) + i
+                if at + len(MAGIC) < self._size:  # not this file's closing magic: more follows
+                    raise ContractError(
+                        f"{self._name}: a second MCAP file starts at byte {at} (two runs joined, e.g. with cat); "
+                        "give each run as its own file (calibrate a.mcap b.mcap pools them into one camera)")
+                start = i + 1
+            tail = buf[-(len(MAGIC) - 1):]
+            offset += len(chunk)
 
     def _attachment_name(self, body_at: int) -> str | None:
         # Attachment body: log_time u64, create_time u64, name (u32 length + utf-8), ...
@@ -658,6 +740,32 @@ class Run:
             else:
                 log_time, _, _, topic, data = heapq.heappop(heap)
                 yield topic, data, log_time
+
+
+def image_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a JPEG's SOF or a PNG's IHDR header, without decoding; None if neither."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24:
+        return struct.unpack(">II", data[16:24])
+    if data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    n = len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:
+            i += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        length = struct.unpack(">H", data[i + 2:i + 4])[0]
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC) and i + 9 <= n:
+            height, width = struct.unpack(">HH", data[i + 5:i + 9])
+            return int(width), int(height)
+        i += 2 + length
+    return None
 
 
 def _merge_windows(windows: Iterable[tuple[int, int]]) -> list[tuple[int, int]]:

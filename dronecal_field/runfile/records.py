@@ -17,6 +17,7 @@ from dronecal_field.geodesy import EnuOrigin
 FORMAT_VERSION = 1
 RUN_METADATA_NAME = "dronecal.run"
 SITE_METADATA_NAME = "dronecal.site"
+MAX_IMAGE_SIDE_PX = 65536
 CUT_METADATA_NAME = "dronecal.cut"  # written when recording stopped early (a full disk): reason, cut_at_byte, last_message_ns
 
 MARKER_KINDS = ("aruco", "led")
@@ -176,6 +177,9 @@ class RunMetadata:
             )
         width = as_int("camera.width", need("camera.width", "the image width in pixels"), minimum=1)
         height = as_int("camera.height", need("camera.height", "the image height in pixels"), minimum=1)
+        for key, value in (("camera.width", width), ("camera.height", height)):
+            if value > MAX_IMAGE_SIDE_PX:
+                raise ContractError(f"{where}: '{key}' = {value} px is beyond any camera (at most {MAX_IMAGE_SIDE_PX}); write the frames' size")
         kind = need("marker.kind", "'aruco' or 'led'")
         if kind not in MARKER_KINDS:
             raise ContractError(f"{where}: 'marker.kind' = {kind!r}; use one of {', '.join(MARKER_KINDS)}")
