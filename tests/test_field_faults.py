@@ -309,3 +309,90 @@ def test_runs_that_lie_are_refused_corrected_or_skipped_and_counted(tmp_path: Pa
     proc = subprocess.run([*PY, "calibrate", str(fifo), "--out", str(tmp_path / "cal")], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert "not a regular file" in proc.stderr
+
+
+# --------------------------------------------------------------------------
+# hand-edited files, devices and sizes: one table, each case in this process through cli.main
+
+
+def _hand_edited(d: Path) -> list[tuple[str, list[str], str]]:
+    """(case, argv, needle) of files a user edited by hand, devices, and numbers far out of range."""
+    plan = json.loads(MISSION.read_text())
+    cases: list[tuple[str, list[str], str]] = []
+    fly_tail = ["--connect", "udp:127.0.0.1:9", "--video", "http://127.0.0.1:9/x.mjpg", "--heartbeat-timeout", "0.5"]
+
+    def mission_case(name: str, edit, needle: str, with_marker: bool = True) -> None:
+        doc = json.loads(json.dumps(plan))
+        folder = d / name
+        folder.mkdir()
+        edit(doc)
+        path = folder / "mission.plan"
+        path.write_text(json.dumps(doc))
+        cases.append((f"fly {name}", ["fly", "--mission", str(path), *fly_tail, "--out", str(folder / "run.mcap"),
+                                      *(["--marker-size", "0.3"] if with_marker else [])], needle))
+
+    def item(doc, i=3):
+        return doc["mission"]["items"][i]
+
+    mission_case("home-strings", lambda doc: doc["mission"].__setitem__("plannedHomePosition", ["a", "b", "c"]), "plannedHomePosition")
+    mission_case("param-infinity", lambda doc: item(doc)["params"].__setitem__(0, float("inf")), "infinite")
+    mission_case("dojumpid-x", lambda doc: item(doc).__setitem__("doJumpId", "x"), "doJumpId")
+    mission_case("command-16.9", lambda doc: item(doc).__setitem__("command", 16.9), "command")
+    mission_case("command-string", lambda doc: item(doc).__setitem__("command", "16"), "command")
+    mission_case("lat-null", lambda doc: item(doc)["params"].__setitem__(4, None) if item(doc)["command"] == 16 else None, "latitude")
+    waypoints = d / "inf.waypoints"
+    waypoints.write_text("QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t-35.3\t149.1\t584\t1\n1\t0\t3\t16\t0\t0\t0\t0\tInfinity\t149.1\t5\t1\n")
+    cases.append(("fly .waypoints Infinity", ["fly", "--mission", str(waypoints), *fly_tail, "--out", str(d / "w.mcap"), "--marker-size", "0.3"], "infinite"))
+    for name, marker, needle in (("size-abc", {"size_m": "abc"}, "marker.size_m"), ("size-list", {"size_m": [1]}, "marker.size_m"),
+                                 ("id-float", {"size_m": 0.3, "id": 1.5}, "marker.id"), ("offset-short", {"size_m": 0.3, "offset_frd_m": [0, 1]}, "offset_frd_m")):
+        folder = d / f"planjson-{name}"
+        folder.mkdir()
+        (folder / "mission.plan").write_text(MISSION.read_text())
+        (folder / "plan.json").write_text(json.dumps({"marker": marker}))
+        cases.append((f"fly plan.json {name}", ["fly", "--mission", str(folder / "mission.plan"), *fly_tail, "--out", str(folder / "run.mcap")], needle))
+    folder = d / "planjson-list"
+    folder.mkdir()
+    (folder / "mission.plan").write_text(MISSION.read_text())
+    (folder / "plan.json").write_text("[1, 2]")
+    cases.append(("fly plan.json a list", ["fly", "--mission", str(folder / "mission.plan"), *fly_tail, "--out", str(folder / "run.mcap")], "JSON object"))
+    fifo = d / "mission-fifo.plan"
+    os.mkfifo(fifo)
+    cases.append(("fly --mission fifo", ["fly", "--mission", str(fifo), *fly_tail, "--out", str(d / "f.mcap"), "--marker-size", "0.3"], "not a regular file"))
+    cases.append(("fly --mission /dev/zero", ["fly", "--mission", "/dev/zero", *fly_tail, "--out", str(d / "z.mcap"), "--marker-size", "0.3"], "not a regular file"))
+    cases.append(("fly --out its tlog", ["fly", "--mission", str(MISSION), *fly_tail, "--out", str(d / "r.tlog"), "--marker-size", "0.3"], "same file"))
+    cases.append(("fly --out the mission", ["fly", "--mission", str(MISSION), *fly_tail, "--out", str(MISSION), "--marker-size", "0.3"], "--mission"))
+    # site TOML by hand
+    site = ROOT / "missions" / "paper-pinhole.toml"
+    for name, text, needle in (
+        ("duplicate-key", "[a]\ntilt = 30\n[b]\ntilt = 31\n", "twice"),
+        ("bool-height", "mount_height = true\n", "mount_height"),
+        ("float-id", "marker_id = 1.9\n", "marker_id"),
+    ):
+        path = d / f"site-{name}.toml"
+        path.write_text(site.read_text().replace("mount_height", "# mount_height").replace("tilt", "# tilt").replace("marker_id", "# marker_id") + text)
+        cases.append((f"plan --site {name}", ["plan", "--site", str(path), "--out", str(d / f"plan-{name}")], needle))
+    for flag in ("--trials", "--endurance", "--exposure-s", "--gnss-hz", "--sigma-h"):
+        value = "100000000" if flag == "--trials" else "1e308"
+        cases.append((f"plan {flag} {value}", ["plan", "--site", str(site), flag, value, "--out", str(d / "plan-big")], flag))
+    cases.append(("plan --site fifo", ["plan", "--site", str(fifo), "--out", str(d / "plan-fifo")], str(fifo)))
+    cases.append(("import --tlog /dev/zero", ["import", "--tlog", "/dev/zero", "--video", str(MISSION), "--out", str(d / "i.mcap"),
+                                              "--marker-size", "0.3", "--marker-dictionary", "DICT_4X4_50", "--marker-id", "0"], "/dev/zero"))
+    cases.append(("calibrate /dev/zero", ["calibrate", "/dev/zero", "--out", str(d / "cal-zero")], "/dev/zero"))
+    return cases
+
+
+def test_hand_edited_files_devices_and_sizes_are_one_line_exit_2(tmp_path: Path) -> None:
+    """Every case: exit 2, one line naming the key or value, no traceback, nothing left behind. In-process (fast)."""
+    from test_bad_input import _run
+
+    cases = _hand_edited(tmp_path)
+    before = {p for p in tmp_path.rglob("*")}
+    failures = []
+    for case, argv, needle in cases:
+        code, _out, err = _run(argv)
+        lines = err.strip().splitlines()
+        if "Traceback" in err or code != 2 or len(lines) != 1 or needle.lower() not in lines[0].lower():
+            failures.append(f"{case}: exit {code}: {err.strip()[-400:]}")
+    assert not failures, "\n".join(failures)
+    assert {p for p in tmp_path.rglob("*")} == before  # no half files, no claims left
+    assert len(cases) >= 25

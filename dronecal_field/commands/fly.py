@@ -98,16 +98,12 @@ def _marker_spec(args: argparse.Namespace, plan_json: dict | None):
             size_m=args.marker_size,
             offset_frd_m=offset,  # type: ignore[arg-type]
         )
-    marker = (plan_json or {}).get("marker")
-    if not isinstance(marker, dict) or marker.get("size_m") is None:
+    from dronecal_field.runfile.records import marker_from_plan_json
+
+    spec = marker_from_plan_json(plan_json or {})  # checked key by key: one line naming a bad one
+    if spec is None:
         raise InputError("no marker given: pass --marker-size (and --marker-dictionary/--marker-id/--marker-offset) or keep plan.json beside the mission")
-    return MarkerSpec(
-        kind=str(marker.get("kind", "aruco")),
-        dictionary=str(marker.get("dictionary", "DICT_4X4_50")),
-        marker_id=int(marker.get("id", 0)),
-        size_m=float(marker["size_m"]),
-        offset_frd_m=tuple(float(v) for v in marker.get("offset_frd_m", (0.0, 0.0, 0.0))),  # type: ignore[arg-type]
-    )
+    return spec
 
 
 def _check_flags(args: argparse.Namespace) -> None:
@@ -147,12 +143,9 @@ def _check_flags(args: argparse.Namespace) -> None:
 
 
 def _site_origin(plan_json: dict | None):
-    from dronecal_field.geodesy import EnuOrigin
+    from dronecal_field.runfile.records import site_origin_from_plan_json
 
-    origin = (plan_json or {}).get("enu_origin")
-    if isinstance(origin, dict) and all(k in origin for k in ("lat_deg", "lon_deg", "h_m")):
-        return EnuOrigin(float(origin["lat_deg"]), float(origin["lon_deg"]), float(origin["h_m"]))
-    return None
+    return site_origin_from_plan_json(plan_json or {})
 
 
 def _probe_video(url: str, first_timeout_s: float = 5.0, probe_s: float = 1.0, rtsp_transport: str = "tcp", rtcp_wait_s: float = 6.0):
@@ -257,6 +250,9 @@ def run(args: argparse.Namespace) -> int:
             plan_json = json.loads(plan_json_path.read_text(encoding="utf-8"))
         except (OSError, json.JSONDecodeError) as exc:
             raise InputError(f"{plan_json_path}: unreadable ({exc}); fix it or pass the --marker-* flags") from None
+        if not isinstance(plan_json, dict):
+            raise InputError(f"{plan_json_path}: not a JSON object (plan writes one); re-run plan or remove it and pass the --marker-* flags")
+        _site_origin(plan_json)  # a bad enu_origin is named now, before the link opens
     marker = _marker_spec(args, plan_json)
     if not 0 <= args.live_port <= 65535:
         raise InputError(f"--live-port {args.live_port}: give a TCP port 1-65535 (8765 is Foxglove's usual one), or 0 for no live view")

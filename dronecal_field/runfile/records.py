@@ -7,11 +7,11 @@ Every timestamp is integer nanoseconds UTC on the run clock
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
-from dronecal_field.errors import ContractError
+from dronecal_field.errors import ContractError, InputError
 from dronecal_field.geodesy import EnuOrigin
 
 FORMAT_VERSION = 1
@@ -345,3 +345,55 @@ def fix_type_from_mavlink(gps_fix_type: int) -> str | None:
         7: "3d",  # static fixed position
         8: "3d",  # PPP
     }.get(int(gps_fix_type))
+
+
+# --------------------------------------------------------------------------
+# plan.json (written by ``plan`` beside the mission): the parts ``fly`` records into the run
+
+
+def _plan_number(value: Any, where: str, low: float, high: float, *, integer: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or not low <= value <= high \
+            or (integer and value != int(value)):
+        kind = "an integer" if integer else "a number"
+        raise InputError(f"{where} is {value!r}: give {kind} in {low:g}..{high:g}, or re-run plan (or pass the --marker-* flags)")
+    return float(value)
+
+
+def marker_from_plan_json(plan_json: Mapping[str, Any], source: str = "plan.json") -> MarkerSpec | None:
+    """The ``marker`` object of plan.json as a MarkerSpec, checked key by key; None when there is none.
+
+    Raises
+    ------
+    InputError
+        naming the key (``marker.size_m``...) that is not of its type or range.
+    """
+    marker = plan_json.get("marker")
+    if marker is None:
+        return None
+    if not isinstance(marker, Mapping):
+        raise InputError(f"{source}: 'marker' is {type(marker).__name__}, not an object: re-run plan or pass the --marker-* flags")
+    if marker.get("size_m") is None:
+        return None
+    kind = marker.get("kind", "aruco")
+    if kind not in MARKER_KINDS:
+        raise InputError(f"{source}: marker.kind is {kind!r}: use one of {', '.join(MARKER_KINDS)}")
+    dictionary = marker.get("dictionary", "DICT_4X4_50")
+    if not isinstance(dictionary, str) or not dictionary.startswith("DICT_"):
+        raise InputError(f"{source}: marker.dictionary is {dictionary!r}: give an OpenCV ArUco dictionary name, e.g. DICT_4X4_50")
+    marker_id = int(_plan_number(marker.get("id", 0), f"{source}: marker.id", 0, 100_000, integer=True))
+    size_m = _plan_number(marker["size_m"], f"{source}: marker.size_m", 1e-3, 10.0)
+    offset = marker.get("offset_frd_m", (0.0, 0.0, 0.0))
+    if not isinstance(offset, (list, tuple)) or len(offset) != 3:
+        raise InputError(f"{source}: marker.offset_frd_m is {offset!r}: give [forward, right, down] in metres")
+    offset_m = tuple(_plan_number(v, f"{source}: marker.offset_frd_m", -5.0, 5.0) for v in offset)
+    return MarkerSpec(kind=kind, dictionary=dictionary, marker_id=marker_id, size_m=size_m, offset_frd_m=offset_m)  # type: ignore[arg-type]
+
+
+def site_origin_from_plan_json(plan_json: Mapping[str, Any], source: str = "plan.json") -> EnuOrigin | None:
+    """plan.json's ``enu_origin`` {lat_deg, lon_deg, h_m}, checked; None when absent."""
+    origin = plan_json.get("enu_origin")
+    if not isinstance(origin, Mapping) or not all(k in origin for k in ("lat_deg", "lon_deg", "h_m")):
+        return None
+    return EnuOrigin(_plan_number(origin["lat_deg"], f"{source}: enu_origin.lat_deg", -90, 90),
+                     _plan_number(origin["lon_deg"], f"{source}: enu_origin.lon_deg", -180, 180),
+                     _plan_number(origin["h_m"], f"{source}: enu_origin.h_m", -1000, 10000))
