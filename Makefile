@@ -24,9 +24,17 @@ install: $(BIN)/dronecal-field
 demo: install
 	$(BIN)/dronecal-field demo --out demo-output
 
+# apt waits up to 2 min for another apt (unattended-upgrades, a second make) to let go of its lock,
+# and its ~300 lines go to a log: one line here, the log's tail if it fails.
+APT_LOG := $(VENV)/apt-install.log
+APT := $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get -o DPkg::Lock::Timeout=120 -o Acquire::Retries=3
+
 rtsp-deps:
 	@command -v gst-launch-1.0 >/dev/null && /usr/bin/python3 -c "import gi; gi.require_version('GstRtspServer', '1.0'); from gi.repository import Gst, GstRtspServer; Gst.init(None); assert all(Gst.ElementFactory.find(e) for e in ('x264enc', 'x265enc', 'rtph265pay', 'timeoverlay'))" 2>/dev/null \
-	|| { $(SUDO) apt-get update -qq && DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends $(RTSP_PACKAGES); }
+	|| { echo "installing GStreamer's RTSP server for the video tests (apt-get, log in $(APT_LOG); waits up to 2 min if another apt is running)"; \
+	     for i in 1 2 3 4 5 6 7 8; do $(APT) update -qq >$(APT_LOG) 2>&1 && break; grep -q "lock" $(APT_LOG) || break; echo "  apt is busy (another apt holds its lock): waiting 15 s"; sleep 15; done; \
+	     $(APT) install -y -qq --no-install-recommends $(RTSP_PACKAGES) >>$(APT_LOG) 2>&1 \
+	     || { tail -n 5 $(APT_LOG); echo "make test: apt-get could not install the RTSP test packages (above; full log $(APT_LOG)). If another apt holds the lock, let it finish and run make test again."; exit 1; }; }
 
 test: install rtsp-deps
 	$(BIN)/python -m pytest -q
