@@ -396,3 +396,23 @@ def test_hand_edited_files_devices_and_sizes_are_one_line_exit_2(tmp_path: Path)
     assert not failures, "\n".join(failures)
     assert {p for p in tmp_path.rglob("*")} == before  # no half files, no claims left
     assert len(cases) >= 25
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM])
+def test_plan_stopped_removes_its_staged_folder(tmp_path: Path, sig: int) -> None:
+    out = tmp_path / "plan-out"
+    proc = subprocess.Popen([*PY, "plan", "--site", str(ROOT / "missions" / "paper-pinhole.toml"), "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        staged = _wait_for(lambda: any(tmp_path.glob(".plan-out.tmp-*")) or proc.poll() is not None, 120)
+        proc.send_signal(sig)
+        _stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    if not staged or proc.returncode == 0:
+        pytest.skip("plan finished before it could be stopped")
+    assert proc.returncode == 128 + sig, stderr
+    assert "Traceback" not in stderr and f"stopped by {signal.Signals(sig).name}" in stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no .plan-out.tmp-*, no half plan-out
+    assert _wait_for(lambda: not _our_processes(str(out)), 30), _our_processes(str(out))
