@@ -15,6 +15,7 @@ import os
 import socket
 import struct
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -40,6 +41,7 @@ EXPECTED = {
     "/live/camera/calibration": "foxglove.CameraCalibration",
     "/live/gnss": "foxglove.LocationFix",
     "/live/waypoints": "foxglove.GeoJSON",
+    "/live/site": "foxglove.GeoJSON",
     "/live/status": "",
 }
 
@@ -200,3 +202,126 @@ def test_foxglove_client_sees_every_channel_and_decodes_one_message_of_each():
                         for x, y, z in WAYPOINTS])
     assert np.min(np.hypot(*(truth.project(markers) - np.array(reprojected[0])).T)) < 3.0
     assert "status" in decoded["/live/status"] or "verdict" in decoded["/live/status"]
+
+
+# ----- a client we did not write: @foxglove/ws-protocol's FoxgloveClient (Node), offering foxglove.websocket.v1 only -----
+CLIENT_DIR = Path(__file__).with_name("foxglove_client")
+
+
+def node_client() -> Path:
+    """tests/foxglove_client with its npm packages installed (package-lock.json, ``npm ci``); skips without Node/npm."""
+    import shutil
+    import subprocess
+
+    if shutil.which("node") is None or shutil.which("npm") is None:
+        pytest.skip("Node.js and npm are needed for the third-party Foxglove client (apt-get install nodejs npm)")
+    if not (CLIENT_DIR / "node_modules" / "@foxglove" / "ws-protocol").is_dir():
+        try:
+            subprocess.run(["npm", "ci", "--no-audit", "--no-fund", "--ignore-scripts"], cwd=CLIENT_DIR, check=True,
+                           capture_output=True, text=True, timeout=240)
+        except (subprocess.CalledProcessError, subprocess.TimeoutExpired) as exc:
+            pytest.skip(f"npm ci in {CLIENT_DIR} failed (no registry?): {getattr(exc, 'stderr', '') or exc}"[:400])
+    return CLIENT_DIR
+
+
+def test_a_standard_foxglove_client_offering_foxglove_websocket_v1_only_decodes_every_channel():
+    """@foxglove/ws-protocol's FoxgloveClient over ws (what Lichtblick and older Foxglove apps use) against the live view."""
+    import subprocess
+
+    client_dir = node_client()
+    truth = make_truth_camera(HOME, 4.0, 0.0, 20.0, 560.0, 640, 480)
+    mission = parse_qgc_plan(json.dumps(plan_document(WAYPOINTS, hold_s=3.0)))
+    view = LiveView(port=0)
+    marker = MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.4, offset_frd_m=OFFSET)
+    live = LiveCalibration(mission, marker, 640, 480, origin=EnuOrigin(*HOME), options=LiveOptions(), view=view).start()
+    try:
+        feed_flight(live, truth, time.time_ns())
+        deadline = time.monotonic() + 60
+        while live.estimate is None and time.monotonic() < deadline:
+            time.sleep(0.2)  # the running calibration, so its topics carry messages
+        assert live.estimate is not None
+        client = subprocess.Popen(["node", "client.mjs", f"ws://127.0.0.1:{view.port}", "30", "2"], cwd=client_dir,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        origin = EnuOrigin(*HOME)
+        while client.poll() is None:  # the drone, landed at the last hold, still sends its fixes (new ones go out once)
+            lat, lon, h = enu_to_geodetic(np.array([list(WAYPOINTS[-1])]), origin)[0]
+            live.on_record(GnssFix(timestamp_ns=time.time_ns(), lat_deg=lat, lon_deg=lon, alt_m=h,
+                                   covariance_enu=np.diag([1e-4, 1e-4, 2e-4]), fix_type="rtk_fixed"))
+            time.sleep(0.1)
+        out, err = client.communicate(timeout=10)
+        run = subprocess.CompletedProcess(client.args, client.returncode, out, err)
+    finally:
+        live.finish()
+        view.close()
+    report = json.loads(run.stdout.strip().splitlines()[-1])
+    assert run.returncode == 0, ({t: (v["messages"], v["errors"]) for t, v in report["topics"].items()}, report["error"], run.stderr[-2000:])
+    assert report["protocol"] == "foxglove.websocket.v1" and report["error"] is None
+    assert view.front.renamed == 1
+    topics = report["topics"]
+    assert set(topics) == set(EXPECTED)
+    for topic, schema in EXPECTED.items():
+        t = topics[topic]
+        assert t["messages"] >= 2 and t["errors"] == 0, (topic, t)
+        assert t["encoding"] == ("protobuf" if schema else "json") and (not schema or t["schemaName"] == schema)
+    image = topics["/live/camera/image"]["last"]
+    assert image["format"] == "jpeg" and image["data"]["head"].startswith("ffd8") and image["data"]["length"] > 1000
+    cal = topics["/live/camera/calibration"]["last"]
+    assert (cal["width"], cal["height"]) == (640, 480) and cal["K"][0] == pytest.approx(560.0, rel=0.02)
+    fix = topics["/live/gnss"]["last"]
+    assert fix["latitude"] == pytest.approx(HOME[0], abs=2e-4) and fix["longitude"] == pytest.approx(HOME[1], abs=2e-4)
+    assert len(json.loads(topics["/live/waypoints"]["last"]["geojson"])["features"]) == 8
+    site = {f["properties"]["name"].split(" (")[0]: f["geometry"] for f in json.loads(topics["/live/site"]["last"]["geojson"])["features"]}
+    assert site["camera pole"]["coordinates"] == pytest.approx([HOME[1], HOME[0]], abs=1e-7)  # no plan.json: the ENU origin
+    path = np.array(site["flight path"]["coordinates"])  # (N, 2) lon, lat: the eight holds flown
+    assert len(path) >= 8 and np.ptp(path[:, 0]) > 2.5 / 111_320.0
+    assert sum(len(p["points"]) for p in topics["/live/coverage"]["last"]["points"]) > 0
+    assert "status" in topics["/live/status"]["last"] or "verdict" in topics["/live/status"]["last"]
+
+
+def test_the_map_shows_the_rois_ground_and_the_camera_pole_of_a_plan():
+    from dronecal_field.geodesy import geodetic_to_enu
+    from dronecal_field.live.progress import image_roi
+    from dronecal_field.live.view import site_features
+
+    plan = json.loads((Path(__file__).parents[1] / "missions" / "paper-pinhole" / "plan.json").read_text())
+    roi = image_roi(plan)
+    assert roi is not None
+    origin = EnuOrigin(*HOME)
+    features = {f["properties"]["name"].split(" (")[0]: f for f in site_features(plan, roi, origin)}
+    assert set(features) == {"ROI", "camera pole"}
+    ring = np.array(features["ROI"]["geometry"]["coordinates"][0])  # (K + 1, 2) lon, lat, closed
+    assert np.allclose(ring[0], ring[-1]) and len(ring) >= 4
+    enu = geodetic_to_enu(ring[:, 1], ring[:, 0], HOME[2], origin)  # (K + 1, 3)
+    R = np.asarray(plan["site_frame"]["R_enu_from_site"], float)
+    ground = roi.points_site[roi.on_ground] @ R.T
+    # The polygon is the hull of the ROI's ground points: every one inside its bounding box, the box no larger.
+    lo, hi = enu[:, :2].min(axis=0), enu[:, :2].max(axis=0)
+    assert np.all(ground[:, :2] >= lo - 0.01) and np.all(ground[:, :2] <= hi + 0.01)
+    assert np.allclose(lo, ground[:, :2].min(axis=0), atol=0.01) and np.allclose(hi, ground[:, :2].max(axis=0), atol=0.01)
+    pole = np.asarray(plan["camera_guess"]["position_enu_m"], float)
+    lon, lat = features["camera pole"]["geometry"]["coordinates"]
+    assert np.allclose(geodetic_to_enu(lat, lon, HOME[2], origin)[0, :2], pole[:2], atol=0.01)
+
+
+def test_an_h264_camera_is_shown_as_its_keyframes_decoded_at_a_low_rate(tmp_path):
+    from test_video_packets import encode_clip
+
+    from dronecal_field.video.files import read_video_packets
+
+    encode_clip(tmp_path / "clip.mp4", "h264", n=30, size=(160, 128), gop=10)
+    units = [f for _, f, _ in read_video_packets(str(tmp_path / "clip.mp4"), 1_000_000_000)]  # 25 fps: keyframes 0.4 s apart
+    view = LiveView(port=0)
+    try:
+        shown = []
+        for unit in units:
+            view.offer_video(unit)  # the recorder's thread: a reference kept, nothing decoded
+            image = view.video_image(every_s=0.5)
+            if image is not None:
+                shown.append(image)
+    finally:
+        view.close()
+    assert [u.timestamp_ns for u in units if u.keyframe] == [1_000_000_000, 1_400_000_000, 1_800_000_000]
+    assert [f.timestamp_ns for f in shown] == [1_000_000_000, 1_800_000_000]  # at most one every 0.5 s
+    gray = cv2.imdecode(np.frombuffer(shown[0].data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    assert shown[0].format == "jpeg" and gray.shape == (128, 160)
+    assert gray[40, 30] > 200 and gray[100, 150] < 140  # the clip's bright square on its grey background

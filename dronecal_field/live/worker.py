@@ -204,6 +204,8 @@ class LiveCalibration:
         compressed = frame.format in COMPRESSED
         if not compressed:
             self._latest_frame = frame
+        elif self.view is not None:
+            self.view.offer_video(frame)  # a keyframe kept for the view's low-rate image, nothing decoded here
         # A stream at up to ~RING_HZ keeps every frame, however jittered (two frames 12 ms apart are both in the
         # file, and calibrate takes both): only a faster one (mean interval from a running average) is thinned.
         dt = frame.timestamp_ns - self._last_seen_ns
@@ -444,7 +446,7 @@ class LiveCalibration:
             self._detector = make_aruco_detector(self.marker.dictionary)
         self._roi = image_roi(self.plan) if self.plan is not None else None
         if self.view is not None:
-            self.view.set_plan(self.mission, self._roi)
+            self.view.set_plan(self.mission, self._roi, self.plan, self.origin)
 
     def _track(self) -> FixTrack:
         fixes = list(self._fixes)
@@ -646,7 +648,7 @@ class LiveCalibration:
         view = self.view
         fixes = list(self._fixes)
         view.publish_fixes(fixes)
-        frame = self._latest_frame
+        frame = self._latest_frame if self._latest_frame is not None else view.video_image()
         if frame is not None:
             view.publish_image(frame, None, self._reprojection(frame.timestamp_ns), self._all_uv())
         with self._lock:
