@@ -416,3 +416,32 @@ def test_plan_stopped_removes_its_staged_folder(tmp_path: Path, sig: int) -> Non
     assert "Traceback" not in stderr and f"stopped by {signal.Signals(sig).name}" in stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == []  # no .plan-out.tmp-*, no half plan-out
     assert _wait_for(lambda: not _our_processes(str(out)), 30), _our_processes(str(out))
+
+
+def test_fly_on_a_disk_that_fills_mid_flight_says_so_at_once_and_exits_2(small_disk: Path) -> None:
+    """The whole command on a real 3 MB disk: the status line says RECORDING STOPPED: DISK FULL while the
+    flight goes on, no thread prints a traceback, the run reads back up to its cut, exit 2 in one line."""
+    from dronecal_field.runfile.reader import open_run
+    from test_mavlink_support import MjpegServer, plan_document, start_sim
+
+    plan = small_disk.parent / "m.plan"
+    plan.write_text(json.dumps(plan_document([(0.0, 4.0, 1.5), (1.0, 4.0, 1.5)], hold_s=8.0)))
+    (small_disk / "other-files").write_bytes(b"\xff" * 1_500_000)  # the disk is half full already
+    sim = start_sim(speedup=4.0, boot_s=0.5)
+    camera = MjpegServer(fps=30)
+    out = small_disk / "run.mcap"
+    try:
+        proc = subprocess.run(_fly_argv(out, sim.addresses()[0], plan, camera.url, "--start", "--no-live", "--timeout-s", "120"),
+                              capture_output=True, text=True, timeout=240)
+    finally:
+        camera.close()
+        sim.stop()
+    assert "Traceback" not in proc.stderr and "Traceback" not in proc.stdout
+    assert proc.returncode == 2, proc.stderr
+    status = [line for line in proc.stdout.splitlines() if line.startswith("wp ")]
+    assert any("RECORDING STOPPED: DISK FULL" in line for line in status)
+    assert "RECORDING STOPPED EARLY (disk full" in proc.stdout
+    assert proc.stderr.strip().splitlines()[-1].startswith("dronecal-field fly: error: the recording stopped early (disk full")
+    with open_run(out) as run:
+        assert not run.truncated and run.recording_stopped is not None
+        assert sum(1 for _ in run.iter_fixes()) > 0 and sum(1 for _ in run.iter_frames()) > 0

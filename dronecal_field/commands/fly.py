@@ -290,6 +290,7 @@ def run(args: argparse.Namespace) -> int:
     watch = None
     keeper = None
     closed_mono = None
+    stopped_early = None
     try:
         hb = link.wait_heartbeat(args.heartbeat_timeout)
         print(f"vehicle: {describe_heartbeat(hb)} (sysid {link.target_system}) on {link.endpoint}", flush=True)
@@ -360,7 +361,9 @@ def run(args: argparse.Namespace) -> int:
     finally:
         claim.release()  # nothing recorded: the empty claimed files go
         if recorder is not None:
-            summary = recorder.stop().summary()
+            recording = recorder.stop()
+            stopped_early = recording.stopped  # a full disk: finalised up to the cut, said loudly, exit 2
+            summary = recording.summary()
             closed_mono = time.monotonic()
             print(f"\nrecorded {out} and {tlog_path.name}: {summary}", flush=True)
         if watch is not None and watch.changed:
@@ -377,6 +380,10 @@ def run(args: argparse.Namespace) -> int:
         from dronecal_field.live.session import calibrate_after_landing
 
         print("\n".join(calibrate_after_landing(out, args.min_fix, closed_mono, live)), flush=True)
+    if stopped_early is not None:
+        from dronecal_field.errors import RecordingStoppedError
+
+        raise RecordingStoppedError(f"the recording stopped early ({stopped_early}); {out} is finalised up to there: free space and re-fly what is missing")
     return 0
 
 
