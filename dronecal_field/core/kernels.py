@@ -65,20 +65,22 @@ def _jacobian_rows(
     X: np.ndarray,  # (N, 3)
     y: np.ndarray,  # (N, 2)
     w: np.ndarray,  # (N,)
-    sel: np.ndarray,  # (m,)
     fx_col: int,
     aspect: float,
-    J: np.ndarray,  # (m, 2N) out: sqrt(w)-weighted Jacobian, one row per free parameter
-    r: np.ndarray,  # (2N,) out: sqrt(w)-weighted residuals (u, v of point n at 2n, 2n+1)
+    J: np.ndarray,  # (15, 2N) out: sqrt(w)-weighted Jacobian, row p = parameter p (u of point n at n, v at N + n)
+    r: np.ndarray,  # (2N,) out: sqrt(w)-weighted residuals, the same layout
     sq: np.ndarray,  # (N,) out: unweighted squared residuals
 ) -> None:
-    """The weighted Jacobian of one problem, stored by parameter so its products are contiguous dot products."""
+    """The weighted Jacobian of one problem for all 15 parameters, one contiguous row per parameter.
+
+    Rows are written at fixed indices (no selection inside the point loop, so
+    it vectorises); the free parameters are picked by row when the products
+    are formed. With a tied aspect ratio (``fx_col`` >= 0) row 0 becomes
+    d/dfx + aspect * d/dfy.
+    """
     N = y.shape[0]
-    m = sel.shape[0]
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
-    jf_u = np.empty(15)
-    jf_v = np.empty(15)
     for n in range(N):
         X0, X1, X2 = X[n, 0], X[n, 1], X[n, 2]
         ax = R[0, 0] * X0 + R[0, 1] * X1 + R[0, 2] * X2
@@ -97,8 +99,8 @@ def _jacobian_rows(
         rv = y[n, 1] - (fy * yd + cy)
         sq[n] = ru * ru + rv * rv
         sw = np.sqrt(w[n])
-        r[2 * n] = sw * ru
-        r[2 * n + 1] = sw * rv
+        r[n] = sw * ru
+        r[N + n] = sw * rv
         drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
         dxd_dy = xy2 * drad + 2.0 * p1 * xn + 2.0 * p2 * yn
         a00 = fx * (radial + 2.0 * xn * xn * drad + 2.0 * p1 * yn + 6.0 * p2 * xn) * iz
@@ -107,57 +109,57 @@ def _jacobian_rows(
         a11 = fy * (radial + 2.0 * yn * yn * drad + 6.0 * p1 * yn + 2.0 * p2 * xn) * iz
         gu2 = -(a00 * xn + a01 * yn)
         gv2 = -(a10 * xn + a11 * yn)
-        jf_u[0] = xd
-        jf_u[1] = 0.0
-        jf_u[2] = 1.0
-        jf_u[3] = 0.0
-        jf_u[4] = fx * xn * r2
-        jf_u[5] = fx * xn * r4
-        jf_u[6] = fx * xy2
-        jf_u[7] = fx * (r2 + 2.0 * xn * xn)
-        jf_u[8] = fx * xn * r4 * r2
-        jf_u[9] = ay * gu2 - az * a01
-        jf_u[10] = az * a00 - ax * gu2
-        jf_u[11] = ax * a01 - ay * a00
-        jf_u[12] = a00
-        jf_u[13] = a01
-        jf_u[14] = gu2
-        jf_v[0] = 0.0
-        jf_v[1] = yd
-        jf_v[2] = 0.0
-        jf_v[3] = 1.0
-        jf_v[4] = fy * yn * r2
-        jf_v[5] = fy * yn * r4
-        jf_v[6] = fy * (r2 + 2.0 * yn * yn)
-        jf_v[7] = fy * xy2
-        jf_v[8] = fy * yn * r4 * r2
-        jf_v[9] = ay * gv2 - az * a11
-        jf_v[10] = az * a10 - ax * gv2
-        jf_v[11] = ax * a11 - ay * a10
-        jf_v[12] = a10
-        jf_v[13] = a11
-        jf_v[14] = gv2
-        for a in range(m):
-            J[a, 2 * n] = sw * jf_u[sel[a]]
-            J[a, 2 * n + 1] = sw * jf_v[sel[a]]
-        if fx_col >= 0:
-            J[fx_col, 2 * n] += sw * aspect * jf_u[1]
-            J[fx_col, 2 * n + 1] += sw * aspect * jf_v[1]
+        J[0, n] = sw * xd
+        J[1, n] = 0.0
+        J[2, n] = sw
+        J[3, n] = 0.0
+        J[4, n] = sw * fx * xn * r2
+        J[5, n] = sw * fx * xn * r4
+        J[6, n] = sw * fx * xy2
+        J[7, n] = sw * fx * (r2 + 2.0 * xn * xn)
+        J[8, n] = sw * fx * xn * r4 * r2
+        J[9, n] = sw * (ay * gu2 - az * a01)
+        J[10, n] = sw * (az * a00 - ax * gu2)
+        J[11, n] = sw * (ax * a01 - ay * a00)
+        J[12, n] = sw * a00
+        J[13, n] = sw * a01
+        J[14, n] = sw * gu2
+        J[0, N + n] = 0.0
+        J[1, N + n] = sw * yd
+        J[2, N + n] = 0.0
+        J[3, N + n] = sw
+        J[4, N + n] = sw * fy * yn * r2
+        J[5, N + n] = sw * fy * yn * r4
+        J[6, N + n] = sw * fy * (r2 + 2.0 * yn * yn)
+        J[7, N + n] = sw * fy * xy2
+        J[8, N + n] = sw * fy * yn * r4 * r2
+        J[9, N + n] = sw * (ay * gv2 - az * a11)
+        J[10, N + n] = sw * (az * a10 - ax * gv2)
+        J[11, N + n] = sw * (ax * a11 - ay * a10)
+        J[12, N + n] = sw * a10
+        J[13, N + n] = sw * a11
+        J[14, N + n] = sw * gv2
+    if fx_col >= 0:
+        for c in range(2 * N):
+            J[0, c] += aspect * J[1, c]
 
 
 @njit(cache=True, fastmath=True, nogil=True)
-def _normal_from_rows(J: np.ndarray, r: np.ndarray, JtJ: np.ndarray, g: np.ndarray) -> None:
-    """J^T J (m, m) and J^T r (m,) from the rows of J (m, 2N)."""
-    m, n2 = J.shape
+def _normal_from_rows(J: np.ndarray, r: np.ndarray, sel: np.ndarray, JtJ: np.ndarray, g: np.ndarray) -> None:
+    """J^T J (m, m) and J^T r (m,) of the free parameters sel (m,) from the rows of J (15, 2N)."""
+    m = sel.shape[0]
+    n2 = J.shape[1]
     for a in range(m):
+        ja = J[sel[a]]
         s = 0.0
         for c in range(n2):
-            s += J[a, c] * r[c]
+            s += ja[c] * r[c]
         g[a] = s
         for b in range(a, m):
+            jb = J[sel[b]]
             s = 0.0
             for c in range(n2):
-                s += J[a, c] * J[b, c]
+                s += ja[c] * jb[c]
             JtJ[a, b] = s
             JtJ[b, a] = s
 
@@ -180,10 +182,10 @@ def _accumulate(
 ) -> None:
     """Normal equations of one problem at one parameter value (allocates its Jacobian; the solver reuses one)."""
     N = y.shape[0]
-    J = np.empty((sel.shape[0], 2 * N))
+    J = np.empty((15, 2 * N))
     r = np.empty(2 * N)
-    _jacobian_rows(intr, dist, R, t, X, y, w, sel, fx_col, aspect, J, r, sq)
-    _normal_from_rows(J, r, JtJ, g)
+    _jacobian_rows(intr, dist, R, t, X, y, w, fx_col, aspect, J, r, sq)
+    _normal_from_rows(J, r, sel, JtJ, g)
 
 
 @njit(cache=True, fastmath=True, nogil=True)
@@ -256,7 +258,7 @@ def _solve_one(
 ) -> tuple[float, int]:
     """Levenberg-Marquardt for one problem, in place on intr, dist, R, t; returns (cost, iterations).
 
-    The arrays after ``scale`` are workspace (J (m, 2N), r (2N,), w, sq, sq_t (N,), JtJ, H, L (m, m),
+    The arrays after ``damping`` are workspace (J (15, 2N), r (2N,), w, sq, sq_t (N,), JtJ, H, L (m, m),
     g, delta (m,), intr_t (4,), dist_t (5,), R_t, dR (3, 3), t_t (3,), full (15,)), reused across
     problems. A trial step is judged on its residuals alone; the Jacobian is formed only where a
     step is accepted and the solve goes on.
@@ -265,12 +267,12 @@ def _solve_one(
     m = sel.shape[0]
     for n in range(N):
         w[n] = 1.0
-    _jacobian_rows(intr, dist, R, t, X, y, w, sel, fx_col, aspect, J, r, sq)
+    _jacobian_rows(intr, dist, R, t, X, y, w, fx_col, aspect, J, r, sq)
     if loss != 0:
         for n in range(N):
             w[n] = _weight(sq[n], loss, scale)
-        _jacobian_rows(intr, dist, R, t, X, y, w, sel, fx_col, aspect, J, r, sq)
-    _normal_from_rows(J, r, JtJ, g)
+        _jacobian_rows(intr, dist, R, t, X, y, w, fx_col, aspect, J, r, sq)
+    _normal_from_rows(J, r, sel, JtJ, g)
     cost = _cost(w, sq)
     lam = damping
     fails = 0
@@ -314,8 +316,8 @@ def _solve_one(
             if loss != 0:
                 for n in range(N):
                     w[n] = _weight(sq[n], loss, scale)
-            _jacobian_rows(intr, dist, R, t, X, y, w, sel, fx_col, aspect, J, r, sq)
-            _normal_from_rows(J, r, JtJ, g)
+            _jacobian_rows(intr, dist, R, t, X, y, w, fx_col, aspect, J, r, sq)
+            _normal_from_rows(J, r, sel, JtJ, g)
             if loss != 0:
                 cost = _cost(w, sq)
         else:
@@ -424,7 +426,7 @@ BLOCK = 8
 def _workspace(m: int, N: int):
     """The arrays _solve_one works in, for m free parameters and N points."""
     return (
-        np.empty((m, 2 * N)), np.empty(2 * N), np.empty(N), np.empty(N), np.empty(N),
+        np.empty((15, 2 * N)), np.empty(2 * N), np.empty(N), np.empty(N), np.empty(N),
         np.empty((m, m)), np.empty(m), np.empty((m, m)), np.empty((m, m)), np.empty(m),
         np.empty(4), np.empty(5), np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty(15),
     )
