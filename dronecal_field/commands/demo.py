@@ -3,10 +3,11 @@
 Starts the SITL-style vehicle and the simulated camera on loopback sockets,
 plans a mission for the simulated camera, flies it with ``fly --start``,
 calibrates the recorded run, and prints the calibrated camera next to the
-truth, then one line saying whether the demo met its targets and where
-camera.yaml is. About six minutes on 2 cores (make demo on a fresh machine
-adds about two minutes of installing first). A second demo into the same
-folder records run-2.mcap: a flight is never overwritten.
+truth, then one line saying whether the demo met its targets (agreeing with
+the steps' own logs, whose complaints it prints) and where camera.yaml is.
+A few minutes (measured in the README). A second demo into the same folder
+records run-2.mcap: a flight is never overwritten. Ctrl-C, SIGTERM or SIGHUP
+stop every step it started (fly finalises its run).
 """
 
 from __future__ import annotations
