@@ -445,3 +445,17 @@ def test_fly_on_a_disk_that_fills_mid_flight_says_so_at_once_and_exits_2(small_d
     with open_run(out) as run:
         assert not run.truncated and run.recording_stopped is not None
         assert sum(1 for _ in run.iter_fixes()) > 0 and sum(1 for _ in run.iter_frames()) > 0
+
+
+def test_the_demo_verdict_reads_its_own_logs(tmp_path: Path) -> None:
+    """The demo's last line never says 'met its targets' beside logs that ask to re-fly."""
+    from dronecal_field.demo import log_problems
+
+    fly, cal = tmp_path / "fly.log", tmp_path / "calibrate.log"
+    fly.write_text("wp 3/4 ...\nverdict: re-fly waypoints 4, 5 (marker not detected) — 39/60 detected of 60 flown\n")
+    cal.write_text("calibrated run.mcap: 0 of 24 waypoints (windows from events), model full\n  warning: the holds lasted 0.3 s\n")
+    problems = log_problems(fly, cal)
+    assert problems[0].startswith("fly: re-fly waypoints 4, 5") and len(problems) == 3
+    fly.write_text("verdict: good: 60/60 waypoints detected\n")
+    cal.write_text("calibrated run.mcap: 24 of 24 waypoints (windows from events), model full\n")
+    assert log_problems(fly, cal) == ()
