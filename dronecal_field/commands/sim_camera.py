@@ -55,7 +55,10 @@ def register(sims: argparse._SubParsersAction) -> None:
     parser.add_argument("--connect", required=True, help="MAVLink address with explicit scheme: udpin:HOST:PORT, tcp:HOST:PORT, udpout:, serial:DEV:BAUD")
     parser.add_argument("--camera", help="truth camera.yaml (world frame ENU at its enu_origin)")
     parser.add_argument("--write-truth", metavar="PATH", help="write the truth camera made from the --site-* flags here")
-    parser.add_argument("--serve", default="http://127.0.0.1:8554/stream.mjpg", help="MJPEG URL to serve; port 0 picks a free one (default %(default)s)")
+    parser.add_argument("--serve", default="http://127.0.0.1:8554/stream.mjpg",
+                        help="URL to serve: http://HOST:PORT/PATH (MJPEG) or rtsp://HOST:PORT/PATH (H.264/H.265 from GStreamer's RTSP server "
+                             "with RTCP sender reports, as an IP camera; needs `make rtsp-deps`); port 0 picks a free one (default %(default)s)")
+    parser.add_argument("--codec", choices=("h264", "h265"), default="h264", help="codec of an rtsp:// stream (default %(default)s)")
     parser.add_argument("--fps", type=float, default=10.0, help="frames per second (default %(default)s)")
     parser.add_argument("--latency-s", type=float, default=0.0, help="frames show the vehicle this many seconds late (default %(default)s)")
     parser.add_argument("--noise-dn", dest="noise_px", type=float, default=2.0, metavar="DN",
@@ -107,8 +110,9 @@ def _check_flags(args: argparse.Namespace) -> None:
         parts.port  # noqa: B018 - raises ValueError for a port outside 0-65535
     except ValueError as exc:
         raise InputError(f"--serve {args.serve!r} is not a valid URL ({exc}): write e.g. http://127.0.0.1:8554/stream.mjpg") from None
-    if parts.scheme != "http" or not parts.hostname:
-        raise InputError(f"--serve {args.serve!r}: the simulated camera serves MJPEG over http: write e.g. http://127.0.0.1:8554/stream.mjpg")
+    if parts.scheme not in ("http", "rtsp") or not parts.hostname:
+        raise InputError(f"--serve {args.serve!r}: the simulated camera serves MJPEG over http or H.264/H.265 over rtsp: "
+                         "write e.g. http://127.0.0.1:8554/stream.mjpg or rtsp://127.0.0.1:8554/cam")
     check_number("--fps", args.fps, 0, 240, low_open=True, hint="give frames per second, e.g. 10")
     check_number("--latency-s", args.latency_s, 0, 10, hint="give seconds, e.g. 0.2")
     check_number("--noise-dn", args.noise_px, 0, 255, hint="give a grey-level standard deviation, e.g. 2")
@@ -184,6 +188,7 @@ def run(args: argparse.Namespace) -> int:
         marker,
         connect=args.connect,
         serve_url=args.serve,
+        codec=args.codec,
         fps=args.fps,
         latency_s=args.latency_s,
         noise_sigma_dn=args.noise_px,

@@ -1,4 +1,4 @@
-"""The simulated pole camera: follows a MAVLink vehicle and serves what it sees as MJPEG over HTTP.
+"""The simulated pole camera: follows a MAVLink vehicle and serves what it sees as MJPEG over HTTP, or over RTSP.
 
 Three threads around the pure parts (render.py, camera_track.py):
 
@@ -22,6 +22,13 @@ Three threads around the pure parts (render.py, camera_track.py):
 * an HTTP server (ThreadingHTTPServer) that streams the frames as
   ``multipart/x-mixed-replace`` to any number of clients, and serves single
   frames at ``/snapshot.jpg``.
+
+With ``rtsp://HOST:PORT/PATH`` the frames are H.264 or H.265 from
+GStreamer's RTSP server instead (:mod:`dronecal_field.sim.camera_rtsp`, a
+child process of Debian's Python): a real IP camera's stream, with RTCP
+sender reports that put each frame at its frame time; the HTTP server and
+the sender are then not started, and frames are rendered whether or not
+anyone watches.
 
 Each MJPEG part carries ``X-Dronecal-Frame-Time-Ns`` (when the frame was
 made, host UTC ns) and ``X-Dronecal-Pose-Time-Ns`` (the instant whose pose it
@@ -63,23 +70,25 @@ REQUEST_AGAIN_NS = 2_000_000_000  # no position for this long: ask again
 
 @dataclass(frozen=True)
 class ServeAddress:
-    """Where the MJPEG stream is served: ``http://host:port/path``."""
+    """Where the stream is served: ``http://host:port/path`` (MJPEG) or ``rtsp://host:port/path`` (H.264/H.265)."""
 
     host: str
     port: int
     path: str
+    scheme: str = "http"
 
 
 def parse_serve_url(url: str) -> ServeAddress:
-    """Split ``http://HOST:PORT/PATH`` (port 0 = any free port)."""
+    """Split ``http://HOST:PORT/PATH`` or ``rtsp://HOST:PORT/PATH`` (port 0 = any free port)."""
     parts = urlsplit(url)
-    if parts.scheme != "http" or not parts.hostname:
-        raise InputError(f"--serve {url!r} is not an http:// URL: use e.g. http://127.0.0.1:8554/stream.mjpg")
+    if parts.scheme not in ("http", "rtsp") or not parts.hostname:
+        raise InputError(f"--serve {url!r} is not an http:// or rtsp:// URL: use e.g. http://127.0.0.1:8554/stream.mjpg or rtsp://127.0.0.1:8554/cam")
     try:
-        port = parts.port if parts.port is not None else 80
+        port = parts.port if parts.port is not None else (80 if parts.scheme == "http" else 554)
     except ValueError:
         raise InputError(f"--serve {url!r} has a bad port: use 0..65535") from None
-    return ServeAddress(host=parts.hostname, port=port, path=parts.path or "/stream.mjpg")
+    default = "/stream.mjpg" if parts.scheme == "http" else "/cam"
+    return ServeAddress(host=parts.hostname, port=port, path=parts.path or default, scheme=parts.scheme)
 
 
 def open_mavlink_listener(connect: str) -> "mavutil.mavfile":  # noqa: F821 (pymavlink, imported lazily)
@@ -259,6 +268,7 @@ class SimCamera:
         vehicle_sysid: int | None = None,
         hide_marker_at: frozenset[int] | set[int] | tuple[int, ...] = frozenset(),
         delivery_s: float = 0.15,
+        codec: str = "h264",
     ) -> None:
         if camera.enu_origin is None:
             raise InputError("the truth camera has no enu_origin: the simulator needs it to place the vehicle (write it with make_truth_camera)")
@@ -288,6 +298,8 @@ class SimCamera:
         self.track = PoseTrack(horizon_s=max(30.0, 4.0 * latency_s), use_ellipsoid=use_ellipsoid)
         self.renderer = FrameRenderer(camera, marker, noise_sigma_dn=noise_sigma_dn, seed=seed)
         self.serve = parse_serve_url(serve_url)
+        self.codec = codec
+        self._rtsp = None  # camera_rtsp.RtspOut when serving rtsp://
         self.hub = FrameHub()
         self.frames_rendered = 0
         self.messages_received = 0
@@ -300,8 +312,22 @@ class SimCamera:
     # -- lifecycle
 
     def start(self) -> "SimCamera":
-        """Open the MAVLink link and the HTTP port, then start the threads."""
+        """Open the MAVLink link and the HTTP port (or the RTSP server), then start the threads."""
         self._mav = open_mavlink_listener(self.connect)
+        if self.serve.scheme == "rtsp":
+            from dronecal_field.sim.camera_rtsp import RtspAddress, RtspOut
+
+            try:
+                self._rtsp = RtspOut(RtspAddress(self.serve.host, self.serve.port, self.serve.path), self.camera.width, self.camera.height,
+                                     self.fps, self.codec)
+            except Exception:
+                self._mav.close()
+                raise
+            for name, target in (("sim-camera-mavlink", self._listen), ("sim-camera-frames", self._frames)):
+                th = threading.Thread(target=target, name=name, daemon=True)
+                th.start()
+                self._threads.append(th)
+            return self
         try:
             server = ThreadingHTTPServer((self.serve.host, self.serve.port), _make_handler(self.hub, self.serve.path))
         except OSError as exc:
@@ -320,6 +346,8 @@ class SimCamera:
         """Stop the threads and close the sockets."""
         self._stop.set()
         self.hub.close()
+        if self._rtsp is not None:
+            self._rtsp.close()
         if self._server is not None:
             self._server.shutdown()
             self._server.server_close()
@@ -337,6 +365,8 @@ class SimCamera:
     @property
     def url(self) -> str:
         """The stream's URL, with the port actually bound."""
+        if self._rtsp is not None:
+            return self._rtsp.url
         host, port = self._server.server_address[:2] if self._server else (self.serve.host, self.serve.port)
         return f"http://{host}:{port}{self.serve.path}"
 
@@ -454,7 +484,7 @@ class SimCamera:
         params = [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality]
         try:
             while not self._stop.is_set():
-                if not self.hub.wait_for_watchers(timeout_s=0.5):
+                if self._rtsp is None and not self.hub.wait_for_watchers(timeout_s=0.5):
                     continue
                 # Frames on a fixed grid of the UTC clock, like a free-running sensor.
                 now = time.time_ns()
@@ -466,6 +496,11 @@ class SimCamera:
                 hidden = self.mission_seq is not None and self.mission_seq in self.hide_marker_at
                 img = self.renderer.render(pose[0] if pose else None, show_marker=not hidden)
                 self.frames_hidden += int(hidden)
+                if self._rtsp is not None:
+                    self.frames_rendered += 1
+                    if not self._rtsp.send(tick, img):  # shown at its frame time: RTCP carries it to the recorder
+                        raise RuntimeError("the RTSP server process ended")
+                    continue
                 ok, buf = cv2.imencode(".jpg", img, params)
                 if not ok:
                     raise RuntimeError("JPEG encoding failed")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dronecal_field.runfile.records import Frame
-from dronecal_field.video.nal import CODEC_OF_FORMAT, VideoFrame, is_keyframe
+from dronecal_field.video.nal import CODEC_OF_FORMAT, VideoFrame, is_keyframe, join_annexb, nal_type, split_annexb
 
 
 class VideoFrameDecoder:
@@ -95,10 +95,13 @@ def keyframe_error(data: bytes, fmt: str) -> str | None:
     server's too-small buffer) fails the decode instead of being concealed.
     H.264 finds every cut slice this way (CABAC's end check); H.265 only those
     the decoder notices (a syntax element out of range), so a clean result is
-    no proof for H.265.
+    no proof for H.265. SEI units are left out: they carry no picture, and
+    x265's (its options as text) would fail the check on their own.
     """
     import av
 
+    sei = (6,) if fmt == "h264" else (39, 40)  # SEI says nothing about the picture (x265's options text trips explode)
+    data = join_annexb([n for n in split_annexb(data) if nal_type(n, fmt) not in sei])
     ctx = av.CodecContext.create(CODEC_OF_FORMAT[fmt], "r")
     ctx.thread_count = 1
     ctx.options = {"err_detect": "explode"}
