@@ -100,7 +100,8 @@ def test_docs_layout_is_the_generated_one_and_names_only_live_topics():
     import re
 
     topics = set(re.findall(r'"(/live/[a-z/]+)"', text))
-    assert topics == {"/live/camera/image", "/live/camera/calibration", "/live/camera/annotations", "/live/coverage", "/live/gnss", "/live/status"}
+    assert topics == {"/live/camera/image", "/live/camera/calibration", "/live/camera/annotations", "/live/coverage", "/live/gnss", "/live/status",
+                      "/live/waypoints", "/live/site"}
 
 
 def test_an_estimate_is_shown_only_when_tight_and_where_the_plan_put_the_camera():
