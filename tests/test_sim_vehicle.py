@@ -140,6 +140,45 @@ def test_readback_frames_and_home_follow_arducopter():
     assert all(b.x == a.x and b.y == a.y for a, b in zip(items[1:], back[1:]) if b.command in (16, 201))
 
 
+def test_altitudes_read_back_as_the_firmware_stores_them():
+    # ArduCopter 4.7: alt_cm = (int32)(z * 100.0f), read back alt_cm * 0.01f (issue 19; tests/test_sitl_arducopter.py)
+    sim = start_sim(boot_s=0.5)
+    link = open_link(sim.addresses()[0])
+    try:
+        ask_telemetry(link)
+        wait_ready(link)
+        items = list(_mission().items)
+        wp = next(i for i, item in enumerate(items) if item.command == 16 and item.seq > 0)
+        items[wp] = MissionItem(**{**items[wp].__dict__, "z": 1.47})
+        items[wp + 1] = MissionItem(**{**items[wp + 1].__dict__, "z": 3.633})
+        report = upload_and_verify(link, items, timeout_s=0.5)
+    finally:
+        link.close()
+        sim.stop()
+    assert report.readback[wp].z == 1.46999990940094  # not float32(1.47) = 1.4700000286102295
+    assert report.readback[wp + 1].z == pytest.approx(3.63, abs=1e-6)
+    assert "seq %d: z 3.633 -> 3.63" % (wp + 1) in report.storage_changes
+
+
+def test_a_mode_change_is_announced_by_a_heartbeat_at_once():
+    # ArduCopter 4.7 SITL (fly-calib-t1.tlog): GUIDED's and AUTO's HEARTBEATs follow their COMMAND_ACKs within 2 ms,
+    # so a ground station sees STABILIZE > GUIDED > AUTO even when arming and MISSION_START follow at once
+    sim = start_sim(speedup=1.0, boot_s=0.5)
+    link = open_link(sim.addresses()[0])
+    rec = MessageLog(link)
+    try:
+        ask_telemetry(link)
+        wait_ready(link)
+        assert link.set_mode("GUIDED") == ap.MAV_RESULT_ACCEPTED
+        acked = rec.vehicle_s
+        assert wait_until(lambda: any(m.custom_mode == ap.MODE_GUIDED for _t, m in rec.of("HEARTBEAT")), 5.0)
+        first = next(t for t, m in rec.of("HEARTBEAT") if m.custom_mode == ap.MODE_GUIDED)
+    finally:
+        link.close()
+        sim.stop()
+    assert first - acked < 0.2  # vehicle seconds, not the next 1 Hz beat
+
+
 # ----- arming and starting on the ground -----
 
 

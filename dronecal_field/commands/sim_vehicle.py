@@ -30,7 +30,7 @@ def register(sims: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", action="append", default=[], metavar="URL", help="also send everything to udp:HOST:PORT (e.g. the simulated camera); repeatable")
     parser.add_argument("--home", required=True, metavar="LAT,LON,H", help="home: degrees, degrees, metres above mean sea level (as SITL's --home)")
     parser.add_argument("--speedup", type=float, default=1.0, metavar="N", help="vehicle seconds per wall second (default 1)")
-    parser.add_argument("--boot-s", type=float, default=10.0, metavar="S", help="vehicle seconds until ready to arm; uploads before that get MISSION_ACK NO_SPACE (default 10)")
+    parser.add_argument("--boot-s", type=float, default=41.8, metavar="S", help="vehicle seconds until ready to arm (EKF healthy); uploads before that get MISSION_ACK NO_SPACE (default 41.8, as ArduCopter 4.7 SITL)")
     parser.add_argument("--geoid-separation", dest="geoid_sep", type=float, default=0.0, metavar="M",
                         help="ellipsoidal minus AMSL height reported in GPS_RAW_INT.alt_ellipsoid, metres (default 0; the same flag as plan's)")
     parser.add_argument("--geoid-sep", dest="geoid_sep", type=float, help=argparse.SUPPRESS)  # the old name, for one release

@@ -92,6 +92,10 @@ RECORDED_GCS_RATES_HZ: tuple[tuple[str, float], ...] = (
     ("HOME_POSITION", 0.5),
 )
 
+# Modes whose HEARTBEAT.base_mode carries MAV_MODE_FLAG_GUIDED_ENABLED (GCS_MAVLINK_Copter::base_mode:
+# AUTO, RTL, LOITER, GUIDED, CIRCLE, POSHOLD, BRAKE, SMART_RTL ...), whether armed or not.
+_GUIDED_FLAG_MODES = frozenset({3, 4, 5, 6, 7, 16, 17, 21})
+
 TIMESYNC_PERIOD_S = 10.0  # ArduPilot asks every link for a TIMESYNC about every 10 s (2 in 25 s recorded)
 GPS_LAG_S = 0.104  # a fix's time_usec is this much older than the tick that first carries it (recorded)
 GPS_REPORTED_ACC_MM = 300  # h_acc = v_acc on every RTK-fixed fix, whatever the scatter (recorded)
@@ -161,7 +165,7 @@ class VehicleConfig:
     home_alt_m: float
     geoid_sep_m: float = 0.0
     speedup: float = 1.0
-    boot_s: float = 10.0
+    boot_s: float = 41.8
     tick_s: float = 0.05
     seed: int = 0
     sysid: int = 1
@@ -363,6 +367,7 @@ class SimVehicle:
         self.fix_type = 0
         self.ekf_flags = ap.EKF_UNINITIALIZED
         self._boot_steps = self._boot_sequence()
+        self._heartbeat_mode = self.model.mode  # the mode the last HEARTBEAT announced
         self.start_unix_us = time.time_ns() // 1000
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -460,6 +465,16 @@ class SimVehicle:
                     continue
                 with self._lock:
                     self._handle(conn, msg)
+                    self._heartbeat_on_mode_change()
+
+    def _heartbeat_on_mode_change(self) -> None:
+        """ArduCopter sends a HEARTBEAT on every link at once when the mode changes (after the
+        command's ACK): fly-calib-t1.tlog has GUIDED's and AUTO's 0-2 ms after their COMMAND_ACKs,
+        none after arming. So a ground station sees every mode, however quickly the next follows."""
+        mode = self.model.mode
+        if mode != self._heartbeat_mode:
+            self._heartbeat_mode = mode
+            self._broadcast(self._build("HEARTBEAT"))
 
     def _handle(self, link: Any, msg: Any) -> None:
         self._active.add(id(link))
@@ -617,14 +632,17 @@ class SimVehicle:
 
     # ----- boot -----
     def _boot_sequence(self) -> list[tuple[float, str]]:
+        # ArduCopter 4.7 SITL (copter.parm, -w; tests/test_sitl_conformance.py): u-blox detected
+        # (fix 1) at 9.76 s, RTK fixed at 10.06 s, origin set at ~12 s, EKF healthy at ~41.8 s:
+        # the steps keep those fractions of boot_s (default 41.8 s, the firmware's).
         b = self.config.boot_s
         return [
             (0.0, "banner"),
             (0.1 * b, "ekf_init"),
-            (0.25 * b, "gps_detected"),
-            (0.3 * b, "gps_rtk"),
-            (0.5 * b, "origin"),
-            (0.8 * b, "ekf_gps"),
+            (0.2335 * b, "gps_detected"),
+            (0.2407 * b, "gps_rtk"),
+            (0.29 * b, "origin"),
+            (0.98 * b, "ekf_gps"),
             (1.0 * b, "ready"),
         ]
 
@@ -659,6 +677,7 @@ class SimVehicle:
     def _tick(self, dt: float) -> None:
         m = self.model
         m.step(dt)
+        self._heartbeat_on_mode_change()  # a mode the mission or a failsafe chose
         self._ekf_step(dt)
         now = m.time_s
         self._boot(now)
@@ -767,7 +786,7 @@ class SimVehicle:
     def _heartbeat_base_mode(self) -> int:
         m = self.model
         base = ap.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | ap.MAV_MODE_FLAG_STABILIZE_ENABLED | ap.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
-        if m.mode == ap.MODE_GUIDED or (m.armed and m.mode == ap.MODE_AUTO):
+        if m.mode in _GUIDED_FLAG_MODES:  # armed or not: AUTO after the landing is 89 on 4.7 SITL
             base |= ap.MAV_MODE_FLAG_GUIDED_ENABLED
         if m.armed:
             base |= ap.MAV_MODE_FLAG_SAFETY_ARMED

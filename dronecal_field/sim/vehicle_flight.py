@@ -821,13 +821,22 @@ class CopterModel:
             nav.timer_s += dt
             if nav.timer_s >= p.landed_disarm_s:
                 seq, kind = nav.seq, nav.kind
-                # ArduCopter: the landing item completes, the copter disarms itself and stays in its mode
-                if seq is not None and kind in ("rtl", "land"):
+                # ArduCopter: the landing item completes, the copter disarms itself and stays in its mode.
+                # An RTL item is reported reached and MISSION_CURRENT goes back to 0 (calib-grid-rtk.tlog);
+                # a NAV_LAND is never reported: 4.7 disarms, rewinds the mission to item 1 ("Mission: 1
+                # Takeoff", MISSION_CURRENT 1), as ArduCopter 4.7 SITL does (tests/test_sitl_conformance.py).
+                if seq is not None and kind == "rtl":
                     self.reached.append(seq)
                     self.say(f"Reached command #{seq}")
                     self._do_disarm()
                     self.mission_state = ap.MISSION_STATE_COMPLETE
                     self.current_seq = 0
+                elif seq is not None and kind == "land":
+                    self._do_disarm()
+                    self.mission_state = ap.MISSION_STATE_COMPLETE
+                    if len(self.items) > 1:
+                        self.say(f"Mission: 1 {mf.COMMAND_NAMES.get(self.items[1].command, self.items[1].command)}")
+                    self.current_seq = 1
                 else:
                     self._do_disarm()
             return
