@@ -298,7 +298,8 @@ class SubprotocolFront:
 
     def __init__(self, host: str, port: int, upstream: tuple[str, int]) -> None:
         self.upstream = upstream
-        self._listener = socket.create_server((host, int(port)), reuse_port=False)
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        self._listener = socket.create_server((host, int(port)), family=family)
         self._listener.settimeout(0.5)
         self.port = int(self._listener.getsockname()[1])
         self._closed = threading.Event()
