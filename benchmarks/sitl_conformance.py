@@ -49,6 +49,7 @@ HOME = (-35.363261, 149.165230, 584.0)  # SITL's CMAC site, AMSL
 HEADING_DEG = 90.0
 # What the camera simulator asks for on its own link (docs/simulators.md).
 SECOND_LINK_RATES_HZ = (("SIMSTATE", 10.0), ("GLOBAL_POSITION_INT", 10.0), ("ATTITUDE", 10.0), ("GPS_RAW_INT", 2.0), ("MISSION_CURRENT", 2.0))
+BOOT_TRANSIENT_S = 5.0  # base_mode before this vehicle time is the firmware's start-up (89 on a starved SITL), not a GCS's concern
 UNASKED_WINDOW_S = 20.0  # vehicle seconds the second link listens before asking
 HOLD_S = 3.0
 # (east, north, up) metres from home, hold seconds: four holds, a fly-through corner, a hold above home
@@ -85,6 +86,7 @@ class Observation:
     readback: list[MissionItem] = field(default_factory=list)
     reached: dict[int, float] = field(default_factory=dict)  # seq -> vehicle s of its first MISSION_ITEM_REACHED
     modes: list[tuple[str, bool]] = field(default_factory=list)  # (mode, armed) transitions from HEARTBEAT
+    base_modes: list[int] = field(default_factory=list)  # HEARTBEAT.base_mode transitions
     acks: list[tuple[int, int]] = field(default_factory=list)  # (command, result) of COMMAND_ACKs after the start
     start_s: float = math.nan  # MISSION_START accepted
     disarm_s: float = math.nan  # first disarmed HEARTBEAT after the flight
@@ -212,6 +214,8 @@ def _measure(obs: Observation, rec: _Recorder, rec2: _Recorder, mission: list[Mi
         obs.reached.setdefault(int(m.seq), t)
     mode = None
     for t, _w, m in rec.messages("HEARTBEAT"):
+        if t >= BOOT_TRANSIENT_S and (not obs.base_modes or obs.base_modes[-1] != int(m.base_mode)):
+            obs.base_modes.append(int(m.base_mode))
         state = (ap.MODE_NAMES.get(int(m.custom_mode), str(m.custom_mode)), bool(m.base_mode & ap.MAV_MODE_FLAG_SAFETY_ARMED))
         if state != mode:
             obs.modes.append(state)
@@ -244,10 +248,11 @@ def _measure(obs: Observation, rec: _Recorder, rec2: _Recorder, mission: list[Mi
         obs.fix_interval_ms = statistics.median(np.diff(new) / 1000.0)
     pos = rec.messages("GLOBAL_POSITION_INT")
     pos_wall = np.array([w for _t, w, _m in pos])
-    lags = []
-    for _t, w, m in gps:
-        if m.fix_type < 3 or not len(pos_wall):
+    lags, seen = [], set()
+    for _t, w, m in gps:  # each fix when it first goes out (a faster stream repeats it, older each time)
+        if m.fix_type < 3 or not len(pos_wall) or m.time_usec in seen:
             continue
+        seen.add(m.time_usec)
         k = int(np.argmin(np.abs(pos_wall - w)))
         lags.append(pos[k][2].time_boot_ms - m.time_usec / 1000.0)
     if lags:
@@ -273,7 +278,7 @@ def _free_udp_port() -> int:
         return s.getsockname()[1]
 
 
-def observe_firmware(speedup: float = 10.0) -> Observation:
+def observe_firmware(speedup: float = 5.0) -> Observation:
     """Fly the conformance mission on ArduCopter 4.7 SITL (tests/sitl.py), firmware defaults (copter.parm, -w)."""
     from sitl import ArduCopterSitl
 
@@ -286,7 +291,7 @@ def observe_firmware(speedup: float = 10.0) -> Observation:
             return observe(gcs, second, speedup, mission)
 
 
-def observe_sim(speedup: float = 10.0) -> Observation:
+def observe_sim(speedup: float = 5.0) -> Observation:
     """Fly the conformance mission on `sim vehicle` with its defaults (what `dronecal-field sim vehicle` runs)."""
     from dronecal_field.sim.vehicle import SimVehicle, VehicleConfig
 
@@ -315,6 +320,19 @@ class Row:
     firmware: str
     ok: bool
     tolerance: str
+
+
+def starved(fw: Observation) -> str | None:
+    """Why the firmware's run is not a fair reference (its scheduler fell behind its clock), or ``None``.
+
+    On a CPU-starved machine SITL at a speed-up cannot run its loop on time: it sends the
+    asked streams at a fraction of their rate and MISSION_ITEM_REACHED goes missing
+    (one pending per link). A 10 Hz stream under 9.5 Hz per vehicle second says so.
+    """
+    hz = fw.gcs_rates_hz.get("ATTITUDE", 0.0)
+    if hz < 9.5:
+        return f"ArduCopter SITL fell behind its own clock (ATTITUDE at {hz:.1f} Hz of the 10 asked, per vehicle second): the machine is too busy for this speed-up"
+    return None
 
 
 def _rel(a: float, b: float) -> float:
@@ -364,6 +382,7 @@ def conformance_rows(sim: Observation, fw: Observation, mission: list[MissionIte
     # modes and arming
     rows.append(Row("mode/armed sequence", " > ".join(f"{m}{'+' if a else ''}" for m, a in sim.modes),
                     " > ".join(f"{m}{'+' if a else ''}" for m, a in fw.modes), sim.modes == fw.modes, "exact (+ = armed)"))  # fmt: skip
+    rows.append(Row("HEARTBEAT base_mode sequence", str(sim.base_modes), str(fw.base_modes), sim.base_modes == fw.base_modes, "exact"))
     rows.append(Row("COMMAND_ACKs of the start", str(sim.acks), str(fw.acks), sim.acks == fw.acks, "exact"))
     # GPS
     rows.append(Row("GPS new-fix interval, ms", _fmt(sim.fix_interval_ms), _fmt(fw.fix_interval_ms), _rel(sim.fix_interval_ms, fw.fix_interval_ms) <= 0.05, "5 %"))
@@ -379,8 +398,9 @@ def conformance_rows(sim: Observation, fw: Observation, mission: list[MissionIte
     for name, hz in TELEMETRY_RATES_HZ:
         a, b = sim.gcs_rates_hz.get(name, 0.0), fw.gcs_rates_hz.get(name, 0.0)
         rows.append(Row(f"link 1 (asked {hz:g} Hz) {name}, Hz", _fmt(a), _fmt(b), _rel(a, b) <= 0.10, "10 %"))
-    extra_s = sorted(set(sim.gcs_rates_hz) - {n for n, _ in TELEMETRY_RATES_HZ})
-    extra_f = sorted(set(fw.gcs_rates_hz) - {n for n, _ in TELEMETRY_RATES_HZ})
+    replies = {n for n, _ in TELEMETRY_RATES_HZ} | {"COMMAND_ACK", "MISSION_ITEM_INT", "MISSION_COUNT", "MISSION_ACK", "MISSION_REQUEST", "PARAM_VALUE"}
+    extra_s = sorted(set(sim.gcs_rates_hz) - replies)  # what arrives unasked during the flight, answers to our requests aside
+    extra_f = sorted(set(fw.gcs_rates_hz) - replies)
     rows.append(Row("link 1 also carries (unasked)", ", ".join(extra_s), ", ".join(extra_f), set(extra_s) <= set(extra_f), "sim's a subset"))
     rows.append(Row(f"link 2 unasked, first {UNASKED_WINDOW_S:g} vehicle s", str(dict(sorted(sim.second_unasked.items()))),
                     str(dict(sorted(fw.second_unasked.items()))), set(sim.second_unasked) == set(fw.second_unasked), "same types"))  # fmt: skip
@@ -401,7 +421,7 @@ def format_table(rows: list[Row]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--speedup", type=float, default=10.0, help="both vehicles' clock, x wall time (default 10)")
+    parser.add_argument("--speedup", type=float, default=5.0, help="both vehicles' clock, x wall time (default 5)")
     args = parser.parse_args(argv)
     from sitl import skip_reason
 

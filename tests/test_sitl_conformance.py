@@ -1,0 +1,104 @@
+"""`sim vehicle` conforms to ArduPilot's own firmware (ArduCopter 4.7 SITL), as a ground station sees it.
+
+The same short mission flown on both by the same client code
+(benchmarks/sitl_conformance.py, which prints the table): the mission read
+back item by item, leg and hold timing within 5 %, message rates per link
+(the second link unasked, then after asking), the GPS fix's timing and
+accuracy fields, the mode and arming sequence. Times are the vehicles' own
+clocks, never the wall clock. Where they differ the firmware is right: the
+simulator is fixed, never the other way round (docs/simulators.md).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+from sitl import needs_sitl
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import sitl_conformance as conf  # noqa: E402
+
+pytestmark = [needs_sitl, pytest.mark.timeout(300)]
+
+SPEEDUP = 5.0  # the firmware's scheduler keeps its clock at 5x on a loaded 2-core machine
+
+
+@pytest.fixture(scope="module")
+def rows():
+    fw = conf.observe_firmware(SPEEDUP)
+    if (reason := conf.starved(fw)) is not None:
+        pytest.skip(reason)  # not a conformance result: the reference itself is not running as the firmware does
+    sim = conf.observe_sim(SPEEDUP)
+    table = conf.conformance_rows(sim, fw)
+    print("\n" + conf.format_table(table))
+    return table
+
+
+def _rows(table, prefix: str):
+    found = [r for r in table if r.what.startswith(prefix)]
+    assert found, prefix
+    return found
+
+
+@pytest.mark.parametrize(
+    "prefix",
+    [
+        "read-back items",
+        "read-back home",
+        "MISSION_ITEM_REACHED seqs",
+        "mode/armed sequence",
+        "HEARTBEAT base_mode",
+        "COMMAND_ACKs of the start",
+    ],
+)
+def test_mission_modes_and_arming_conform(rows, prefix):
+    for row in _rows(rows, prefix):
+        assert row.ok, row
+
+
+# Known differences, left open (docs/simulators.md, "Conformance"): the firmware flies legs on a
+# jerk-limited S-curve (WPNAV_JERK 1 m/s^3), the simulator on a trapezoid tuned to the recorded 1 m
+# legs (0.33 m/s^2), which plan.route.FlightModel shares; longer legs are 6-19 % slower in the simulator.
+LEGS_ARE_TRAPEZOIDS = pytest.mark.xfail(reason="sim legs: trapezoid at 0.33 m/s^2, the firmware a jerk-limited S-curve: 2-5 m legs 6-19 % slower", strict=False)
+
+
+@pytest.mark.parametrize(
+    "prefix",
+    [
+        "last wp reached -> disarmed",
+        "wp seq 4 still", "wp seq 5 still", "wp seq 7 still", "wp seq 8 still",
+        pytest.param("wp seq 5 reached after previous", marks=LEGS_ARE_TRAPEZOIDS),
+        pytest.param("wp seq 6 reached after previous", marks=LEGS_ARE_TRAPEZOIDS),
+        pytest.param("wp seq 7 reached after previous", marks=LEGS_ARE_TRAPEZOIDS),
+        pytest.param("wp seq 8 reached after previous", marks=LEGS_ARE_TRAPEZOIDS),
+        pytest.param("start -> wp", marks=LEGS_ARE_TRAPEZOIDS),
+    ],
+)  # fmt: skip
+def test_leg_and_hold_timing_conform(rows, prefix):
+    bad = [r for r in _rows(rows, prefix) if not r.ok]
+    assert not bad, bad
+
+
+@pytest.mark.parametrize(
+    "prefix",
+    [
+        "GPS",
+        "first 3D fix",
+        "EKF healthy",
+        # the firmware sets SYS_STATUS's pre-arm bit at ~24 s and still refuses to arm ("PreArm: Need
+        # Position Estimate") until the EKF is healthy at ~42 s; the simulator sets the bit when it can arm
+        pytest.param("SYS_STATUS pre-arm", marks=pytest.mark.xfail(reason="sim sets the pre-arm bit at EKF healthy (42 s), the firmware at 24 s", strict=False)),
+    ],
+)
+def test_gps_fix_timing_and_accuracy_fields_conform(rows, prefix):
+    bad = [r for r in _rows(rows, prefix) if not r.ok]
+    assert not bad, bad
+
+
+@pytest.mark.parametrize("prefix", ["link 1", "link 2"])
+def test_message_rates_per_link_conform(rows, prefix):
+    bad = [r for r in _rows(rows, prefix) if not r.ok]
+    assert not bad, bad
