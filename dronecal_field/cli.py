@@ -8,6 +8,7 @@ command's run function so ``--help`` stays instant.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import math
 import os
@@ -93,9 +94,10 @@ def _install_stop_signals() -> None:
     def handler(signum, _frame):
         count["n"] += 1
         if count["n"] == 1:
-            if signum == signal.SIGINT:
-                raise KeyboardInterrupt
-            raise Stopped(signum)
+            if _DEFERRED["depth"] > 0:
+                _DEFERRED["pending"] = signum  # raised when the deferred block ends
+                return
+            _raise_stop(signum)
         if count["n"] == 2:
             print(f"dronecal-field: {signal.Signals(signum).name} again: still finishing the files; a third signal stops at once",
                   file=sys.stderr, flush=True)
@@ -109,6 +111,35 @@ def _install_stop_signals() -> None:
         if name == "SIGINT" and signal.getsignal(sig) is not signal.default_int_handler:
             continue  # started with SIGINT ignored (nohup, a background job): keep it so
         signal.signal(sig, handler)
+
+
+_DEFERRED = {"depth": 0, "pending": None}  # stop signals held back by stop_signals_deferred (main thread only)
+
+
+@contextlib.contextmanager
+def stop_signals_deferred():
+    """Hold a stop (SIGINT/SIGTERM/SIGHUP) back for the block, and raise it right after the block.
+
+    For steps that import or call libraries that swallow exceptions (pymavlink's and ssl's imports
+    catch everything), and for steps that must not be cut in the middle (create a file, then note it).
+    """
+    _DEFERRED["depth"] += 1
+    try:
+        yield
+    finally:
+        _DEFERRED["depth"] -= 1
+    pending = _DEFERRED["pending"]
+    if pending is not None and _DEFERRED["depth"] == 0:
+        _DEFERRED["pending"] = None
+        _raise_stop(pending)
+
+
+def _raise_stop(signum: int) -> None:
+    import signal
+
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt
+    raise Stopped(signum)
 
 
 def main(argv: list[str] | None = None) -> int:

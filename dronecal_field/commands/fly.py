@@ -265,12 +265,18 @@ def run(args: argparse.Namespace) -> int:
                                               "--video": video_file})
     # A flight is the most expensive thing this tool makes: never write over one, and own the
     # files from now on (created exclusively), so a second fly with the same --out is refused.
-    claim = OutputClaim() if args.dry_run else claim_outputs("--out", [out, tlog_path], suggestion=free_run_path(out))
+    from dronecal_field.cli import stop_signals_deferred
 
-    from dronecal_field.recording.status import VehicleClock
-
+    claim = OutputClaim()  # held before the files exist: a signal at any moment finds what to give back
     try:
-        link = open_link(args.connect, baud=args.baud, signing_key=args.signing_key)
+        # Held back until the files are claimed and the link is open (then raised at once, below): a stop
+        # must not land between creating a file and noting it, nor in pymavlink's imports, which swallow it.
+        with stop_signals_deferred():
+            if not args.dry_run:
+                claim_outputs("--out", [out, tlog_path], suggestion=free_run_path(out), into=claim)
+            from dronecal_field.recording.status import VehicleClock
+
+            link = open_link(args.connect, baud=args.baud, signing_key=args.signing_key)
     except BaseException:
         claim.release()
         raise

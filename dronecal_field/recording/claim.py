@@ -85,12 +85,24 @@ def check_outputs(flag: str, outputs: list[Path], inputs: dict[str, Path | None]
         raise InputError(f"{flag} {first}: cannot write in {parent} ({exc.strerror or exc}): choose a folder you can write to") from None
 
 
-def claim_outputs(flag: str, outputs: list[Path], suggestion: Path | None = None) -> OutputClaim:
+def claim_outputs(flag: str, outputs: list[Path], suggestion: Path | None = None, into: OutputClaim | None = None) -> OutputClaim:
     """Create every file of ``outputs`` empty and exclusively; InputError naming the one that exists.
 
-    On a refusal, the files this call created already are removed again.
+    ``into``: an OutputClaim the caller already holds, filled as each file is created, so that a
+    signal arriving at any moment finds every created file in it. On a refusal, the files this call
+    created already are removed again.
     """
-    claim = OutputClaim(paths=list(outputs))
+    claim = into if into is not None else OutputClaim()
+    claim.paths = list(outputs)
+    try:
+        _create_each(flag, outputs, suggestion, claim)
+    except BaseException:
+        claim.release()
+        raise
+    return claim
+
+
+def _create_each(flag: str, outputs: list[Path], suggestion: Path | None, claim: OutputClaim) -> None:
     for path in outputs:
         try:
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
@@ -104,7 +116,8 @@ def claim_outputs(flag: str, outputs: list[Path], suggestion: Path | None = None
         except OSError as exc:
             claim.release()
             raise InputError(f"{flag} {outputs[0]}: cannot create {path} ({exc.strerror or exc}): choose a folder you can write to") from None
-        st = os.fstat(fd)
-        os.close(fd)
-        claim._created.append((path, st.st_dev, st.st_ino))
-    return claim
+        try:
+            st = os.fstat(fd)
+            claim._created.append((path, st.st_dev, st.st_ino))
+        finally:
+            os.close(fd)
