@@ -115,3 +115,30 @@ def test_ground_probe_is_15m_out_on_the_heading():
     probe = ground_probe(cam)
     assert probe.point == pytest.approx([15.5, 0.0, 0.0])
     assert np.linalg.norm(probe.track[1] - probe.track[0]) == pytest.approx(50 / 3.6 * 0.5)
+
+
+def test_compiled_trial_scores_match_the_camera_model():
+    """The Monte-Carlo scores each trial in compiled code: the same projections and ground rays as core.camera."""
+    from dronecal_field.core import kernels
+    from dronecal_field.core.calibrate import BatchState
+    from dronecal_field.core.camera import intersect_plane_z, project_batch
+
+    cam = paper_camera(distorted=True)
+    X = paper_grid(cam)
+    rng = np.random.default_rng(0)
+    k = 25
+    scale = np.array([5, 5, 3, 3, 0.01, 0.005, 1e-4, 1e-4, 0.001, 0.002, 0.002, 0.002, 0.01, 0.01, 0.01])
+    s = BatchState.from_camera(cam, k).stepped(rng.normal(0.0, 1.0, (k, 15)) * scale)
+    uv = rng.uniform([0, 0], [1279, 959], (7, 2))
+    for z_plane in (0.0, 5.0):  # the ground, and a plane above the camera that no ray of this down-tilted camera meets
+        hits = np.empty((k, len(uv), 3))
+        kernels.intersect_plane_z(s.intrinsics, s.distortion, s.R, s.t, uv, z_plane, hits)
+        expected = intersect_plane_z(s.intrinsics, s.distortion, s.R, s.t, uv[None], z_plane)
+        assert np.isnan(expected).all() == (z_plane > 2.0)
+        np.testing.assert_allclose(hits, expected, rtol=1e-10, atol=1e-9, equal_nan=True)
+
+    uv_ref = cam.project(X)
+    rms = [kernels._rms_projection_difference(s.intrinsics[i], s.distortion[i], s.R[i], s.t[i], X, uv_ref) for i in range(k)]
+    uv_est = project_batch(s.intrinsics, s.distortion, s.R, s.t, X[None])
+    np.testing.assert_allclose(rms, np.sqrt(np.mean(np.sum((uv_est - uv_ref) ** 2, -1), -1)), rtol=1e-10)
+    assert 0.5 < np.median(rms) < 50.0  # the perturbations move the projections by pixels, not by nothing
