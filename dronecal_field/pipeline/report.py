@@ -491,6 +491,7 @@ def report_html(report, data: dict) -> str:
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>dronecal-field calibration report</title>"
         f"<style>{style}</style></head><body>"
         f"<h1>{'Joint calibration' if runs else 'Calibration'} of {html.escape(names)}</h1>"
+        + _overall_verdict(report, data, warning_list, validity)
         + _verdict(validity, warning_list)
         + summary + _joint_rows(report) + f"<h2>Warnings</h2><ul>{warnings}</ul>"
         f"<h2>Dropped hover windows</h2><table><tr><th>window</th><th>seq</th><th>reason</th></tr>{dropped}</table>"
@@ -527,6 +528,29 @@ def _validity_rows(validity, region: dict) -> list[tuple[str, str]]:
 
 def _reach_px(v: float) -> str:
     return "over 1000 px" if not math.isfinite(v) or v > 1000 else f"{v:.0f} px"
+
+
+def _overall_verdict(report, data: dict, warnings: list[str], validity) -> str:
+    """The page's first line: one verdict from what the tables below say (points used, warnings, validity)."""
+    hover_used, hover_all = data["hover_windows"]["used"], len(report.windows)
+    pairs = data["legs"]["pairs_used"] or 0
+    frac = getattr(validity, "visible_ground_fraction", None) if validity is not None else None
+    degenerate = bool(validity is not None and validity.geometry.degenerate)
+    points = f"{hover_used} of {hover_all} hover windows" + (f" and {pairs} leg pairs" if pairs else "") + " used"
+    if hover_used + pairs < 6:
+        cls, text = "warn", f"NOT USABLE: {points}; re-fly (see the dropped windows below)"
+    elif degenerate or warnings or (frac is not None and frac < 0.95) or (hover_all and hover_used < hover_all / 2 and not pairs):
+        why = [f"{len(warnings)} warning(s)"] if warnings else []
+        if frac is not None and frac < 0.95:
+            why.append(f"valid over {frac:.0%} of the visible ground")
+        if degenerate:
+            why.append("focal length and principal point poorly determined")
+        if hover_all and hover_used < hover_all / 2 and not pairs:
+            why.append("fewer than half the hover windows used")
+        cls, text = "warn", f"USE WITH CARE: {points}; " + ", ".join(why)
+    else:
+        cls, text = "ok", f"GOOD: {points}, RMS {_fmt(data['calibration']['rms_px'], '.2f', ' px')}, no warnings"
+    return f"<p class='{cls}' id='verdict'><b>Verdict: {html.escape(text)}</b></p>"
 
 
 def _verdict(validity, warnings: list[str]) -> str:
