@@ -459,3 +459,22 @@ def test_the_demo_verdict_reads_its_own_logs(tmp_path: Path) -> None:
     fly.write_text("verdict: good: 60/60 waypoints detected\n")
     cal.write_text("calibrated run.mcap: 24 of 24 waypoints (windows from events), model full\n")
     assert log_problems(fly, cal) == ()
+
+
+def test_import_onto_a_full_disk_leaves_no_half_file(small_disk: Path, tmp_path: Path) -> None:
+    from conftest import REPLAYS
+    from test_bad_input import _run
+    from test_import import _write_video
+
+    tlog = REPLAYS / "calib-grid-gpsloss.tlog"
+    if not tlog.exists():
+        pytest.skip("the SITL replays are not here")
+    video = tmp_path / "camera.mp4"
+    _write_video(video, 20, fps=10.0)
+    (small_disk / "other-files").write_bytes(b"\xff" * 2_900_000)  # about 100 kB left
+    code, _out, err = _run(["import", "--tlog", str(tlog), "--video", str(video), "--video-start", "2026-11-22T03:20:00.500Z",
+                            "--marker-dictionary", "DICT_4X4_50", "--marker-id", "3", "--marker-size", "0.3",
+                            "--out", str(small_disk / "run.mcap")])
+    assert code == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert "nothing was written" in err
+    assert sorted(p.name for p in small_disk.iterdir()) == ["other-files"]  # no run.mcap, no .run.mcap.tmp-*

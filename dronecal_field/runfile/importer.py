@@ -847,9 +847,14 @@ def import_run(
     # import (Ctrl-C, SIGTERM, a full disk) leaves no half run that would block the retry.
     final = Path(out)
     tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
+    from dronecal_field.errors import RecordingStoppedError
+
     try:
-        report = _write_imported(tmp, metadata, compression, camera, log, frames_iter, first, seen, final, video, video_start_ns,
-                                 start_source, width, height, warnings)
+        try:
+            report = _write_imported(tmp, metadata, compression, camera, log, frames_iter, first, seen, final, video, video_start_ns,
+                                     start_source, width, height, warnings)
+        except RecordingStoppedError as exc:
+            raise InputError(f"--out {final}: writing failed ({str(exc).split(':', 1)[0]}); nothing was written: free some space and import again") from None
         try:
             os.link(tmp, final)  # never over a file that appeared meanwhile
         except FileExistsError:
