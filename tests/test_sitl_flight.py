@@ -1,0 +1,156 @@
+"""A short plan flown end to end on ArduPilot's own firmware (ArduCopter 4.7 SITL), recorded and calibrated.
+
+`dronecal-field plan` for the demo's camera, ArduCopter SITL at the plan's
+take-off point, `dronecal-field sim camera` on the SITL's second link
+(SERIAL1: it asks for its own telemetry, as 4.7 streams nothing unasked),
+`dronecal-field fly --start` on the first (pre-flight, upload + read-back at
+the firmware's storage resolution, arm in GUIDED, MISSION_START, record to
+MCAP until the firmware lands and disarms), then `dronecal-field calibrate`
+on the recording, scored against the simulator's truth camera
+(`sim.compare`). Every command runs in its own process, inside the SITL's
+private network namespace (tests/sitl.py).
+
+The plan is the paper's metric grid cut to 3 minutes (`--strategy paper-far
+--optimize --max-flight-time 3`: 17 holds of 3 s at two heights, 2.5 min of
+vehicle time, about 40 s at 4x), made with the true focal length; it covers
+part of the image, so the bands are those of a short flight, not the demo's.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dronecal_field.camerafile import read_camera, write_camera
+from dronecal_field.cli import main
+from dronecal_field.core.camera import Distortion
+from dronecal_field.demo import MARKER, TRUTH, cli_argv, in_enu_frame_of
+from dronecal_field.geodesy import EnuOrigin
+from dronecal_field.mavlink import missionfile as mf
+from dronecal_field.runfile.reader import open_run
+from dronecal_field.sim.compare import compare_cameras
+from dronecal_field.sim.scene import make_truth_camera
+from sitl import ArduCopterSitl, needs_sitl
+from test_mavlink_support import HOME
+
+pytestmark = [needs_sitl, pytest.mark.timeout(400)]
+
+SPEEDUP = 4.0  # vehicle seconds per wall second: a 3 s hold is 0.75 s of video at 15 fps
+CAMERA = dict(mount_height=4.0, azimuth=30.0, tilt=25.0)
+# the 10 Hz receiver docs/fly.md asks for: GPS1_RATE_MS 100 (4.7's default is 200) and SITL's simulated u-blox at 10 Hz
+SITL_PARAMS = {"GPS1_RATE_MS": 100, "SIM_GPS1_HZ": 10}
+
+
+def _run(sitl: ArduCopterSitl, argv: list[str], log: Path, timeout_s: float) -> int:
+    with log.open("w") as f:
+        return subprocess.run(sitl.argv(argv), stdout=f, stderr=subprocess.STDOUT, timeout=timeout_s).returncode
+
+
+def _wait_for_http(sitl: ArduCopterSitl, port: int, proc: subprocess.Popen, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, "sim camera exited early"
+        try:
+            with sitl.netns():
+                s = socket.create_connection(("127.0.0.1", port), timeout=0.5)
+            s.close()
+            return
+        except OSError:
+            time.sleep(0.2)
+    raise AssertionError(f"sim camera did not serve on {port} within {timeout_s:.0f} s")
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    """Plan, fly on SITL with the sim camera, calibrate: the folder with every output and the logs."""
+    out = tmp_path_factory.mktemp("sitl-flight")
+    origin = EnuOrigin(*HOME)  # the pole's foot; SITL reports alt_ellipsoid = alt, so AMSL = ellipsoidal here
+    truth = make_truth_camera(
+        origin, CAMERA["mount_height"], CAMERA["azimuth"], CAMERA["tilt"], TRUTH["focal_px"], TRUTH["width"], TRUTH["height"],
+        distortion=Distortion(k1=TRUTH["k1"], k2=TRUTH["k2"], p1=TRUTH["p1"], p2=TRUTH["p2"]),
+    )
+    write_camera(out / "truth.yaml", truth, comment="simulator ground truth (tests/test_sitl_flight.py)")
+    plan_dir = out / "plan"
+    assert main([
+        "plan", "--out", str(plan_dir), f"--lat={HOME[0]}", f"--lon={HOME[1]}", "--ground-alt", str(HOME[2]),
+        "--mount-height", str(CAMERA["mount_height"]), "--azimuth", str(CAMERA["azimuth"]), "--tilt", str(CAMERA["tilt"]),
+        "--image-size", f"{TRUTH['width']}x{TRUTH['height']}", "--focal-px", str(TRUTH["focal_px"]), "--distortion", "medium",
+        "--marker-size", str(MARKER["size_m"]), "--marker-dictionary", MARKER["dictionary"], "--marker-id", str(MARKER["marker_id"]),
+        "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]), "--hover", "3", "--strategy", "paper-far",
+        "--optimize", "--roi-range", "3,15", "--max-flight-time", "3", "--trials", "20",
+    ]) == 0  # fmt: skip
+    mission_path = plan_dir / "mission.plan"  # one flight
+    home = json.loads(mission_path.read_text())["mission"]["plannedHomePosition"]
+    logs = out / "logs"
+    logs.mkdir()
+    with ArduCopterSitl.start(tuple(home), speedup=SPEEDUP, params=SITL_PARAMS) as sitl:
+        http_port = 8554 if sitl.private_net else _free_tcp_port()
+        video_url = f"http://127.0.0.1:{http_port}/stream.mjpg"
+        camera = subprocess.Popen(sitl.argv(cli_argv(
+            "sim", "camera", "--connect", sitl.second_url, "--camera", out / "truth.yaml", "--serve", video_url, "--fps", 15,
+            "--noise-dn", 2, "--marker-dictionary", MARKER["dictionary"], "--marker-id", MARKER["marker_id"],
+            "--marker-size", MARKER["size_m"], "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]),
+        )), stdout=(logs / "sim-camera.log").open("w"), stderr=subprocess.STDOUT)  # fmt: skip
+        try:
+            _wait_for_http(sitl, http_port, camera)
+            t0 = time.monotonic()
+            fly_rc = _run(sitl, cli_argv(
+                "fly", "--connect", sitl.gcs_url, "--mission", mission_path, "--video", video_url, "--out", out / "run.mcap",
+                "--start", "--no-live", "--timeout-s", 300, "--ready-timeout", 120,
+            ), logs / "fly.log", timeout_s=360)  # fmt: skip
+            fly_s = time.monotonic() - t0
+        finally:
+            camera.terminate()
+            camera.wait(timeout=10)
+        sitl_log = sitl.log_tail(20)
+    assert fly_rc == 0, (logs / "fly.log").read_text()[-3000:] + "\nSITL: " + sitl_log
+    with (logs / "calibrate.log").open("w") as f:  # offline: no network needed
+        calib_rc = subprocess.run(cli_argv("calibrate", out / "run.mcap", "--out", out / "calibration", "--trials", 50, "--min-fix", "rtk_fixed"),
+                                  stdout=f, stderr=subprocess.STDOUT, timeout=300).returncode  # fmt: skip
+    assert calib_rc == 0, (logs / "calibrate.log").read_text()[-3000:]
+    return dict(out=out, mission=mf.read_mission(mission_path), truth=truth, fly_s=fly_s)
+
+
+def _free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_the_recorded_flight_reached_every_waypoint_of_the_mission(flight):
+    mission = flight["mission"]
+    waypoints = {item.seq for item in mission.items[1:] if item.command == mf.CMD_NAV_WAYPOINT}
+    with open_run(flight["out"] / "run.mcap") as run:
+        reached = {int(fields["seq"]) for _name, _t, fields in run.iter_mavlink({"MISSION_ITEM_REACHED"})}
+        armed = [bool(f["base_mode"] & 128) for _n, _t, f in run.iter_mavlink({"HEARTBEAT"}) if f.get("type") == 2]
+        hovers = [e for e in run.iter_events() if e.type == "hover"]
+        fix_types = {f.fix_type for f in run.iter_fixes()}
+        frames = sum(1 for _ in run.iter_frames())
+    assert waypoints <= reached, sorted(waypoints - reached)
+    # the landing completed: ArduCopter 4.7 sends no MISSION_ITEM_REACHED for a NAV_LAND; it disarms on the ground
+    assert mission.items[-1].command == mf.CMD_NAV_LAND and mission.items[-1].seq not in reached
+    assert any(armed) and not armed[-1]
+    assert len(hovers) == sum(1 for item in mission.items[1:] if item.hold_s > 0)
+    assert fix_types == {"rtk_fixed"}, fix_types  # SITL's simulated GPS: RTK fixed throughout
+    assert frames > 100
+
+
+def test_calibration_of_the_firmware_flight_against_the_truth(flight):
+    truth = flight["truth"]
+    est = in_enu_frame_of(read_camera(flight["out"] / "calibration" / "camera.yaml"), truth.enu_origin)
+    cmp = compare_cameras(truth, est, ground_step_m=0.5)
+    ti, ei = truth.intrinsics, est.intrinsics
+    focal_err_pct = 100.0 * abs(0.5 * (ei.fx + ei.fy) - 0.5 * (ti.fx + ti.fy)) / (0.5 * (ti.fx + ti.fy))
+    position_err_cm = 100.0 * float(np.linalg.norm(est.pose.position_world - truth.pose.position_world))
+    report = json.loads((flight["out"] / "calibration" / "report.json").read_text())
+    print(f"SITL flight: fly {flight['fly_s']:.0f} s wall; focal {focal_err_pct:.2f} %, camera position {position_err_cm:.1f} cm, "
+          f"ground 3-30 m {cmp.ground.rms_px:.2f} px RMS (max {cmp.ground.max_px:.1f}), rms {report['calibration']['rms_px']:.2f} px")  # fmt: skip
+    assert focal_err_pct < 2.0
+    assert position_err_cm < 10.0
+    assert cmp.ground.rms_px < 3.0
