@@ -478,3 +478,35 @@ def test_import_onto_a_full_disk_leaves_no_half_file(small_disk: Path, tmp_path:
     assert code == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
     assert "nothing was written" in err
     assert sorted(p.name for p in small_disk.iterdir()) == ["other-files"]  # no run.mcap, no .run.mcap.tmp-*
+
+
+def test_a_read_only_disk_is_refused_before_anything_starts(tmp_path: Path) -> None:
+    """--out on a read-only file system: fly (also --dry-run), plan, import and calibrate say so in one line, exit 2."""
+    from test_bad_input import _run
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    proc = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(ro)], capture_output=True, text=True)
+    if proc.returncode != 0:
+        pytest.skip(f"cannot mount a read-only tmpfs here ({proc.stderr.strip() or proc.returncode}): needs root")
+    try:
+        fly = ["fly", "--connect", "udp:127.0.0.1:9", "--mission", str(MISSION), "--video", "http://127.0.0.1:9/x.mjpg",
+               "--marker-size", "0.3", "--heartbeat-timeout", "0.5", "--out", str(ro / "run.mcap")]
+        cases = [
+            ("fly", fly),
+            ("fly --dry-run", [*fly, "--dry-run"]),
+            ("plan", ["plan", "--site", str(ROOT / "missions" / "paper-pinhole.toml"), "--out", str(ro / "plan")]),
+            ("calibrate", ["calibrate", str(ROOT / "replays" / "nominal.mcap"), "--out", str(ro / "cal")]),
+            ("import", ["import", "--tlog", str(MISSION), "--image-size", "640x480", "--marker-dictionary", "DICT_4X4_50",
+                        "--marker-id", "0", "--marker-size", "0.3", "--out", str(ro / "i.mcap")]),
+        ]
+        failures = []
+        for name, argv in cases:
+            code, _out, err = _run(argv)
+            lines = err.strip().splitlines()
+            if code != 2 or "Traceback" in err or len(lines) != 1 or "Read-only file system" not in lines[0]:
+                failures.append(f"{name}: exit {code}: {err.strip()[-300:]}")
+        assert not failures, "\n".join(failures)
+        assert list(ro.iterdir()) == []
+    finally:
+        subprocess.run(["umount", "-l", str(ro)], capture_output=True)
