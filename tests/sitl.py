@@ -39,7 +39,17 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SITL_DIR = Path(os.environ.get("DRONECAL_ARDUCOPTER_SITL_DIR", REPO.parent / "shared" / "sitl" / "arducopter-4.7"))
+def _sitl_dir() -> Path:
+    """``$DRONECAL_ARDUCOPTER_SITL_DIR``, else ``../shared/sitl/arducopter-4.7`` beside the clone, else /work/shared's."""
+    if os.environ.get("DRONECAL_ARDUCOPTER_SITL_DIR"):
+        return Path(os.environ["DRONECAL_ARDUCOPTER_SITL_DIR"])
+    for shared in (REPO.parent / "shared", Path("/work/shared")):
+        if (shared / "sitl" / "arducopter-4.7" / "arducopter").is_file():
+            return shared / "sitl" / "arducopter-4.7"
+    return REPO.parent / "shared" / "sitl" / "arducopter-4.7"
+
+
+SITL_DIR = _sitl_dir()
 BINARY = SITL_DIR / "arducopter"
 COPTER_PARM = SITL_DIR / "copter.parm"
 CLONE_NEWNET = 0x40000000
@@ -84,6 +94,8 @@ def _free_instance() -> int:
 
 
 def _unshare_works() -> bool:
+    if os.environ.get("DRONECAL_SITL_NO_NETNS"):  # to test the plain-loopback fallback
+        return False
     if shutil.which("unshare") is None or shutil.which("nsenter") is None or shutil.which("ip") is None:
         return False
     try:
