@@ -340,7 +340,7 @@ def test_keyframes_cut_short_are_counted_and_the_preflight_probe_warns(server, t
     clip = tmp_path / "cut.mkv"
     _clip_with_cut_keyframes(clip)
     srv = server("--file", str(clip), "--codec", "h264")
-    source = open_packet_source(srv.url)
+    source = open_packet_source(srv.url, check_every_s=0.0)  # every keyframe (fly samples one every 5 s)
     try:
         first = source.read(timeout_s=10.0)
         assert first is not None and first.keyframe

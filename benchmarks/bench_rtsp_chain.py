@@ -1,0 +1,129 @@
+"""The demo chain on a real-camera-like RTSP stream: plan -> sim vehicle + ``sim camera --serve rtsp://`` -> ``fly --calibrate``.
+
+Run by hand (``make rtsp-deps`` first)::
+
+    .venv/bin/python benchmarks/bench_rtsp_chain.py                                  # 4K25 H.265, a 10-minute plan
+    .venv/bin/python benchmarks/bench_rtsp_chain.py --size 1280x720 --fps 15 --codec h264 --max-flight-time 3
+
+Each step is the real command in its own process, as ``make demo`` runs
+them: ``plan`` (the demo's site and camera, ``--max-flight-time``), ``sim
+vehicle`` at real time, ``sim camera`` serving RTSP (GStreamer, x264/x265,
+RTCP sender reports) at the asked size and rate, ``fly --start --calibrate``
+(live pass on), then ``calibrate`` on the run file alone. Reported:
+
+- fly's CPU over its whole life (user + system of the process and its
+  children, % of one core; os.wait4), its wall time;
+- "calibration ready N s after the run file was closed" as fly prints it;
+- the same camera from ``calibrate`` on the file alone: its wall time and the
+  focal length / principal point of both;
+- frames recorded, lost (pts gaps), corrupt, the run's camera clock;
+- the simulated camera's frames rendered against the frames it should have
+  made (its Python renderer is the limit at 4K: ~0.25-0.33 s a 4K frame on
+  this machine, ~3-4 fps: the chain at 4K25 is then a 3-4 fps stream, and
+  the report says so).
+
+Measured: see benchmarks/README.md (issue 22).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import socket
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def main() -> int:
+    from dronecal_field.camerafile import read_camera, write_camera
+    from dronecal_field.core.camera import Distortion
+    from dronecal_field.demo import MARKER, SITE, TRUTH, _free_port, _start, _stop, _wait_for_tcp, cli_argv, run_step
+    from dronecal_field.geodesy import EnuOrigin
+    from dronecal_field.sim.scene import make_truth_camera
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--size", default="3840x2160", help="WIDTHxHEIGHT of the simulated camera (default %(default)s)")
+    p.add_argument("--fps", type=float, default=25.0)
+    p.add_argument("--codec", choices=("h264", "h265"), default="h265")
+    p.add_argument("--max-flight-time", type=float, default=10.0, help="plan's flight time, minutes (default %(default)s)")
+    p.add_argument("--out", default=None, help="work folder (default: a temporary one)")
+    args = p.parse_args()
+    width, height = (int(v) for v in args.size.lower().split("x"))
+    out = Path(args.out) if args.out else Path(os.environ.get("TMPDIR", "/tmp")) / f"bench-rtsp-chain-{int(time.time())}"
+    out.mkdir(parents=True, exist_ok=True)
+    logs = out / "logs"
+    logs.mkdir(exist_ok=True)
+    scale = width / TRUTH["width"]
+    origin = EnuOrigin(SITE["lat"], SITE["lon"], SITE["ground_h"])
+    truth = make_truth_camera(origin, SITE["mount_height"], SITE["azimuth"], SITE["tilt"], TRUTH["focal_px"] * scale, width, height,
+                              distortion=Distortion(k1=TRUTH["k1"], k2=TRUTH["k2"], p1=TRUTH["p1"], p2=TRUTH["p2"]))
+    truth_path = out / "truth.yaml"
+    write_camera(truth_path, truth, comment="bench_rtsp_chain: simulator ground truth")
+    marker_args = ["--marker-dictionary", MARKER["dictionary"], "--marker-id", MARKER["marker_id"], "--marker-size", MARKER["size_m"],
+                   "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"])]
+
+    t = time.monotonic()
+    run_step("plan", cli_argv(
+        "plan", "--out", out / "plan", f"--lat={SITE['lat']}", f"--lon={SITE['lon']}", "--ground-alt", SITE["ground_h"],
+        "--mount-height", SITE["mount_height"], "--azimuth", SITE["azimuth"], "--tilt", SITE["tilt"],
+        "--image-size", f"{width}x{height}", "--focal-px", TRUTH["focal_px"] * scale * 0.95, "--distortion", "medium",
+        *marker_args, "--hover", "3", "--trials", "200", "--max-flight-time", args.max_flight_time,
+    ), logs / "plan.log", timeout_s=900)
+    print(f"plan: {time.monotonic() - t:.0f} s", flush=True)
+    plan = json.loads((out / "plan" / "mission.plan").read_text())
+    home = plan["mission"]["plannedHomePosition"]
+
+    vehicle_port, camera_link_port, rtsp_port = _free_port(), _free_port(), _free_port(socket.SOCK_STREAM)
+    video_url = f"rtsp://127.0.0.1:{rtsp_port}/cam"
+    vehicle = _start(cli_argv("sim", "vehicle", "--listen", f"udp:127.0.0.1:{vehicle_port}", "--out", f"udp:127.0.0.1:{camera_link_port}",
+                              "--home", ",".join(str(v) for v in home), "--speedup", 1, "--gps-rate-ms", 100), (logs / "sim-vehicle.log").open("w"))
+    camera = _start(cli_argv("sim", "camera", "--connect", f"udpin:127.0.0.1:{camera_link_port}", "--camera", truth_path, "--serve", video_url,
+                             "--codec", args.codec, "--fps", args.fps, *marker_args), (logs / "sim-camera.log").open("w"))
+    run_path = out / "run.mcap"
+    try:
+        _wait_for_tcp(rtsp_port, camera, logs / "sim-camera.log", timeout_s=600)
+        fly_log = (logs / "fly.log").open("w")
+        t_fly = time.monotonic()
+        fly = _start(cli_argv("fly", "--connect", f"udp:127.0.0.1:{vehicle_port}", "--mission", out / "plan" / "mission.plan",
+                              "--video", video_url, "--out", run_path, "--start", "--calibrate", "--timeout-s", 3600), fly_log)
+        _pid, status, usage = os.wait4(fly.pid, 0)
+        fly.returncode = os.waitstatus_to_exitcode(status)
+        fly_wall = time.monotonic() - t_fly
+    finally:
+        _stop(camera)
+        _stop(vehicle)
+    fly_text = (logs / "fly.log").read_text()
+    cpu = usage.ru_utime + usage.ru_stime
+    ready = re.search(r"calibration ready ([0-9.]+) s after the run file was closed", fly_text)
+    print(f"fly: exit {fly.returncode}, {fly_wall:.0f} s wall, CPU {cpu:.1f} s = {100 * cpu / fly_wall:.1f} % of one core (with the live pass)")
+    print(f"fly --calibrate: {ready.group(0) if ready else 'no calibration-ready line (see ' + str(logs / 'fly.log') + ')'}")
+    for line in fly_text.splitlines():
+        if re.search(r"frames \(|video|corrupt|lost", line) and "live:" not in line:
+            print("  fly:", line.strip()[:200])
+    camera_text = (logs / "sim-camera.log").read_text()
+    rendered = re.search(r"sim camera: (\d+) frames", camera_text)
+    if rendered:
+        print(f"sim camera: {rendered.group(1)} frames rendered in ~{fly_wall:.0f} s (asked {args.fps:g} fps: "
+              f"{int(rendered.group(1)) / max(fly_wall, 1e-9):.1f} fps made)")
+
+    t = time.monotonic()
+    run_step("calibrate", cli_argv("calibrate", run_path, "--out", out / "calibration-file-only"), logs / "calibrate.log", timeout_s=7200)
+    print(f"calibrate on the file alone: {time.monotonic() - t:.1f} s")
+    for name in ("run-calibration", "calibration-file-only"):
+        path = out / name / "camera.yaml"
+        if path.exists():
+            cam = read_camera(path)
+            i = cam.intrinsics
+            print(f"  {name}: fx {i.fx:.2f} px, principal point ({i.cx:.2f}, {i.cy:.2f}) px (truth fx {truth.intrinsics.fx:.2f})")
+    print(f"work folder: {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
