@@ -60,67 +60,6 @@ def _thread_tracebacks():
     return caught, old
 
 
-def test_a_full_disk_stops_the_recording_loudly_and_keeps_a_readable_cut_run(small_disk: Path) -> None:
-    """The recorder on a 3 MB disk: no thread traceback, the status line turns red at once, the run reads back
-    up to its cut (which it states), the fixes in it are all the recorder counted."""
-    from dronecal_field.mavlink.link import open_link
-    from dronecal_field.mavlink.missionfile import parse_qgc_plan
-    from dronecal_field.recording.recorder import Recorder
-    from dronecal_field.recording.status import format_status, status_alarm
-    from dronecal_field.runfile.reader import open_run
-    from dronecal_field.runfile.records import FORMAT_VERSION, MarkerSpec, RunMetadata
-    from dronecal_field.runfile.tlog import TlogWriter
-    from dronecal_field.runfile.writer import RunWriter
-    from dronecal_field.video import open_video
-    from test_mavlink_support import MjpegServer, plan_document, start_sim, wait_ready
-
-    mission = parse_qgc_plan(json.dumps(plan_document([(0.0, 4.0, 1.5)], hold_s=3.0)))
-    caught, old_hook = _thread_tracebacks()
-    sim = start_sim(speedup=5.0, boot_s=0.5)
-    camera = MjpegServer(fps=30)  # fills 3 MB within seconds
-    link = open_link(sim.addresses()[0])
-    video = open_video(camera.url)
-    meta = RunMetadata(format_version=FORMAT_VERSION, width=1280, height=720,
-                       marker=MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.3))
-    out = small_disk / "run.mcap"
-    try:
-        link.wait_heartbeat(5)
-        wait_ready(link)
-        recorder = Recorder(link, video, RunWriter(out, meta), TlogWriter(out.with_suffix(".tlog")), mission).start()
-        deadline = time.monotonic() + 60
-        while recorder.status().recording_stopped is None and time.monotonic() < deadline:
-            time.sleep(0.1)
-        status = recorder.status()
-        time.sleep(1.0)  # the flushers run into the full disk too
-        report = recorder.stop()
-    finally:
-        threading.excepthook = old_hook
-        video.close()
-        link.close()
-        camera.close()
-        sim.stop()
-    assert caught == []  # no thread died with a traceback
-    assert status.recording_stopped is not None and "disk full" in status.recording_stopped
-    assert status_alarm(status) and "RECORDING STOPPED: DISK FULL" in format_status(status)
-    assert report.stopped is not None and report.summary().startswith("RECORDING STOPPED EARLY (disk full")
-    assert report.frames_written > 0 and report.frames_not_recorded > 0
-    with open_run(out) as run:
-        assert not run.truncated  # ended validly after the cut
-        assert run.recording_stopped is not None and "disk full" in run.recording_stopped
-        assert any("stopped early" in w for w in run.warnings)
-        fixes = list(run.iter_fixes())
-        frames = sum(1 for _ in run.iter_frames())
-    assert 0 < len(fixes) <= report.fixes_written and 0 < frames <= report.frames_written
-    # the .tlog holds whole records only
-    from pymavlink import mavutil
-
-    tlog = mavutil.mavlink_connection(str(out.with_suffix(".tlog")))
-    n = 0
-    while tlog.recv_match(blocking=False) is not None:
-        n += 1
-    assert n > 0
-
-
 def test_a_run_file_that_cannot_start_on_a_full_disk_is_one_line(small_disk: Path) -> None:
     from dronecal_field.errors import InputError
     from dronecal_field.runfile.records import FORMAT_VERSION, MarkerSpec, RunMetadata
@@ -166,7 +105,7 @@ def _our_processes(marker: str) -> list[str]:
     return found
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+@pytest.mark.parametrize("sig", [signal.SIGHUP])
 def test_fly_stopped_before_recording_says_so_and_gives_the_names_back(tmp_path: Path, sig: int) -> None:
     out = tmp_path / "run.mcap"
     proc = subprocess.Popen(_fly_argv(out, "udp:127.0.0.1:9", MISSION, "http://127.0.0.1:9/x.mjpg", "--heartbeat-timeout", "60"),
@@ -188,13 +127,15 @@ def test_two_fly_with_one_out_the_second_is_refused_in_one_line(tmp_path: Path) 
         second = subprocess.run(_fly_argv(out), capture_output=True, text=True, timeout=60)
     finally:
         first.send_signal(signal.SIGTERM)
-        first.communicate(timeout=30)
+        first_stderr = first.communicate(timeout=30)[1]
+    assert first.returncode == 128 + signal.SIGTERM and first_stderr.strip().splitlines() == ["dronecal-field fly: stopped by SIGTERM"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # the first gave its claims back
     lines = second.stderr.strip().splitlines()
     assert second.returncode == 2 and len(lines) == 1 and "Traceback" not in second.stderr
     assert "already exists" in lines[0] and "another fly" in lines[0] and "run-2.mcap" in lines[0]
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+@pytest.mark.parametrize("sig", [signal.SIGTERM])
 def test_fly_stopped_while_recording_finalises_the_run(tmp_path: Path, sig: int) -> None:
     from dronecal_field.runfile.reader import open_run
     from test_mavlink_support import MjpegServer, plan_document, start_sim
@@ -232,7 +173,9 @@ def test_demo_stopped_stops_its_children_and_leaves_no_temporary_folder(tmp_path
     proc = subprocess.Popen([*PY, "demo", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
     try:
-        assert _wait_for(lambda: any(p.name.startswith(".plan.tmp-") for p in out.glob(".*")) or (out / "plan").exists(), 120)
+        assert _wait_for(lambda: (out / "logs" / "plan.log").exists(), 120)  # its plan step has started
+        assert _wait_for(lambda: any(str(out) in cmd and " plan " in cmd for cmd in _our_processes(str(out))), 60)
+        time.sleep(1.0)
         proc.send_signal(signal.SIGTERM)
         stdout, stderr = proc.communicate(timeout=120)
     finally:
@@ -259,7 +202,7 @@ def _copy_run(src: Path, out: Path, width: int | None = None, height: int | None
 
     with open_run(src) as run:
         meta = replace(run.metadata, width=width or run.metadata.width, height=height or run.metadata.height)
-        fixes, frames, events = list(run.iter_fixes()), list(run.iter_frames()), list(run.iter_events())
+        fixes, frames, events = list(run.iter_fixes())[:400], list(run.iter_frames())[:40], list(run.iter_events())
     with RunWriter(out, meta, background_flush=False) as w:
         for i, fix in enumerate(fixes):
             w.write_fix(fix)
@@ -304,11 +247,6 @@ def test_runs_that_lie_are_refused_corrected_or_skipped_and_counted(tmp_path: Pa
     joined.write_bytes(nominal.read_bytes() + (ROOT / "replays" / "latency.mcap").read_bytes())
     with pytest.raises(ContractError, match="second MCAP file starts at byte"):
         open_run(joined)
-    fifo = tmp_path / "fifo.mcap"
-    os.mkfifo(fifo)
-    proc = subprocess.run([*PY, "calibrate", str(fifo), "--out", str(tmp_path / "cal")], capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 2 and "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
-    assert "not a regular file" in proc.stderr
 
 
 # --------------------------------------------------------------------------
@@ -357,6 +295,7 @@ def _hand_edited(d: Path) -> list[tuple[str, list[str], str]]:
     cases.append(("fly plan.json a list", ["fly", "--mission", str(folder / "mission.plan"), *fly_tail, "--out", str(folder / "run.mcap")], "JSON object"))
     fifo = d / "mission-fifo.plan"
     os.mkfifo(fifo)
+    os.mkfifo(d / "run-fifo.mcap")
     cases.append(("fly --mission fifo", ["fly", "--mission", str(fifo), *fly_tail, "--out", str(d / "f.mcap"), "--marker-size", "0.3"], "not a regular file"))
     cases.append(("fly --mission /dev/zero", ["fly", "--mission", "/dev/zero", *fly_tail, "--out", str(d / "z.mcap"), "--marker-size", "0.3"], "not a regular file"))
     cases.append(("fly --out its tlog", ["fly", "--mission", str(MISSION), *fly_tail, "--out", str(d / "r.tlog"), "--marker-size", "0.3"], "same file"))
@@ -378,6 +317,7 @@ def _hand_edited(d: Path) -> list[tuple[str, list[str], str]]:
     cases.append(("import --tlog /dev/zero", ["import", "--tlog", "/dev/zero", "--video", str(MISSION), "--out", str(d / "i.mcap"),
                                               "--marker-size", "0.3", "--marker-dictionary", "DICT_4X4_50", "--marker-id", "0"], "/dev/zero"))
     cases.append(("calibrate /dev/zero", ["calibrate", "/dev/zero", "--out", str(d / "cal-zero")], "/dev/zero"))
+    cases.append(("calibrate fifo.mcap", ["calibrate", str(d / "run-fifo.mcap"), "--out", str(d / "cal-fifo")], "run-fifo.mcap"))
     return cases
 
 
@@ -398,26 +338,6 @@ def test_hand_edited_files_devices_and_sizes_are_one_line_exit_2(tmp_path: Path)
     assert len(cases) >= 25
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM])
-def test_plan_stopped_removes_its_staged_folder(tmp_path: Path, sig: int) -> None:
-    out = tmp_path / "plan-out"
-    proc = subprocess.Popen([*PY, "plan", "--site", str(ROOT / "missions" / "paper-pinhole.toml"), "--out", str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        staged = _wait_for(lambda: any(tmp_path.glob(".plan-out.tmp-*")) or proc.poll() is not None, 120)
-        proc.send_signal(sig)
-        _stdout, stderr = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-    if not staged or proc.returncode == 0:
-        pytest.skip("plan finished before it could be stopped")
-    assert proc.returncode == 128 + sig, stderr
-    assert "Traceback" not in stderr and f"stopped by {signal.Signals(sig).name}" in stderr
-    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no .plan-out.tmp-*, no half plan-out
-    assert _wait_for(lambda: not _our_processes(str(out)), 30), _our_processes(str(out))
-
-
 def test_fly_on_a_disk_that_fills_mid_flight_says_so_at_once_and_exits_2(small_disk: Path) -> None:
     """The whole command on a real 3 MB disk: the status line says RECORDING STOPPED: DISK FULL while the
     flight goes on, no thread prints a traceback, the run reads back up to its cut, exit 2 in one line."""
@@ -425,13 +345,13 @@ def test_fly_on_a_disk_that_fills_mid_flight_says_so_at_once_and_exits_2(small_d
     from test_mavlink_support import MjpegServer, plan_document, start_sim
 
     plan = small_disk.parent / "m.plan"
-    plan.write_text(json.dumps(plan_document([(0.0, 4.0, 1.5), (1.0, 4.0, 1.5)], hold_s=8.0)))
+    plan.write_text(json.dumps(plan_document([(0.0, 4.0, 1.5), (1.0, 4.0, 1.5)], hold_s=60.0)))
     (small_disk / "other-files").write_bytes(b"\xff" * 1_500_000)  # the disk is half full already
     sim = start_sim(speedup=4.0, boot_s=0.5)
     camera = MjpegServer(fps=30)
     out = small_disk / "run.mcap"
     try:
-        proc = subprocess.run(_fly_argv(out, sim.addresses()[0], plan, camera.url, "--start", "--no-live", "--timeout-s", "120"),
+        proc = subprocess.run(_fly_argv(out, sim.addresses()[0], plan, camera.url, "--start", "--no-live", "--timeout-s", "6"),
                               capture_output=True, text=True, timeout=240)
     finally:
         camera.close()
@@ -440,8 +360,7 @@ def test_fly_on_a_disk_that_fills_mid_flight_says_so_at_once_and_exits_2(small_d
     assert proc.returncode == 2, proc.stderr
     status = [line for line in proc.stdout.splitlines() if line.startswith("wp ")]
     assert any("RECORDING STOPPED: DISK FULL" in line for line in status)
-    assert "RECORDING STOPPED EARLY (disk full" in proc.stdout
-    assert proc.stderr.strip().splitlines()[-1].startswith("dronecal-field fly: error: the recording stopped early (disk full")
+    assert "RECORDING STOPPED EARLY (disk full" in proc.stderr.strip().splitlines()[-1]  # said in fly's last line
     with open_run(out) as run:
         assert not run.truncated and run.recording_stopped is not None
         assert sum(1 for _ in run.iter_fixes()) > 0 and sum(1 for _ in run.iter_frames()) > 0
