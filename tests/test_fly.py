@@ -104,7 +104,7 @@ def test_dry_run_prints_the_checklist_and_touches_nothing(tmp_path, camera, caps
         sim.stop()
     printed = capsys.readouterr().out
     assert rc == 0
-    assert printed.count("[ OK ]") == 9 and "dry run: nothing uploaded" in printed
+    assert printed.count("[ OK ]") == 10 and "[ OK ] mission" in printed and "dry run: nothing uploaded" in printed
     rate = float(printed.split("gnss_rate")[1].split("new fixes/s")[0])
     assert 9.0 <= rate <= 10.5  # fly asked for 10 Hz; the simulated receiver follows
     assert not out.exists() and not out.with_suffix(".tlog").exists()
@@ -130,7 +130,8 @@ def test_dry_run_warns_about_a_5_hz_receiver(tmp_path, camera, capsys):
 
 def test_a_mission_the_vehicle_rejects_exits_2_with_one_line(tmp_path, camera):
     sim = start_sim(speedup=20.0, boot_s=1.0)
-    extra = [{"type": "SimpleItem", "command": 31999, "frame": 2, "params": [0, 0, 0, 0, 0, 0, 0], "autoContinue": True, "doJumpId": 0}]
+    # a speed change without its speed type (param 1 null): pre-flight passes it (NaN is QGC's "unset"), ArduCopter refuses it
+    extra = [{"type": "SimpleItem", "command": 178, "frame": 2, "params": [None, 2, -1, 0, 0, 0, 0], "autoContinue": True, "doJumpId": 0}]
     plan = write_plan(tmp_path / "mission.plan", SMALL[:1], extra_items=extra)
     out = tmp_path / "run.mcap"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
@@ -143,8 +144,22 @@ def test_a_mission_the_vehicle_rejects_exits_2_with_one_line(tmp_path, camera):
         sim.stop()
     assert proc.returncode == 2
     errors = proc.stderr.strip().splitlines()
-    assert errors == ["dronecal-field fly: error: vehicle refused the mission: MAV_MISSION_UNSUPPORTED at item 5 (command 31999, frame 2); fix that item in the plan"]
+    assert errors == ["dronecal-field fly: error: vehicle refused the mission: MAV_MISSION_INVALID_PARAM1 at item 5 (command 178, frame 2); fix that item in the plan"]
     assert not out.exists()
+
+
+def test_a_command_the_autopilot_does_not_know_fails_preflight_before_any_upload(tmp_path, camera, capsys):
+    sim = start_sim(speedup=20.0, boot_s=1.0)
+    extra = [{"type": "SimpleItem", "command": 31999, "frame": 2, "params": [0, 0, 0, 0, 0, 0, 0], "autoContinue": True, "doJumpId": 0}]
+    plan = write_plan(tmp_path / "mission.plan", SMALL[:1], extra_items=extra)
+    try:
+        rc = main(_fly_args(sim.addresses()[0], plan, camera, tmp_path / "run.mcap", "--start"))
+    finally:
+        sim.stop()
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1
+    assert "pre-flight failed: mission: item 5: command 31999 is not one ArduCopter runs in a mission" in err
+    assert not (tmp_path / "run.mcap").exists()
 
 
 def test_unreachable_video_fails_preflight(tmp_path, capsys):
