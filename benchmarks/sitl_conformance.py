@@ -100,7 +100,7 @@ class Observation:
     gps_epv: list[int] = field(default_factory=list)
     gps_sats: list[int] = field(default_factory=list)
     fix_interval_ms: float = math.nan  # median interval between new fixes (distinct time_usec)
-    gps_lag_ms: float = math.nan  # median GLOBAL_POSITION_INT.time_boot_ms - GPS_RAW_INT.time_usec of the same tick
+    gps_lag_ms: float = math.nan  # median vehicle time when a new fix goes out minus its time_usec
     gcs_rates_hz: dict[str, float] = field(default_factory=dict)  # first link, after asking, during the flight
     second_unasked: dict[str, int] = field(default_factory=dict)  # second link, first UNASKED_WINDOW_S
     second_rates_hz: dict[str, float] = field(default_factory=dict)  # second link, after asking
@@ -218,7 +218,10 @@ def _measure(obs: Observation, rec: _Recorder, rec2: _Recorder, mission: list[Mi
             obs.base_modes.append(int(m.base_mode))
         state = (ap.MODE_NAMES.get(int(m.custom_mode), str(m.custom_mode)), bool(m.base_mode & ap.MAV_MODE_FLAG_SAFETY_ARMED))
         if state != mode:
-            obs.modes.append(state)
+            # a mode entered (with its arming state then) or the disarm after the flight; an arming seen
+            # within a mode only when a 1 Hz beat falls between ARM and MISSION_START is chance, not behaviour
+            if mode is None or state[0] != mode[0] or (mode[1] and not state[1]):
+                obs.modes.append(state)
             mode = state
             if not state[1] and t > obs.start_s and math.isnan(obs.disarm_s) and any(a for _m, a in obs.modes):
                 obs.disarm_s = t
@@ -247,14 +250,15 @@ def _measure(obs: Observation, rec: _Recorder, rec2: _Recorder, mission: list[Mi
     if len(new) > 2:
         obs.fix_interval_ms = statistics.median(np.diff(new) / 1000.0)
     pos = rec.messages("GLOBAL_POSITION_INT")
-    pos_wall = np.array([w for _t, w, _m in pos])
     lags, seen = [], set()
-    for _t, w, m in gps:  # each fix when it first goes out (a faster stream repeats it, older each time)
-        if m.fix_type < 3 or not len(pos_wall) or m.time_usec in seen:
+    for t, _w, m in gps:
+        # each fix when it first goes out (a faster stream repeats it, older each time), against the vehicle
+        # time of the last message before it in the stream (UDP on loopback keeps the order; the wall clock
+        # of a busy machine does not separate the ticks)
+        if m.fix_type < 3 or m.time_usec in seen:
             continue
         seen.add(m.time_usec)
-        k = int(np.argmin(np.abs(pos_wall - w)))
-        lags.append(pos[k][2].time_boot_ms - m.time_usec / 1000.0)
+        lags.append(t * 1000.0 - m.time_usec / 1000.0)
     if lags:
         obs.gps_lag_ms = float(statistics.median(lags))
     t0 = obs.start_s
@@ -386,7 +390,7 @@ def conformance_rows(sim: Observation, fw: Observation, mission: list[MissionIte
     rows.append(Row("COMMAND_ACKs of the start", str(sim.acks), str(fw.acks), sim.acks == fw.acks, "exact"))
     # GPS
     rows.append(Row("GPS new-fix interval, ms", _fmt(sim.fix_interval_ms), _fmt(fw.fix_interval_ms), _rel(sim.fix_interval_ms, fw.fix_interval_ms) <= 0.05, "5 %"))
-    rows.append(Row("GPS lag (GLOBAL_POSITION_INT - GPS_RAW_INT), ms", _fmt(sim.gps_lag_ms), _fmt(fw.gps_lag_ms), abs(sim.gps_lag_ms - fw.gps_lag_ms) <= 25, "25 ms"))
+    rows.append(Row("GPS lag (vehicle time sent - time_usec), ms", _fmt(sim.gps_lag_ms), _fmt(fw.gps_lag_ms), abs(sim.gps_lag_ms - fw.gps_lag_ms) <= 25, "25 ms"))
     for name in ("h_acc_mm", "v_acc_mm", "eph", "epv", "sats"):
         a, b = getattr(sim, f"gps_{name}"), getattr(fw, f"gps_{name}")
         rows.append(Row(f"GPS_RAW_INT {name} (3D fixes)", str(a), str(b), a == b, "exact"))

@@ -19,6 +19,7 @@ import numpy as np
 
 from conftest import REPLAYS  # noqa: F401 - the recorded ArduCopter SITL session, re-exported for the sim tests
 from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic
+from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink.link import open_link
 from dronecal_field.sim.vehicle import SimVehicle, VehicleConfig
 from dronecal_field.sim.vehicle_flight import CopterParams
@@ -85,9 +86,10 @@ def wait_ready(link, timeout_s: float = 20.0) -> None:
     if not getattr(link, "asked_telemetry", False):
         ask_telemetry(link)
 
-    def ready():
-        status = link.latest("SYS_STATUS")
-        return status is not None and bool(status.onboard_control_sensors_health & (1 << 28))
+    def ready():  # the pre-arm bit, and a healthy EKF where reported: ArduCopter 4.7 sets the bit ~18 s before it can arm
+        status, ekf = link.latest("SYS_STATUS"), link.latest("EKF_STATUS_REPORT")
+        ekf_ok = ekf is None or (not (ap.EKF_HEALTHY_FLAGS & ~int(ekf.flags)) and not (int(ekf.flags) & ap.EKF_BAD_FLAGS))
+        return status is not None and bool(status.onboard_control_sensors_health & (1 << 28)) and ekf_ok
 
     assert wait_until(ready, timeout_s), "vehicle never became ready to arm"
 

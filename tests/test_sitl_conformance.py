@@ -82,17 +82,7 @@ def test_leg_and_hold_timing_conform(rows, prefix):
     assert not bad, bad
 
 
-@pytest.mark.parametrize(
-    "prefix",
-    [
-        "GPS",
-        "first 3D fix",
-        "EKF healthy",
-        # the firmware sets SYS_STATUS's pre-arm bit at ~24 s and still refuses to arm ("PreArm: Need
-        # Position Estimate") until the EKF is healthy at ~42 s; the simulator sets the bit when it can arm
-        pytest.param("SYS_STATUS pre-arm", marks=pytest.mark.xfail(reason="sim sets the pre-arm bit at EKF healthy (42 s), the firmware at 24 s", strict=False)),
-    ],
-)
+@pytest.mark.parametrize("prefix", ["GPS", "first 3D fix", "SYS_STATUS pre-arm", "EKF healthy"])
 def test_gps_fix_timing_and_accuracy_fields_conform(rows, prefix):
     bad = [r for r in _rows(rows, prefix) if not r.ok]
     assert not bad, bad

@@ -336,7 +336,7 @@ class SimVehicle:
             self.enc,
             self._send_to,
             self._home_item,
-            lambda: self.model.ready,
+            lambda: self.prearm_bit,  # uploads are taken once the pre-arm checks report (arming waits for the EKF)
             self.model.set_mission,
             self.model.say,
             config.max_items,
@@ -366,6 +366,7 @@ class SimVehicle:
         self.home_set = False
         self.fix_type = 0
         self.ekf_flags = ap.EKF_UNINITIALIZED
+        self.prearm_bit = False  # SYS_STATUS's MAV_SYS_STATUS_PREARM_CHECK
         self._boot_steps = self._boot_sequence()
         self._heartbeat_mode = self.model.mode  # the mode the last HEARTBEAT announced
         self.start_unix_us = time.time_ns() // 1000
@@ -633,8 +634,9 @@ class SimVehicle:
     # ----- boot -----
     def _boot_sequence(self) -> list[tuple[float, str]]:
         # ArduCopter 4.7 SITL (copter.parm, -w; tests/test_sitl_conformance.py): u-blox detected
-        # (fix 1) at 9.76 s, RTK fixed at 10.06 s, origin set at ~12 s, EKF healthy at ~41.8 s:
-        # the steps keep those fractions of boot_s (default 41.8 s, the firmware's).
+        # (fix 1) at 9.76 s, RTK fixed at 10.06 s, origin set at ~12 s, SYS_STATUS's pre-arm bit at
+        # ~23.7 s while arming is still refused ("PreArm: Need Position Estimate"), EKF healthy and
+        # armable at ~41.8 s: the steps keep those fractions of boot_s (default 41.8 s, the firmware's).
         b = self.config.boot_s
         return [
             (0.0, "banner"),
@@ -642,8 +644,9 @@ class SimVehicle:
             (0.2335 * b, "gps_detected"),
             (0.2407 * b, "gps_rtk"),
             (0.29 * b, "origin"),
-            (0.98 * b, "ekf_gps"),
-            (1.0 * b, "ready"),
+            (0.567 * b, "prearm_bit"),  # 23.7 s: SYS_STATUS says pre-arm checks pass, yet arming is refused
+            (1.0 * b, "ekf_gps"),
+            (1.0 * b, "ready"),  # 41.8 s, the same tick: the EKF has a position, arming is accepted
         ]
 
     def _boot(self, now_s: float) -> None:
@@ -670,7 +673,10 @@ class SimVehicle:
             elif step == "ekf_gps":
                 self.ekf_flags = ap.EKF_HEALTHY_FLAGS
                 say("EKF3 IMU0 is using GPS")
+            elif step == "prearm_bit":
+                self.prearm_bit = True
             elif step == "ready":
+                self.prearm_bit = True
                 self.model.ready = True
 
     # ----- one tick -----
@@ -812,7 +818,7 @@ class SimVehicle:
             state = ap.MAV_STATE_ACTIVE if m.armed else ap.MAV_STATE_STANDBY
             return enc.heartbeat_encode(ap.MAV_TYPE_QUADROTOR, ap.MAV_AUTOPILOT_ARDUPILOTMEGA, self._heartbeat_base_mode(), m.mode, state, 3)
         if name == "SYS_STATUS":
-            health = (_SENSORS_HEALTH_OK if self.ekf_flags == ap.EKF_HEALTHY_FLAGS else _SENSORS_HEALTH_BOOT) | (ap.MAV_SYS_STATUS_PREARM_CHECK if m.ready else 0)
+            health = (_SENSORS_HEALTH_OK if self.ekf_flags == ap.EKF_HEALTHY_FLAGS else _SENSORS_HEALTH_BOOT) | (ap.MAV_SYS_STATUS_PREARM_CHECK if self.prearm_bit else 0)
             current_ca = 1500 if (m.armed and not m.landed) else 0
             return enc.sys_status_encode(
                 _SENSORS_PRESENT, _SENSORS_ENABLED, health, 0, 12600, current_ca, int(self.battery_pct), 0, 0, 0, 0, 0, 0, 0, 0, 0

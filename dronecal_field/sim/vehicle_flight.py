@@ -322,7 +322,7 @@ class CopterModel:
         if self.armed:
             return ap.MAV_RESULT_ACCEPTED
         if not self.ready:
-            self.say("PreArm: Waiting for GPS/EKF to be ready", ap.SEVERITY_CRITICAL)
+            self.say("PreArm: Need Position Estimate", ap.SEVERITY_CRITICAL)  # ArduCopter 4.7 before the EKF has a position
             return ap.MAV_RESULT_FAILED
         if self.mode == ap.MODE_AUTO:
             # ArduCopter: AUTO_OPTIONS 0 -> arming in AUTO is refused
