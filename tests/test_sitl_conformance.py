@@ -21,7 +21,7 @@ from sitl import needs_sitl
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import sitl_conformance as conf  # noqa: E402
 
-pytestmark = [needs_sitl, pytest.mark.timeout(300)]
+pytestmark = [needs_sitl, pytest.mark.slow, pytest.mark.timeout(300)]
 
 SPEEDUP = 5.0  # the firmware's scheduler keeps its clock at 5x on a loaded 2-core machine
 

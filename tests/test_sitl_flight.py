@@ -39,7 +39,7 @@ from dronecal_field.sim.scene import make_truth_camera
 from sitl import ArduCopterSitl, needs_sitl
 from test_mavlink_support import HOME
 
-pytestmark = [needs_sitl, pytest.mark.timeout(400)]
+pytestmark = [needs_sitl, pytest.mark.slow, pytest.mark.timeout(400)]
 
 SPEEDUP = 4.0  # vehicle seconds per wall second: a 3 s hold is 0.75 s of video at 15 fps
 CAMERA = dict(mount_height=4.0, azimuth=30.0, tilt=25.0)
