@@ -70,7 +70,43 @@ def _version() -> str:
     return f"dronecal-field {__version__}"
 
 
-class Stopped(KeyboardInterrupt):
+_STOP = {"count": 0, "active": False}  # stop signals seen by this process's handler (main thread)
+
+
+class _NeverLost:
+    """A stop exception that a library swallows is raised again.
+
+    Some libraries catch everything in places (pymavlink's and ssl's imports run under a bare
+    ``except``): a stop raised there would be dropped and the command would run on. When such an
+    exception is dropped outside this package (the frame that caught it, the head of its traceback,
+    is not ours), the signal is sent again, and raised again at the next step.
+    """
+
+    signum = 0
+
+    def __del__(self) -> None:
+        try:
+            tb = self.__traceback__
+            if not _STOP["active"] or tb is None:
+                return
+            if str(tb.tb_frame.f_globals.get("__name__", "")).startswith("dronecal_field"):
+                return  # ours caught it: handled (or passed on) on purpose
+            import threading
+
+            _STOP["count"] = 0
+            # Sent from another thread, so the handler raises in the main thread's next step, not in here.
+            threading.Timer(0.01, os.kill, (os.getpid(), self.signum)).start()
+        except Exception:  # noqa: BLE001 - never raise from a finaliser
+            pass
+
+
+class Interrupted(_NeverLost, KeyboardInterrupt):
+    """Ctrl-C (SIGINT), as KeyboardInterrupt."""
+
+    signum = 2
+
+
+class Stopped(_NeverLost, KeyboardInterrupt):
     """SIGTERM or SIGHUP, raised in the main thread like Ctrl-C so every command's clean-up runs."""
 
     def __init__(self, signum: int) -> None:
@@ -89,16 +125,16 @@ def _install_stop_signals() -> None:
 
     if threading.current_thread() is not threading.main_thread():
         return
-    count = {"n": 0}
+    _STOP["active"] = True
 
     def handler(signum, _frame):
-        count["n"] += 1
-        if count["n"] == 1:
+        _STOP["count"] += 1
+        if _STOP["count"] == 1:
             if _DEFERRED["depth"] > 0:
                 _DEFERRED["pending"] = signum  # raised when the deferred block ends
                 return
             _raise_stop(signum)
-        if count["n"] == 2:
+        if _STOP["count"] == 2:
             print(f"dronecal-field: {signal.Signals(signum).name} again: still finishing the files; a third signal stops at once",
                   file=sys.stderr, flush=True)
             return
@@ -138,7 +174,7 @@ def _raise_stop(signum: int) -> None:
     import signal
 
     if signum == signal.SIGINT:
-        raise KeyboardInterrupt
+        raise Interrupted
     raise Stopped(signum)
 
 
@@ -147,7 +183,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if argv is None:  # a process of its own (not a test calling main in-process)
         _install_stop_signals()
-        return leave_cleanly(_run_command(args))
+        rc = _run_command(args)
+        _STOP["active"] = False
+        return leave_cleanly(rc)
     return _run_command(args)
 
 
