@@ -39,6 +39,13 @@ stream        sent / rec  lost  drops   CPU (1 core)    RSS    MB/s   stamp - se
 
 (The payloader hands frames on 32-39 ms before the RTSP sink sends them on
 the clock; stamps are capture = send instants on the server's clock.)
+
+Again 2026-11-27 after issue 22 (``--seconds 20 --only 4k25-h265``; the
+recorder now also holds the opening burst and decodes a keyframe every 5 s
+in its checker thread, ~0.1 s of CPU each at 4K H.265; bench_rtsp_chain.py's
+flight ran beside it): 465 / 465 frames, 0 lost, 0 dropped, 0 corrupt, clock
+rtcp, CPU 15.4 % of one core, RSS 239 MB, 1.35 MB/s, stamp - send -0.005 ms
+constant.
 """
 
 from __future__ import annotations

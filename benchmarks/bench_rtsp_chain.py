@@ -22,7 +22,24 @@ RTCP sender reports) at the asked size and rate, ``fly --start --calibrate``
   this machine, ~3-4 fps: the chain at 4K25 is then a 3-4 fps stream, and
   the report says so).
 
-Measured: see benchmarks/README.md (issue 22).
+Measured 2026-11-27 (2 cores shared, while bench_recorder_rtsp.py encoded a
+4K H.265 clip beside it), ``--size 1280x720 --fps 15 --codec h265
+--max-flight-time 3`` (plan split it in 2 flights; the first flown, 181 s
+recorded, 14 holds and 43 legs):
+
+- fly: 288 s wall, 56.5 s of CPU = 19.6 % of one core with the live pass;
+- calibration ready 64.0 s after the run file was closed (video runs have
+  no frame cache yet: ``calibrate`` decodes the file); ``calibrate`` on the
+  file alone 81.4 s; the same camera to the printed digits (fx 995.64 px,
+  principal point (638.96, 367.89) px; truth fx 1000);
+- the simulated camera rendered 11.0 fps of the 15 asked and its x265 (one
+  shared encoder, a leaky queue in front) passed on fewer: 786 frames
+  recorded, the pts gaps counted as lost ("VIDEO LOST"), 0 video gaps, 0
+  dropped by the recorder; 2 holds had no frame and were named for re-fly.
+
+At 3840x2160 the simulator's Python renderer makes ~3-4 frames a second
+(0.25-0.33 s a frame here) and its ray map takes ~2 minutes to build: the
+4K25 chain the issue asks for cannot run at real time on this machine.
 """
 
 from __future__ import annotations
@@ -76,7 +93,11 @@ def main() -> int:
         *marker_args, "--hover", "3", "--trials", "200", "--max-flight-time", args.max_flight_time,
     ), logs / "plan.log", timeout_s=900)
     print(f"plan: {time.monotonic() - t:.0f} s", flush=True)
-    plan = json.loads((out / "plan" / "mission.plan").read_text())
+    mission = out / "plan" / "mission.plan"
+    if not mission.exists():  # plan split a long plan into flights within --max-flight-time: fly the first
+        mission = out / "plan" / "mission-1.plan"
+        print(f"plan: split into flights; flying {mission.name}", flush=True)
+    plan = json.loads(mission.read_text())
     home = plan["mission"]["plannedHomePosition"]
 
     vehicle_port, camera_link_port, rtsp_port = _free_port(), _free_port(), _free_port(socket.SOCK_STREAM)
@@ -90,7 +111,7 @@ def main() -> int:
         _wait_for_tcp(rtsp_port, camera, logs / "sim-camera.log", timeout_s=600)
         fly_log = (logs / "fly.log").open("w")
         t_fly = time.monotonic()
-        fly = _start(cli_argv("fly", "--connect", f"udp:127.0.0.1:{vehicle_port}", "--mission", out / "plan" / "mission.plan",
+        fly = _start(cli_argv("fly", "--connect", f"udp:127.0.0.1:{vehicle_port}", "--mission", mission,
                               "--video", video_url, "--out", run_path, "--start", "--calibrate", "--timeout-s", 3600), fly_log)
         _pid, status, usage = os.wait4(fly.pid, 0)
         fly.returncode = os.waitstatus_to_exitcode(status)
