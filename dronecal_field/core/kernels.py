@@ -1,13 +1,19 @@
-"""Compiled hot loop of the batched Levenberg-Marquardt (numba).
+"""Compiled hot loop of the batched Levenberg-Marquardt (numba), and the Monte-Carlo's per-trial scores.
 
 Each problem (one Monte-Carlo trial, or one calibration) is solved to
-convergence inside compiled code: one pass over its points projects them,
-forms the two Jacobian rows of each for the free parameters and accumulates
-the normal equations J^T W J, J^T W r directly, so no Jacobian is stored and
-no Python runs per iteration. Problems are independent and run in parallel
-(``prange``) over numba's threads. The algebra is the same as
-``core.camera.project_batch_jacobians`` (the tests check the two agree);
-conventions are in docs/conventions.md.
+convergence inside compiled code, with no Python per iteration. A trial
+step is judged by one pass over the points that computes only the
+residuals. Where a step is accepted and the solve goes on, a second pass
+writes the weighted Jacobian, one contiguous row per parameter (u of every
+point, then v), into a workspace reused across problems. The normal
+equations J^T W J, J^T W r of the free parameters are then dot products of
+those rows, solved by Cholesky. Problems are independent and run in
+parallel (``prange``, blocks of BLOCK problems) over numba's threads.
+``monte_carlo_trials`` also scores each trial against the reference camera
+in the same pass: projection errors, and the ground rays of
+``core.camera.intersect_plane_z``. The algebra is the same as
+``core.camera.project_batch_jacobians`` and ``core.camera.project_batch``
+(the tests check they agree); conventions are in docs/conventions.md.
 """
 
 from __future__ import annotations

@@ -3,9 +3,11 @@
 For k trials, every 3D point is perturbed with N(0, diag(sigma_3d^2)) and
 every 2D point with N(0, sigma_2d^2); the camera is re-estimated and
 E(C), the RMS reprojection error over that trial's perturbed points (what
-``cv2.calibrateCamera`` returns), is stored. All trials are solved at once
-by the batched Levenberg-Marquardt of ``core.calibrate``, warm-started at the
-reference camera, in chunks so memory stays bounded for any k.
+``cv2.calibrateCamera`` returns), is stored. Each chunk of trials is solved
+in one compiled pass (``core.kernels.monte_carlo_trials``: the
+Levenberg-Marquardt of ``core.calibrate.levenberg_marquardt``, warm-started
+at the reference camera, parallel over trials), which also scores every
+estimate against the reference. Chunks keep memory bounded for any k.
 
 Beyond the paper, the same trials give the spread of every parameter and the
 *projection error*: how far each estimated camera projects world points from
