@@ -452,3 +452,33 @@ def test_a_stop_swallowed_by_a_library_is_raised_again(tmp_path: Path) -> None:
     stdout, stderr = proc.communicate(timeout=20)  # not the 30 s sleep after the library: stopped right after it
     assert "Traceback" not in stderr and stderr.strip() == "dronecal-field test: stopped by SIGTERM"
     assert stdout.strip() == "returned"
+
+
+def test_import_stopped_midway_leaves_no_half_file(tmp_path: Path) -> None:
+    import cv2
+    import numpy as np
+    from conftest import REPLAYS
+
+    tlog = REPLAYS / "calib-grid-gpsloss.tlog"
+    if not tlog.exists():
+        pytest.skip("the SITL replays are not here")
+    video = tmp_path / "camera.mp4"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 10.0, (640, 480))
+    rng = np.random.default_rng(0)
+    noise = rng.integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    for i in range(600):
+        writer.write(np.roll(noise, i, axis=1))
+    writer.release()
+    out = tmp_path / "out" / "run.mcap"
+    out.parent.mkdir()
+    proc = subprocess.Popen([*PY, "import", "--tlog", str(tlog), "--video", str(video), "--video-start", "2026-11-22T03:20:00.500Z",
+                             "--marker-dictionary", "DICT_4X4_50", "--marker-id", "3", "--marker-size", "0.3", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    writing = _wait_for(lambda: any(out.parent.glob(".run.mcap.tmp-*")) or proc.poll() is not None, 60)
+    proc.send_signal(signal.SIGTERM)
+    _stdout, stderr = proc.communicate(timeout=60)
+    if not writing or proc.returncode == 0:
+        pytest.skip("import finished before it could be stopped")
+    assert proc.returncode == 128 + signal.SIGTERM and "Traceback" not in stderr, stderr
+    assert stderr.strip().splitlines() == ["dronecal-field import: stopped by SIGTERM"]
+    assert list(out.parent.iterdir()) == []  # no half run to block the retry, no temporary file
