@@ -358,6 +358,7 @@ def test_fly_on_a_disk_that_fills_mid_flight_says_so_at_once_and_exits_2(small_d
         sim.stop()
     assert "Traceback" not in proc.stderr and "Traceback" not in proc.stdout
     assert proc.returncode == 2, proc.stderr
+    assert proc.stdout.startswith("WARNING: only ")  # said before anything connected: the disk is small
     status = [line for line in proc.stdout.splitlines() if line.startswith("wp ")]
     assert any("RECORDING STOPPED: DISK FULL" in line for line in status)
     assert "RECORDING STOPPED EARLY (disk full" in proc.stderr.strip().splitlines()[-1]  # said in fly's last line

@@ -263,6 +263,10 @@ def run(args: argparse.Namespace) -> int:
     video_file = Path(args.video) if "://" not in args.video and not args.video.startswith("/dev/") else None
     check_outputs("--out", [out, tlog_path], {"--mission": mission_path, "plan.json": plan_json_path if plan_json is not None else None,
                                               "--video": video_file})
+    from dronecal_field.recording.claim import free_space_note
+
+    if (note := free_space_note(out)) is not None:  # before anything connects
+        print(note, flush=True)  # also with --dry-run: the field laptop's disk is part of the checklist
     # A flight is the most expensive thing this tool makes: never write over one, and own the
     # files from now on (created exclusively), so a second fly with the same --out is refused.
     from dronecal_field.cli import stop_signals_deferred

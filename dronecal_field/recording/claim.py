@@ -85,6 +85,24 @@ def check_outputs(flag: str, outputs: list[Path], inputs: dict[str, Path | None]
         raise InputError(f"{flag} {first}: cannot write in {parent} ({exc.strerror or exc}): choose a folder you can write to") from None
 
 
+# A recording takes about 1 MB/s at 10 fps of 1080p JPEG (more at 4K): below this, say so before flying.
+LOW_DISK_BYTES = 2_000_000_000
+
+
+def free_space_note(path: Path) -> str | None:
+    """One line when the disk that will hold ``path`` has less than LOW_DISK_BYTES free, else None."""
+    import shutil
+
+    try:
+        free = shutil.disk_usage(path.absolute().parent).free
+    except OSError:
+        return None
+    if free >= LOW_DISK_BYTES:
+        return None
+    return (f"WARNING: only {free / 1e6:.0f} MB free for {path} (a flight records about 1 MB/s at 1080p, more at 4K); "
+            "if the disk fills the recording stops there (finalised, said loudly): free space or choose another disk")
+
+
 def claim_outputs(flag: str, outputs: list[Path], suggestion: Path | None = None, into: OutputClaim | None = None) -> OutputClaim:
     """Create every file of ``outputs`` empty and exclusively; InputError naming the one that exists.
 
