@@ -201,7 +201,10 @@ def leave_cleanly(rc: int, grace_s: float = 2.0) -> int:
     for thread in threading.enumerate():
         if thread.daemon and thread is not threading.current_thread():
             thread.join(timeout=max(0.0, deadline - time.monotonic()))
-    if any(t.daemon and t.is_alive() for t in threading.enumerate() if t is not threading.current_thread()):
+    lingering = [t.name for t in threading.enumerate() if t.daemon and t.is_alive() and t is not threading.current_thread()]
+    if lingering:
+        if os.environ.get("DRONECAL_REPORT_THREADS"):
+            print(f"dronecal-field: threads still running at exit: {', '.join(lingering)}", file=sys.stderr)
         for stream in (sys.stdout, sys.stderr):
             try:
                 stream.flush()

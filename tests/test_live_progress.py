@@ -206,3 +206,45 @@ def test_the_zone_pass_detects_every_ring_frame_around_a_hold_once_and_covers_on
     assert all(r.detection is not None and abs(r.detection.u_px - whole.u_px) < 1e-3 for r in cache.results)
     assert cache.uncovered([(t0, stamp[90])]) == [(t0, stamp[19])]
     assert result.to_dict()["frame_cache"]["frames_detected"] == 71
+
+
+def test_holds_whose_frames_left_the_ring_are_checked_after_landing_from_the_run_file(tmp_path):
+    """Issue 19: a worker too slow for the flight (here: none ran) never calls a waypoint "missed" unlooked. The ring
+    keeps 10 frames, so it has let go of every hold but the last; after landing, ``finish`` reads them from the run."""
+    import time
+
+    from dronecal_field.geodesy import EnuOrigin
+    from dronecal_field.runfile.records import FORMAT_VERSION, Attitude, GnssFix, RunMetadata
+    from dronecal_field.runfile.writer import RunWriter
+    from dronecal_field.sim.scene import make_truth_camera
+    from test_live_foxglove import HOME, OFFSET, WAYPOINTS as HOLDS, feed_flight
+    from test_mavlink_support import plan_document
+
+    mission = parse_qgc_plan(json.dumps(plan_document(HOLDS, hold_s=3.0)))
+    marker = MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.4, offset_frd_m=OFFSET)
+    live = LiveCalibration(mission, marker, 640, 480, origin=EnuOrigin(*HOME), job_queue=len(HOLDS), ring_frames=10)
+    run_path = tmp_path / "run.mcap"
+    writer = RunWriter(run_path, RunMetadata(format_version=FORMAT_VERSION, width=640, height=480, marker=marker), camera="image")
+
+    class Tee:  # the recorder's part: every record to the file and to the live observer
+        def on_frame(self, frame):
+            writer.write_frame(frame)
+            live.on_frame(frame)
+
+        def on_record(self, record):
+            if isinstance(record, GnssFix):
+                writer.write_fix(record)
+            elif isinstance(record, Attitude):
+                writer.write_attitude(record)
+            elif isinstance(record, RunEvent):
+                writer.write_event(record)
+            live.on_record(record)
+
+    feed_flight(Tee(), make_truth_camera(HOME, 4.0, 0.0, 20.0, 560.0, 640, 480), time.time_ns())
+    writer.close()
+    result = live.finish(timeout_s=1.0, run_path=run_path)
+    seqs = list(range(4, 4 + len(HOLDS)))
+    assert result.checked_after_landing == seqs and result.unchecked == []
+    assert sorted(o.seq for o in result.outcomes if o.good) == seqs  # every hold's marker found, from the file
+    assert result.verdict.good and not result.verdict.refly_seqs
+    assert result.estimate is not None and abs(result.estimate.focal_px - 560.0) < 0.03 * 560.0

@@ -73,6 +73,8 @@ RING_FRAMES = 4000  # and at most this many (H.264/H.265: every access unit, a d
 RING_BYTES = 96 << 20  # ... or this many bytes of JPEG (1080p30: the last ~20 s, longer than a hold)
 GRACE_S = 0.3  # wait this long after a hold's end for its last frames to arrive
 MAX_LEG_POINTS = 300  # leg pairs in the running solve (evenly thinned: it must stay well under a second)
+LEG_MIN_DETECTIONS = 3  # as progress.leg_outcome
+MAX_LEG_FRAMES = 120  # a marginal leg is looked at whole, up to this many frames
 VIEW_PERIOD_S = 0.5  # the live view's status, GNSS and image: twice a second (docs/live.md)
 ZONE_BATCH = 8  # ring frames detected between two looks at the job queue (~0.05-0.2 s at 720p-1080p)
 
@@ -315,6 +317,8 @@ class LiveCalibration:
         if not events:
             return
         events = sorted(events, key=lambda e: e.timestamp_ns)
+        if self._detector is None and self.marker.kind == "aruco":
+            self._prepare()  # the worker never got to start
         ring = list(self._frames)
         from_file: list[RunEvent] = []
         for event in events:
@@ -473,7 +477,7 @@ class LiveCalibration:
             if (b - a) * 1e-9 < SHORT_SETTLED_S:
                 # A leg's end: calibrate pairs its frames with the leg's fixes, never as a hover point.
                 picked = pick_frames(frames, start + off, end + off, self.options.frames_per_leg)
-                dets = self._leg_detections_in(start + off, end + off, self._detect_picked(picked, frames))
+                dets = self._leg_detections_in(start + off, end + off, self._detect_picked(picked, frames), frames)
                 self.leg_detections.extend(dets)
                 outcome = leg_outcome(seq, end, len(picked), dets)
             else:
@@ -484,7 +488,7 @@ class LiveCalibration:
         else:
             seq = int(event.metadata.get("seq_to", -1))
             picked = pick_frames(frames, start + off, end + off, self.options.frames_per_leg)
-            dets = self._leg_detections_in(start + off, end + off, self._detect_picked(picked, frames))
+            dets = self._leg_detections_in(start + off, end + off, self._detect_picked(picked, frames), frames)
             self._add_leg_points(start, end, dets, track)
             self.leg_detections.extend(dets)
             item = self.mission.items[seq] if 0 <= seq < len(self.mission.items) else None
@@ -499,10 +503,16 @@ class LiveCalibration:
         if self.view is not None and picked:
             self._publish_waypoint_frame(picked, dets)
 
-    def _leg_detections_in(self, a_ns: int, b_ns: int, picked_dets: list) -> list:
-        """Every detection of the leg's frames (camera clock [a_ns, b_ns]): the frame cache's where it has them, else the job's."""
+    def _leg_detections_in(self, a_ns: int, b_ns: int, picked_dets: list, frames: list) -> list:
+        """Every detection of the leg's frames (camera clock [a_ns, b_ns]): the frame cache's where it has them, else the
+        job's; a leg whose sparse pick saw the marker on too few frames is looked at whole (up to MAX_LEG_FRAMES frames),
+        so a marker seen briefly, which calibrate pairs, is not called "missed" on a sample."""
         cached = [r.detection for t, r in list(self._outcomes.items()) if a_ns <= t <= b_ns and r is not None and r.detection is not None]
         dets = cached if len(cached) > len(picked_dets) else picked_dets
+        if 0 < len(dets) < LEG_MIN_DETECTIONS:
+            every = pick_frames(frames, a_ns, b_ns, MAX_LEG_FRAMES)
+            if len(every) > self.options.frames_per_leg:
+                dets = self._detect_picked(every, frames)
         return sorted(dets, key=lambda d: d.timestamp_ns)
 
     def _add_leg_points(self, start_ns: int, end_ns: int, dets: list, track: FixTrack) -> None:
