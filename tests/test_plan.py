@@ -228,7 +228,7 @@ def test_every_flag_is_documented():
     doc = (REPO / "docs" / "plan.md").read_text()
     missing = [o.flag for o in OPTIONS if f"`{o.flag}`" not in doc and f"{o.flag}`" not in doc]
     assert missing == []
-    assert len(OPTIONS) == 50  # issue 10 added --marker-sizes, --exposure-s, --gnss-hz, --strategy, --sampling, --roi, --roi-range
+    assert len(OPTIONS) == 54  # issue 23 added --focal-tolerance, --tilt-tolerance, --azimuth-tolerance, --distortion-range; issue 10 added --marker-sizes, --exposure-s, --gnss-hz, --strategy, --sampling, --roi, --roi-range
 
 
 @pytest.mark.parametrize("origin", [(-35.363261, 149.165230, 584.0), (0.0, 0.0, 0.0), (64.1, -21.9, 40.0), (-0.5, 179.9999, 10.0)])

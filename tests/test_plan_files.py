@@ -48,7 +48,9 @@ def test_qgc_plan_validates_and_follows_the_ardupilot_rules(distorted):
     assert items[1]["params"][:3] == [1.0, 1.5, -1.0]
     summary = json.loads((distorted / "plan.json").read_text())
     grid_wps = [it for it in nav_items(plan, 16) if it["params"][0] > 0]
-    assert len(grid_wps) == summary["points"] >= 30
+    # 28 since issue 23: the paper grid's points at the image edge that a camera 10 % longer in focal, 1 deg / 2 deg
+    # off in tilt / azimuth or with half the distortion would not see are dropped (39 on the guess alone)
+    assert len(grid_wps) == summary["points"] >= 25
     for it in nav_items(plan, 16) + nav_items(plan, 22):
         assert it["frame"] == 3 and it["params"][6] > 0.05  # altitude 0 would mean 'here'
         assert it["params"][0] == int(it["params"][0])  # whole-second holds
@@ -233,9 +235,9 @@ BASE = ["--lat", "-35.363261", "--lon", "149.165230", "--ground-alt", "584", "--
         (["--max-range", "1.5"], "--max-range"),
         (["--min-agl", "3", "--max-agl", "2"], "--max-agl"),
         (["--marker-size", "0.03", "--strategy", "paper-far"], "--marker-size"),
-        (["--focal-px", "700", "--marker-size", "0.05", "--min-marker-px", "60", "--strategy", "paper-far"], "more than a drone can carry"),
+        (["--focal-px", "700", "--marker-size", "0.05", "--min-marker-px", "60", "--strategy", "paper-far", "--focal-tolerance", "0", "--tilt-tolerance", "0", "--azimuth-tolerance", "0", "--distortion-range", "1"], "more than a drone can carry"),
         (["--tilt", "5", "--max-agl", "1.5", "--max-range", "3", "--strategy", "paper-far"], "sees no reachable volume"),
-        (["--focal-px", "700", "--marker-size", "0.05", "--min-marker-px", "60"], "print a marker of at least"),
+        (["--focal-px", "700", "--marker-size", "0.05", "--min-marker-px", "50", "--focal-tolerance", "0", "--tilt-tolerance", "0", "--azimuth-tolerance", "0", "--distortion-range", "1"], "print a marker of at least"),
         (["--tilt", "5", "--max-agl", "1.5", "--max-range", "3"], "sees no reachable point"),
         (["--marker-sizes", "0.3,0"], "--marker-sizes 0 m"),
         (["--roi-range", "40,3"], "--roi-range"),
@@ -382,7 +384,10 @@ def test_image_plan_json_carries_roi_coverage_prediction_and_comparison(wide):
     s = json.loads((wide / "plan.json").read_text())
     assert s["strategy"]["kind"] == "image" and s["strategy"]["requested"] == "image"
     assert s["roi"]["kind"] == "range" and s["roi"]["range_m"] == [3.0, 40.0] and s["roi"]["cells_in_roi"] > 50
-    assert 90.0 <= s["coverage"]["pct"] <= 100.0 and "within one cell" in s["coverage"]["text"]
+    # 79 % since issue 23: the guess band (focal +-10 %, tilt +-1, azimuth +-2 deg, half to all the strong distortion) keeps
+    # every target where all of those cameras see the marker whole; the image's outer ring is left to the real camera
+    assert 75.0 <= s["coverage"]["pct"] <= 100.0 and "within one cell" in s["coverage"]["text"]
+    assert s["guess_band"]["holds_in_view_of_all"] == s["guess_band"]["holds"] and s["guess_band"]["corner_cameras"] == 16
     p = s["prediction"]
     for key in ("linearised_px", "extrapolation_px", "combined_px", "ground_linearised_cm", "ground_extrapolation_cm", "ground_combined_cm"):
         assert set(p[key]) == {"rms", "p95", "max"} and p[key]["rms"] > 0 and p[key]["max"] >= p[key]["p95"]
@@ -534,10 +539,11 @@ def test_max_flight_time_is_a_cap_on_the_mission(tmp_path):
     assert rc == 0
     s = json.loads((out / "plan.json").read_text())
     assert s["flight"]["n_flights"] == 1 and s["flight"]["flight_time_s"] <= 8 * 60
-    assert 0.8 <= s["coverage"]["pct"] / 100 < 0.95
+    assert 0.7 <= s["coverage"]["pct"] / 100 < 0.95  # 75 % with the guess band (issue 23), 80-95 % before
     assert any("no layout covering the whole ROI fits --max-flight-time 8 min" in w for w in s["warnings"])
     # without the cap the same camera's plan covers the ROI in one (longer) flight
     rc, out = run_plan(tmp_path, *demo, "--sampling", "hover", name="uncapped")
     assert rc == 0
     s = json.loads((out / "plan.json").read_text())
-    assert s["coverage"]["pct"] == 100.0 and s["flight"]["flight_time_s"] > 8 * 60
+    # 82 % since issue 23 (the guess band leaves the outer ring of the guessed image unplanned; 100 % before)
+    assert s["coverage"]["pct"] >= 80.0 and s["flight"]["flight_time_s"] > 8 * 60

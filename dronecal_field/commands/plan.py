@@ -155,6 +155,10 @@ def format_report(result, out: str) -> str:
     per = ", ".join(f"{x['file']} {x['flight_time_s'] / 60:.1f} min" for x in f["flights"])
     lines.append(f"flight: {f['flight_time_s'] / 60:.1f} min in {f['n_flights']} flight(s) ({per}); longest {f['battery_pct']:.0f} % of {f['endurance_min']:g} min "
                  f"(at most {100 - f['reserve_pct']} %)")
+    band = s.get("guess_band")
+    if band:
+        lines.append(f"guess band: {band['text']}: {band['holds_in_view_of_all']}/{band['holds']} planned markers in view of all "
+                     f"{band['corner_cameras']} corner cameras (whole, with the quiet zone); they all see {band['image_share_pct']:.0f} % of the guessed image")
     if s.get("coverage") and s["coverage"]["pct"] is not None:
         lines.append(f"ROI coverage: {s['coverage']['pct']:.0f} % of the ROI's image area within one cell of a sample")
         for part in s["coverage"]["unreachable"][:6]:

@@ -153,6 +153,14 @@ def _int(name: str) -> Callable[[Any], int]:
 
 _F = _pos_float
 
+
+def _pct(name: str) -> Callable[[Any], float]:
+    """A percentage from ``10``, ``"10"`` or ``"10%"``."""
+    def parse(value: Any) -> float:
+        return _pos_float(name)(value.strip().rstrip("%") if isinstance(value, str) else value)
+
+    return parse
+
 OPTIONS: tuple[OptionSpec, ...] = (
     # camera position and pose
     OptionSpec("lat", _F("lat"), None, "camera pole latitude, deg WGS84", "DEG", "camera"),
@@ -173,6 +181,12 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("pixel_pitch", _F("pixel_pitch"), None, "pixel pitch, micrometres", "UM", "intrinsics"),
     OptionSpec("hfov", _F("hfov"), None, "horizontal field of view, deg (pinhole equivalent)", "DEG", "intrinsics"),
     OptionSpec("distortion", _choice(tuple(DISTORTION_LEVELS)), "medium", "lens distortion guess: none | medium (paper Table 1) | strong", "LEVEL", "intrinsics"),
+    # how far the guess may be from the camera: every planned marker stays in the image of the band's corner cameras
+    OptionSpec("focal_tolerance", _pct("focal_tolerance"), 10.0, "how far the real focal length may be from the guess, % (10 or 10%): targets stay in view for focal x (1 +- this)", "PCT", "intrinsics"),
+    OptionSpec("tilt_tolerance", _F("tilt_tolerance"), 1.0, "how far the real tilt may be from --tilt, deg either way", "DEG", "camera"),
+    OptionSpec("azimuth_tolerance", _F("azimuth_tolerance"), 2.0, "how far the real azimuth may be from --azimuth, deg either way", "DEG", "camera"),
+    OptionSpec("distortion_range", lambda v: tuple(str(x).strip() for x in (v.split(",") if isinstance(v, str) else v)), None,
+               "the weakest and strongest distortion the lens may have, LOW,HIGH: levels (none,medium) or shares of the --distortion level (default 0.5,1)", "LOW,HIGH", "intrinsics"),
     OptionSpec("fps", _F("fps"), 25.0, "camera frame rate, frames/s (sets the default hover)", "HZ", "intrinsics"),
     OptionSpec("exposure_s", _F("exposure_s"), 0.004, "exposure (shutter) time, s; with the focal length it caps the leg speed (motion blur under 1 px)", "S", "intrinsics"),
     # marker
@@ -227,6 +241,7 @@ RANGES: dict[str, tuple[float, float, bool]] = {
     "speed": (0.0, 50.0, True), "hover": (0.0, 3600.0, False), "endurance": (0.0, 600.0, True), "gnss_hz": (0.0, 100.0, True),
     "trials": (2, 100_000, False), "seed": (0, 2**32 - 1, False), "sigma_px": (0.0, 1000.0, False), "sigma_h": (0.0, 100.0, False),
     "sigma_v": (0.0, 100.0, False), "max_flight_time": (0.0, 600.0, True),
+    "focal_tolerance": (0.0, 60.0, False), "tilt_tolerance": (0.0, 30.0, False), "azimuth_tolerance": (0.0, 60.0, False),
 }
 
 

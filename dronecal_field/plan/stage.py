@@ -40,6 +40,7 @@ from dronecal_field.plan.strategies import (
     score_image_candidates,
     screen_grid,
 )
+from dronecal_field.sampling.band import GuessBand, band_report, corner_cameras, quiet_zone_fraction, scaled_distortion
 from dronecal_field.sampling.design import SAMPLINGS, LegTiming
 from dronecal_field.sampling.predict import NoiseModel, lens_draws, normalised_radius
 from dronecal_field.sampling.roi import Roi, RoiSpec, build_roi
@@ -52,6 +53,7 @@ STRATEGIES = ("image", "paper-far", "paper-near", "paper-full")
 BATTERY_RESERVE = 0.25  # a flight uses at most 75 % of --endurance
 MAX_MC_POINTS = 800  # the Monte-Carlo of the chosen layout thins its leg samples to this many points
 EQUIVALENT_ERROR = 1.10  # candidates within 10 % of the lowest predicted ROI error count as equal: the shortest flight wins
+DEFAULT_DISTORTION_RANGE = ("0.5", "1")  # the lens may have half to all of the guessed level's distortion
 COVERAGE_SLACK = 0.02  # a smaller marker is chosen when its coverage is within this of the best
 LAYOUT_COVERAGE_SLACK = 0.05  # layouts covering within this of the marker's best count as covering; the predicted error decides
 # among them (fly-through legs cover a few % more cells than holds, yet the paper's Table 1 camera's 2.4-min legs predicted
@@ -103,6 +105,7 @@ class PlanRequest:
     roi: RoiSpec = RoiSpec()
     timing: LegTiming = LegTiming()
     reserve: float = BATTERY_RESERVE
+    band: GuessBand = GuessBand()  # how far the camera may be from the guess (``sampling.band``)
 
     @property
     def battery_budget_s(self) -> float:
@@ -216,7 +219,7 @@ def request_from_options(opts: dict[str, Any]) -> PlanRequest:
         min_agl_m=min_agl, max_agl_m=max_agl, max_range_m=max_range, keep_out_m=keep_out, marker_size_m=size,
         min_marker_px=marker.min_px, marker_offset_frd_m=marker.offset_frd_m, geofence_xy=geofence_xy,
         # without --max-agl, fly no higher than 3 m above the camera: above that a pole camera sees sky
-        max_search_height_m=mount + 3.0,
+        max_search_height_m=mount + 3.0, quiet_zone_frac=quiet_zone_fraction(marker.dictionary),
     )
     takeoff_site = None
     if opts.get("takeoff") is not None:
@@ -254,14 +257,45 @@ def request_from_options(opts: dict[str, Any]) -> PlanRequest:
     if gnss_hz <= 0:
         raise InputError(f"--gnss-hz {gnss_hz:g} must be positive: give the receiver's fix rate in Hz (GPS_RATE_MS 100 = 10 Hz)")
     roi = roi_spec_from_options(opts, site)
+    band = band_from_options(opts, lens.distortion_level)
     return PlanRequest(
         site=site, lens=lens, marker=marker, limits=limits, flight=FlightModel(speed_m_s=speed, hover_s=hover),
         evaluation=evaluation, takeoff_site=takeoff_site, geofence_latlon=opts.get("geofence"),
         alt_frame=alt_frame, end=_opt(opts, "end"), yaw_mode=_opt(opts, "yaw_mode"),
         endurance_s=endurance_min * 60.0, name=opts.get("name"), notes=tuple(notes), strategy=strategy, sampling=sampling,
-        marker_sizes_m=sizes, roi=roi, timing=LegTiming(fps=fps, exposure_s=exposure_s, gnss_hz=gnss_hz),
+        marker_sizes_m=sizes, roi=roi, timing=LegTiming(fps=fps, exposure_s=exposure_s, gnss_hz=gnss_hz), band=band,
     )
 
+
+def band_from_options(opts: dict[str, Any], level: str) -> GuessBand:
+    """The guess band of ``--focal-tolerance``, ``--tilt-tolerance``, ``--azimuth-tolerance``, ``--distortion-range``."""
+    from dronecal_field.plan.site import DISTORTION_LEVELS
+
+    f_tol = float(_opt(opts, "focal_tolerance"))
+    t_tol, a_tol = float(_opt(opts, "tilt_tolerance")), float(_opt(opts, "azimuth_tolerance"))
+    for flag, v, hi in (("--focal-tolerance", f_tol, 60.0), ("--tilt-tolerance", t_tol, 30.0), ("--azimuth-tolerance", a_tol, 60.0)):
+        if not 0.0 <= v <= hi:
+            raise InputError(f"{flag} {v:g} is outside 0-{hi:g}: give how far the real camera may be from the guess (0: exactly as given)")
+    raw = opts.get("distortion_range") or DEFAULT_DISTORTION_RANGE
+    if len(raw) not in (1, 2):
+        raise InputError(f"--distortion-range {','.join(map(str, raw))} needs LOW,HIGH: levels (none, medium, strong) or shares of the --distortion level (0.5,1)")
+    guess = DISTORTION_LEVELS[level]
+    names, dists = [], []
+    for v in raw:
+        if str(v) in DISTORTION_LEVELS:
+            names.append(str(v))
+            dists.append(DISTORTION_LEVELS[str(v)])
+        else:
+            try:
+                k = float(v)
+            except ValueError:
+                raise InputError(f"--distortion-range {v!r} is neither a level (none, medium, strong) nor a share of the --distortion level (e.g. 0.5)") from None
+            if not 0.0 <= k <= 3.0:
+                raise InputError(f"--distortion-range {k:g} is outside 0-3 (shares of the --distortion level)")
+            names.append(f"{k:g}x {level}")
+            dists.append(scaled_distortion(guess, k))
+    return GuessBand(focal_tolerance=f_tol / 100.0, tilt_tolerance_deg=t_tol, azimuth_tolerance_deg=a_tol,
+                     distortions=tuple(dists), distortion_names=tuple(names))
 
 def roi_spec_from_options(opts: dict[str, Any], site: CameraSite) -> RoiSpec:
     """The region of interest of ``--roi`` / ``--roi-range`` (see ``sampling.roi``)."""
@@ -559,6 +593,8 @@ def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
     cam_site = guess_camera(req.site, req.lens, frame="site")
     cam_enu = guess_camera(req.site, req.lens, frame="enu")
     _check_sees_ground(req, cam_site)
+    # every point the plan keeps is screened through the band's corner cameras as well as the guess
+    req = replace(req, limits=replace(req.limits, band=corner_cameras(cam_site, req.band, narrow_only=True)))
     warnings = list(req.notes)
     roi = build_roi(cam_site, req.roi)
     from dronecal_field.sampling.roi import evaluation_points
@@ -876,6 +912,7 @@ def _summary(result: PlanResult, rows: list[dict], battery_pct: float, monte_car
             "text": "share of the ROI's image cells (a 16-column grid) within one cell of a sample pixel (holds and fixes along legs)",
             "unreachable": [] if design is None else list(design.unreachable),
         },
+        "guess_band": band_report(cam_site, req.band, pts, replace(req.limits, marker_size_m=chosen.marker_size_m)),
         "strategy": strategy_row,
         "points": len(pts),
         "samples": {"holds": int(np.sum(chosen.hold_s > 0)), "pass_through_points": int(np.sum(chosen.hold_s <= 0)),

@@ -134,6 +134,11 @@ class Limits:
     geofence_xy: tuple[tuple[float, float], ...] | None = None
     height_step_m: float = 0.1  # resolution of the height levels
     max_search_height_m: float = 30.0  # top of the height search when max_agl_m is unset
+    # the white quiet zone round the marker (one cell each side), as a fraction of the marker side: it must be in the image too
+    quiet_zone_frac: float = 0.0
+    # the guess band's corner cameras (``sampling.band.corner_cameras``, same world frame): a point is in view only when
+    # the whole marker is in the image of the camera screened AND of every one of these
+    band: tuple = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -245,19 +250,15 @@ def marker_corners(marker: np.ndarray, forward_xy: np.ndarray, size_m: float) ->
     return marker[:, None, :] + h * (signs[None, :, 0:1] * side[:, None, :] + signs[None, :, 1:2] * up[None, None, :])
 
 
-def screen_points(camera: Camera, marker_site: np.ndarray, limits: Limits) -> dict[str, np.ndarray]:
-    """Per-point visibility and limits for marker centres (M, 3) in the site frame.
-
-    Returns arrays: ``vehicle`` (M, 3), ``uv`` (M, 2), ``marker_px`` (M,),
-    ``in_view``, ``reachable``, ``big_enough`` (M,) bool, and one bool array
-    per reason (``behind``, ``outside_image``, ``too_low``, ...).
-    """
-    marker_site = np.atleast_2d(np.asarray(marker_site, float))
+def _marker_view(camera: Camera, marker_site: np.ndarray, fwd: np.ndarray, limits: Limits) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One camera's view of markers (M, 3) facing against ``fwd`` (M, 2): centre pixels (M, 2), marker side px (M,),
+    in front (M,) and whole marker with its quiet zone inside the image with the margin, before the fold (M,)."""
     M = len(marker_site)
-    cam_c = camera.pose.position_world
-    vehicle, fwd = _facing_vehicle(marker_site, limits.marker_offset_frd_m, cam_c[:2])
     corners = marker_corners(marker_site, fwd, limits.marker_size_m).reshape(-1, 3)
-    allp = np.concatenate([marker_site, corners], axis=0)
+    parts = [marker_site, corners]
+    if limits.quiet_zone_frac > 0:
+        parts.append(marker_corners(marker_site, fwd, limits.marker_size_m * (1.0 + 2.0 * limits.quiet_zone_frac)).reshape(-1, 3))
+    allp = np.concatenate(parts, axis=0)
     R, t = camera.pose.R_cam_from_world, camera.pose.t_cam_from_world
     Xc = allp @ R.T + t
     depth = Xc[:, 2]
@@ -270,11 +271,33 @@ def screen_points(camera: Camera, marker_site: np.ndarray, limits: Limits) -> di
     w, h, m = camera.width, camera.height, limits.margin_px
     inside = front & before_fold & (uv_all[:, 0] >= m) & (uv_all[:, 0] <= w - 1 - m) & (uv_all[:, 1] >= m) & (uv_all[:, 1] <= h - 1 - m)
     uv = uv_all[:M]
-    cuv = uv_all[M:].reshape(M, 4, 2)
+    cuv = uv_all[M:5 * M].reshape(M, 4, 2)
     sides = np.linalg.norm(cuv - np.roll(cuv, -1, axis=1), axis=2)
     marker_px = np.nan_to_num(np.min(sides, axis=1), nan=0.0)
-    behind = ~front[:M] | ~front[M:].reshape(M, 4).all(axis=1)
-    in_view = inside[:M] & inside[M:].reshape(M, 4).all(axis=1)
+    all_front = front[:M] & front[M:].reshape(-1, M, 4).transpose(1, 0, 2).reshape(M, -1).all(axis=1)
+    in_view = inside[:M] & inside[M:].reshape(-1, M, 4).transpose(1, 0, 2).reshape(M, -1).all(axis=1)
+    return uv, marker_px, all_front, in_view
+
+
+def screen_points(camera: Camera, marker_site: np.ndarray, limits: Limits) -> dict[str, np.ndarray]:
+    """Per-point visibility and limits for marker centres (M, 3) in the site frame.
+
+    Returns arrays: ``vehicle`` (M, 3), ``uv`` (M, 2), ``marker_px`` (M,),
+    ``in_view``, ``reachable``, ``big_enough`` (M,) bool, and one bool array
+    per reason (``behind``, ``outside_image``, ``too_low``, ...). With
+    ``limits.band`` a point is in view only if every band camera sees the whole
+    marker too, and ``marker_px`` is the smallest over them.
+    """
+    marker_site = np.atleast_2d(np.asarray(marker_site, float))
+    M = len(marker_site)
+    cam_c = camera.pose.position_world
+    vehicle, fwd = _facing_vehicle(marker_site, limits.marker_offset_frd_m, cam_c[:2])
+    uv, marker_px, front, in_view = _marker_view(camera, marker_site, fwd, limits)
+    behind = ~front
+    for other in limits.band:
+        _, px_o, front_o, in_view_o = _marker_view(other, marker_site, fwd, limits)
+        in_view &= in_view_o & front_o
+        marker_px = np.minimum(marker_px, px_o)
 
     horiz = np.hypot(vehicle[:, 0], vehicle[:, 1])
     too_low = (vehicle[:, 2] < limits.min_agl_m - 1e-9) | (marker_site[:, 2] < 0.2)
