@@ -282,12 +282,15 @@ def test_a_server_restart_mid_stream_is_one_gap_event_and_the_stamps_stay_on_one
     # (bridged), then by its own reports: the hand-over moves a stamp by a few ms at most.
     assert source.frames_bridged > 0 and len(source.bridge_errors_ns) == 1
     error_ns = source.bridge_errors_ns[0]
-    assert abs(error_ns) < 80_000_000  # within two frames of the capture time (the new session's smallest delay, measured on few frames)
-    # While bridged, the floor of arrival - pts still settles (a step a little under 40 ms); the hand-over step is
-    # short by the error. Everywhere else: the camera's own 40 ms.
+    # The session's median arrival - pts against the median RTCP delay before it: 0.08-0.14 ms from the capture time
+    # its first report gave, measured here (the minimum of each, used at first, was 38-40 ms late: few frames of a
+    # new session do not show its smallest delay). 10 ms leaves room for a loaded machine's arrival jitter.
+    assert abs(error_ns) < 10_000_000
+    # While bridged, the session's median moves a little with each frame (steps within a few ms of 40, measured
+    # within 0.17 ms); the hand-over step is short by the error. Everywhere else: the camera's own 40 ms.
     off = [s for s in others if s != 40_000_000]
     assert len(off) <= source.frames_bridged + 1, off
-    assert all(40_000_000 - abs(error_ns) - 2_000_000 <= s <= 40_000_000 + 2_000_000 for s in off), (off, error_ns)
+    assert all(abs(s - 40_000_000) <= abs(error_ns) + 5_000_000 for s in off), (off, error_ns)
     # Each session's recording starts at a keyframe: the first frame, and the first after the gap.
     from dronecal_field.video.nal import is_keyframe
 

@@ -340,7 +340,9 @@ def test_fly_records_the_simulated_cameras_rtsp_h264_stamped_through_rtcp_with_t
         cam.stop()
     printed = capsys.readouterr().out
     assert rc == 0, printed[-3000:]
-    assert re.search(r"video +(640x480), 15\.0 fps", printed), printed[:3000]  # the stream's rate, not the opening burst's
+    # The pre-flight rate is the stream's (not inflated by the opening burst); a busy machine's simulator may make fewer.
+    fps = float(re.search(r"video +640x480, ([0-9.]+) fps", printed).group(1))
+    assert 10.0 <= fps <= 15.0 * 1.05, printed[:3000]
     with open_run(out) as run:
         md = run.metadata
         frames = list(run.iter_frames())

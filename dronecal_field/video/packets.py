@@ -67,8 +67,9 @@ class PacketSource(VideoSource):
         reads the first second or so while opening and hands it over at
         once); held until the stream's pacing is known, then stamped by it.
     frames_bridged : frames of a later session stamped, before its first
-        RTCP sender report, as arrival through the pacing minus the RTCP
-        delay measured before: on the ``rtcp`` clock, by estimate.
+        RTCP sender report, on the ``rtcp`` clock by estimate: the session's
+        median ``arrival - pts`` (paced frames) + pts - the median RTCP delay
+        (arrival - capture) of the frames before.
     bridge_errors_ns : per later session, the bridged stamp minus the
         capture time its first sender report gave for the same frame (the
         estimate's error; the step at the hand-over is short by as much).
@@ -126,6 +127,8 @@ class PacketSource(VideoSource):
         self._last_stamp_ns: int | None = None
         self._bridging = False
         self.bridge_errors_ns: list[int] = []
+        self._rtcp_delays: collections.deque[int] = collections.deque(maxlen=101)  # arrival - capture, paced frames
+        self._session_offsets: collections.deque[int] = collections.deque(maxlen=101)  # arrival - pts, this session
         self._incidents: collections.deque[StreamIncident] = collections.deque()
         self._container = None
         self._params: list[bytes] = []
@@ -230,38 +233,56 @@ class PacketSource(VideoSource):
             if container is not None:
                 container.close()
 
-    def _stamp(self, arrival_ns: int, pts_ns: int, demux_pts_ns: int, realtime_us: int | None) -> int:
-        """The frame's stamp on the run's one clock, never before the previous frame's."""
+    def _stamp(self, arrival_ns: int, pts_ns: int, demux_pts_ns: int, realtime_us: int | None, paced: bool = True) -> int:
+        """The frame's stamp on the run's one clock, never before the previous frame's.
+
+        ``paced``: the frame arrived at the stream's pace (not in an opening
+        burst), so its arrival says something about the network's delay.
+        """
         t_ns = None
+        if paced:
+            self._session_offsets.append(arrival_ns - pts_ns)
         if not self.live:
             t_ns = self._start_ns + pts_ns
         elif realtime_us:
             capture = int(realtime_us) * 1000 + demux_pts_ns
             if self._bridging:  # this session's first report: how far the bridged stamps were from it
                 self._bridging = False
-                floor = self.monitor.floor_ns()
-                if floor is not None and self.rtcp_delay_ns is not None:
-                    self.bridge_errors_ns.append(floor + pts_ns - self.rtcp_delay_ns - capture)
+                estimate = self._bridged(arrival_ns, pts_ns)
+                if estimate is not None:
+                    self.bridge_errors_ns.append(estimate - capture)
             delay = arrival_ns - capture
             if self.rtcp_delay_ns is None or delay < self.rtcp_delay_ns:
                 self.rtcp_delay_ns = delay
+            if paced:
+                self._rtcp_delays.append(delay)
             if not self._clock_locked:
                 self.clock = "rtcp"
             if self.clock == "rtcp":
                 t_ns = capture
+        if t_ns is None and self.clock == "rtcp":
+            t_ns = self._bridged(arrival_ns, pts_ns)
+            if t_ns is not None:
+                self.frames_bridged += 1
+                self._bridging = True
         if t_ns is None:
             floor = self.monitor.floor_ns()
             t_ns = arrival_ns if floor is None else floor + pts_ns
-            if self.clock == "rtcp" and self.rtcp_delay_ns is not None:
-                # A new session before its first sender report: capture time by the delay measured so far.
-                t_ns -= self.rtcp_delay_ns
-                self.frames_bridged += 1
-                self._bridging = True
         if self._last_stamp_ns is not None and t_ns <= self._last_stamp_ns:
             t_ns = self._last_stamp_ns + 1
             self.stamps_raised += 1
         self._last_stamp_ns = t_ns
         return t_ns
+
+    def _bridged(self, arrival_ns: int, pts_ns: int) -> int | None:
+        """Capture time of a frame of a session without its RTCP report yet: the session's typical
+        ``arrival - pts`` (median over its paced frames) + pts - the typical RTCP delay seen before
+        (median over the last 101 paced frames); None before any report."""
+        if not self._rtcp_delays:
+            return None
+        offsets = sorted(self._session_offsets) if self._session_offsets else [arrival_ns - pts_ns]
+        delays = sorted(self._rtcp_delays)
+        return offsets[len(offsets) // 2] + pts_ns - delays[len(delays) // 2]
 
     def _frames(self) -> Iterator[VideoFrame]:
         """Access units of this connection: packets joined into pictures, the opening burst held, stamped."""
@@ -277,17 +298,19 @@ class PacketSource(VideoSource):
         seen_key = False
         settling = self.live  # the opening burst: held until a frame arrives at the stream's pace
         held: list[_Unit] = []
+        self._session_offsets.clear()
+        self._bridging = False
 
         def to_ns(pts: int) -> int:
             return int(pts * tb * 1_000_000_000)
 
-        def emit(unit: _Unit, observe: bool = True) -> VideoFrame:
+        def emit(unit: _Unit, observe: bool = True, paced: bool = True) -> VideoFrame:
             pts_ns = to_ns(unit.pts - first_pts)
             if observe:
                 self._incidents.extend(self.monitor.observe(unit.arrival_ns, pts_ns, corrupt=unit.corrupt))
             realtime = container.start_time_realtime if self.live else None
             # RTCP's start_time_realtime is the wall time of the demuxer's pts 0, not of our first frame.
-            t_ns = self._stamp(unit.arrival_ns, pts_ns, to_ns(unit.pts), realtime)
+            t_ns = self._stamp(unit.arrival_ns, pts_ns, to_ns(unit.pts), realtime, paced)
             frame = VideoFrame(timestamp_ns=t_ns, format=fmt, data=unit.data, keyframe=unit.key, pts_ns=pts_ns)
             if unit.key and self._check:
                 self._offer_check(frame)
@@ -308,7 +331,9 @@ class PacketSource(VideoSource):
             self.burst_frames += max(0, len(units) - 1)
             for u in units:  # the pacing (the floor of arrival - pts) from every one of them, then the stamps
                 self._incidents.extend(self.monitor.observe(u.arrival_ns, to_ns(u.pts - first_pts), corrupt=u.corrupt))
-            return [emit(u, observe=False) for u in units]
+            last = units[-1]  # the one that came at the stream's pace: the session's first say on its delay
+            self._session_offsets.append(last.arrival_ns - to_ns(last.pts - first_pts))
+            return [emit(u, observe=False, paced=False) for u in units]
 
         def accept(unit: _Unit) -> list[VideoFrame]:
             nonlocal seen_key, settling, first_pts, last_pts
