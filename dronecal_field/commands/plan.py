@@ -36,6 +36,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--site", metavar="TOML", help="site file with the same keys as the flags (examples in missions/)")
     parser.add_argument("--out", metavar="DIR", required=True, help="output folder (written atomically; a previous plan folder is replaced)")
+    parser.add_argument("--scout", action="store_true", help="write the scout flight instead (issue 23): a 2-minute mission any camera "
+                        "(HFOV 30-110 deg, tilt 0-60 deg, azimuth within 30 deg of --azimuth, or any without it) sees; needs only --lat, --lon, "
+                        "--ground-alt, --mount-height")
+    parser.add_argument("--from-run", metavar="SCOUT.mcap", help="estimate the camera from a flown scout (calibrate's pipeline) and plan the "
+                        "main flight from that estimate, with the tolerances its uncertainty supports")
     parser.add_argument("--scheduler", metavar="tcp://HOST:8786", help="score the paper strategies' Monte-Carlo candidates on this Dask scheduler's workers (default: in this process; image layouts are scored here)")
     groups: dict[str, argparse._ArgumentGroup] = {}
     for spec in OPTIONS:
@@ -62,8 +67,26 @@ def run(args: argparse.Namespace) -> int:
         if v is not None:
             values[spec.key] = v
     options = resolve_options(values)
-    _check_options(options, args)
-    request = request_from_options(options)
+    if getattr(args, "scout", False):
+        from dronecal_field.cli import check_out_dir
+        from dronecal_field.plan.scout import format_scout, scout_from_options, write_scout
+
+        check_out_dir("--out", args.out)
+        scout, keep_out = scout_from_options(options)
+        paths = write_scout(scout, args.out, keep_out)
+        print(format_scout(scout, args.out))
+        print(f"wrote {', '.join(p.name for p in paths)} to {args.out}")
+        return 0
+    estimate = None
+    if getattr(args, "from_run", None):
+        from dronecal_field.plan.fromrun import estimate_from_run, format_estimate, request_from_estimate
+
+        estimate = estimate_from_run(args.from_run)
+        print(format_estimate(estimate))
+        request = request_from_estimate(estimate, options)
+    else:
+        _check_options(options, args)
+        request = request_from_options(options)
     from dronecal_field.cli import announce_first_compile
 
     announce_first_compile()
@@ -74,6 +97,10 @@ def run(args: argparse.Namespace) -> int:
             result = make_plan(request, client)
     else:
         result = make_plan(request)
+    if estimate is not None:
+        from dataclasses import replace as _replace
+
+        result = _replace(result, summary={**result.summary, "from_run": {"run": str(args.from_run), "estimate": estimate.to_dict()}})
     paths = write_plan(result, args.out)
     print(format_report(result, args.out))
     for w in result.warnings:

@@ -106,6 +106,7 @@ class PlanRequest:
     timing: LegTiming = LegTiming()
     reserve: float = BATTERY_RESERVE
     band: GuessBand = GuessBand()  # how far the camera may be from the guess (``sampling.band``)
+    camera_enu: Camera | None = None  # an estimated camera (ENU at the site's origin) used instead of the guess (``plan --from-run``)
 
     @property
     def battery_budget_s(self) -> float:
@@ -592,6 +593,11 @@ def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
     """
     cam_site = guess_camera(req.site, req.lens, frame="site")
     cam_enu = guess_camera(req.site, req.lens, frame="enu")
+    if req.camera_enu is not None:  # the scout's estimate: its lens, principal point and pose
+        cam_enu = req.camera_enu
+        R_site = np.asarray(cam_enu.pose.R_cam_from_world) @ req.site.R_enu_from_site
+        cam_site = cam_enu.with_(pose=type(cam_enu.pose).from_position(R_site, req.site.R_enu_from_site.T @ cam_enu.pose.position_world),
+                                 enu_origin=None)
     _check_sees_ground(req, cam_site)
     # every point the plan keeps is screened through the band's corner cameras as well as the guess
     req = replace(req, limits=replace(req.limits, band=corner_cameras(cam_site, req.band, narrow_only=True)))
