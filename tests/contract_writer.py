@@ -134,6 +134,8 @@ def make_flight(
     first_seq: int = 4,
     seed: int = 0,
     rate_hz: float = 50.0,
+    transit_from_enu: tuple[float, float] | None = None,
+    transit_speed_mps: float = 3.0,
 ) -> Flight:
     """A drone that takes off at the origin, holds at each waypoint with drift, nose towards the camera.
 
@@ -141,10 +143,16 @@ def make_flight(
     during a hold the antenna wanders by a low-passed random walk of about
     ``drift_m`` (std per axis) around the waypoint, and the body tilts by
     ``tilt_rad`` of random roll and pitch.
+
+    With ``transit_from_enu`` (east, north of the take-off, metres) the drone
+    takes off there, climbs to the first waypoint's height and flies to it in
+    a straight line at ``transit_speed_mps`` (ramps of 2 m/s^2), and flies home
+    the same way after the last hold: two transit legs a GNSS track shows as
+    constant-speed stretches.
     """
     rng = np.random.default_rng(seed)
     dt = 1.0 / rate_hz
-    start = np.array([0.0, 2.0, 0.0])
+    start = np.array([0.0, 2.0, 0.0]) if transit_from_enu is None else np.array([*transit_from_enu, 0.0], float)
     segments_t, segments_p = [], []
     holds = []
     t = 0.0
@@ -154,10 +162,21 @@ def make_flight(
     segments_t.append(t + dt * np.arange(n))
     segments_p.append(np.repeat(prev[None], n, 0))
     t += n * dt
-    for k, wp in enumerate(np.asarray(waypoints_enu, float)):
-        dur = move_s if k else 2 * move_s
+    wps = np.asarray(waypoints_enu, float)
+    if transit_from_enu is not None:
+        for a, b in ((start, np.array([*start[:2], wps[0, 2]])), (np.array([*start[:2], wps[0, 2]]), wps[0])):
+            p = _straight(a, b, transit_speed_mps if a[2] == b[2] else 1.0, dt)
+            segments_t.append(t + dt * np.arange(1, len(p) + 1))
+            segments_p.append(p)
+            t += len(p) * dt
+        prev = wps[0]
+    for k, wp in enumerate(wps):
+        if k == 0 and transit_from_enu is not None:
+            dur = 0.0
+        else:
+            dur = move_s if k else 2 * move_s
         n = int(round(dur / dt))
-        s = 0.5 - 0.5 * np.cos(np.pi * np.arange(n) / n)
+        s = 0.5 - 0.5 * np.cos(np.pi * np.arange(n) / max(n, 1))
         segments_t.append(t + dt * np.arange(n))
         segments_p.append(prev + s[:, None] * (wp - prev))
         t += n * dt
@@ -174,11 +193,21 @@ def make_flight(
         holds.append((T0_NS + int(round(t * 1e9)), T0_NS + int(round((t + n * dt) * 1e9)), first_seq + k))
         t += n * dt
         prev = segments_p[-1][-1]
+    if transit_from_enu is not None:
+        above = np.array([*start[:2], prev[2]])
+        for a, b in ((prev, above), (above, start)):
+            p = _straight(a, b, transit_speed_mps if a[2] == b[2] else 1.0, dt)
+            segments_t.append(t + dt * np.arange(1, len(p) + 1))
+            segments_p.append(p)
+            t += len(p) * dt
+        prev = start
     n = int(round(3.0 / dt))
     segments_t.append(t + dt * np.arange(n))
     segments_p.append(prev + (0.5 - 0.5 * np.cos(np.pi * np.arange(n) / n))[:, None] * (start - prev))
     tt = np.concatenate(segments_t)
     pos = np.concatenate(segments_p)
+    keep = np.r_[True, np.diff(tt) > 1e-9]
+    tt, pos = tt[keep], pos[keep]
     rpy = _facing_attitude(camera, pos, rng, rate_hz, tilt_rad)
     return Flight(
         t_ns=T0_NS + np.round(tt * 1e9).astype(np.int64),
@@ -188,6 +217,19 @@ def make_flight(
         waypoints_enu=np.asarray(waypoints_enu, float),
         offset_frd_m=np.array(offset_frd_m, float),
     )
+
+
+def _straight(a: np.ndarray, b: np.ndarray, speed_mps: float, dt: float, accel_mps2: float = 2.0) -> np.ndarray:
+    """(n, 3) positions every ``dt`` after ``a`` up to ``b``: a straight line at ``speed_mps`` with ramps of ``accel_mps2``."""
+    total = float(np.linalg.norm(b - a))
+    if total < 1e-6:
+        return np.zeros((0, 3))
+    ss = np.linspace(0.0, total, max(2, int(total / 0.002)))
+    v = np.minimum(speed_mps, np.sqrt(2 * accel_mps2 * np.minimum(ss, total - ss) + 0.05**2))
+    tt = np.r_[0.0, np.cumsum(np.diff(ss) / (0.5 * (v[1:] + v[:-1])))]
+    m = int(np.ceil(tt[-1] / dt))
+    s_at = np.interp(dt * np.arange(1, m + 1), tt, ss)
+    return a + (s_at / total)[:, None] * (b - a)
 
 
 def make_leg_flight(
@@ -517,6 +559,9 @@ class RunSpec:
     gnss_latency_s: float = 0.0  # fixes stamped this late (arrival); declared as gnss.latency_s when > 0
     quantise_fixes: bool = False  # lat/lon to 1e-7 deg and height to mm, as MAVLink GPS_RAW_INT carries them
     with_gps_raw: bool = False  # /mavlink/GPS_RAW_INT beside each /gnss/fix, same stamp, time_usec = the fix's own time
+    fix_bias: list[tuple[int, int, tuple[float, float, float]]] = field(default_factory=list)  # (start_ns, end_ns, ENU m): a false RTK fix
+    keep_span: tuple[float, float] = (0.0, 1.0)  # the share of the flight's time recorded (0.25, 1.0): the first quarter missing
+    attachments: dict[str, bytes] = field(default_factory=dict)  # e.g. {"mission.plan": mission_plan(...)}
 
 
 def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook, spec: RunSpec) -> dict:
@@ -562,6 +607,8 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
         for k in range(1, len(white)):
             white[k] = a[k] * white[k - 1] + np.sqrt(1.0 - a[k] ** 2) * white[k]
     noise = white * sigma
+    for a, b, bias in spec.fix_bias:  # still reported as the fix type above: the receiver does not know
+        noise[(fix_t >= a) & (fix_t < b)] += np.asarray(bias, float)
     geo = enu_to_geodetic(pos + noise, ORIGIN)
     if spec.quantise_fixes:
         geo = np.c_[np.round(geo[:, :2] * 1e7) / 1e7, np.round(geo[:, 2] * 1e3) / 1e3]
@@ -655,6 +702,9 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
             records.append((int(t), "/mavlink/ATTITUDE", json.dumps(fields).encode()))
 
     records.sort(key=lambda r: r[0])
+    if spec.keep_span != (0.0, 1.0):
+        a, b = (t_start + int(f * (t_end - t_start)) for f in spec.keep_span)
+        records = [r for r in records if a <= r[0] <= b]
     metadata = {
         "format_version": "1",
         "camera.width": str(camera.width),
@@ -693,6 +743,8 @@ def write_run(path: str | Path, camera: Camera, flight: Flight, look: MarkerLook
                 sid = writer.register_schema(f"mavlink.{name}", "jsonschema", b'{"type": "object"}')
                 channels[topic] = writer.register_channel(topic, "json", sid)
         writer.add_metadata("dronecal.run", metadata)
+        for name, data in spec.attachments.items():
+            writer.add_attachment(create_time=0, log_time=0, name=name, media_type="application/json", data=data)
         if spec.site_origin is not None:
             o = spec.site_origin
             writer.add_metadata("dronecal.site", {"origin_lat": repr(o.lat_deg), "origin_lon": repr(o.lon_deg), "origin_h": repr(o.h_m)})
@@ -736,6 +788,22 @@ def _sim_render(camera: Camera, flight: Flight, look: MarkerLook, seed: int):
         return sim.render(VehiclePose(antenna_enu_m=pos[0], roll_rad=float(rpy[0, 0]), pitch_rad=float(rpy[0, 1]), yaw_rad=float(rpy[0, 2])))
 
     return render
+
+
+def mission_plan(flight: Flight, speed_mps: float, camera: Camera | None = None, hold_s: float | None = None) -> bytes:
+    """The QGroundControl mission of ``flight`` as a planner would have written it: DO_CHANGE_SPEED ``speed_mps``,
+    DO_SET_ROI at the camera, a NAV_WAYPOINT per waypoint with its planned hold (``hold_s``, else the holds of
+    ``flight``; 0 for a fly-through)."""
+    seqs = {seq: (b - a) * 1e-9 if hold_s is None else hold_s for a, b, seq in flight.holds}
+    first = min([*seqs, *(leg[2] for leg in flight.legs)], default=4)
+    items = [{"type": "SimpleItem", "command": 178, "doJumpId": first - 2, "params": [1, float(speed_mps), -1, 0, 0, 0, 0]}]
+    if camera is not None:
+        g = enu_to_geodetic(camera.pose.position_world[None], ORIGIN)[0]
+        items.append({"type": "SimpleItem", "command": 201, "doJumpId": first - 1, "params": [0, 0, 0, 0, g[0], g[1], g[2] - ORIGIN.h_m]})
+    for k, (g, wp) in enumerate(zip(enu_to_geodetic(flight.waypoints_enu, ORIGIN), flight.waypoints_enu)):
+        items.append({"type": "SimpleItem", "command": 16, "doJumpId": first + k,
+                      "params": [round(seqs.get(first + k, 0.0), 3), 0, 0, None, g[0], g[1], float(wp[2])]})
+    return json.dumps({"fileType": "Plan", "version": 1, "mission": {"items": items, "cruiseSpeed": float(speed_mps)}}).encode()
 
 
 def truncate(path: str | Path, fraction: float) -> Path:

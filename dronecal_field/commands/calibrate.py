@@ -221,7 +221,7 @@ def _summary_lines(report, title: str, out: Path) -> list[str]:
                  if getattr(report, "legs", None) else "")
     lines = [
         f"calibrated {title}: {sum(1 for p in hover if p.used)} of {len(report.windows)} waypoints "
-        f"(windows from {report.window_source}){legs_text}, model {report.result.model.name}",
+        f"(windows from {report.window_source}){legs_text}, model {report.result.model.name}" + _caution(report),
         f"  fx {i.fx:.2f}  fy {i.fy:.2f}  cx {i.cx:.2f}  cy {i.cy:.2f} px;  distortion "
         + " ".join(f"{v:.4g}" for v in cam.distortion.as_array()),
         "  camera at ENU " + " ".join(f"{v:.3f}" for v in cam.pose.position_world) + " m",
@@ -251,6 +251,25 @@ def _summary_lines(report, title: str, out: Path) -> list[str]:
         lines.append(f"  warning: {w}")
     lines.append(f"report: {report.outputs.get('report_html', out)}")
     return lines
+
+
+POOR_FIT = 3.0  # a fit this many times worse than the points' measured sigmas predict is named in the first line
+
+
+def _caution(report) -> str:
+    """What the first printed line must add: a set left out, a fit far worse than the noise predicts."""
+    out = []
+    agreement = getattr(report, "agreement", None)
+    if agreement is not None and agreement.left_out:
+        n = len(agreement.left_out)
+        out.append(f"{n} leg{'s' if n > 1 else ''} left out (disagree with the holds, below)")
+    flown = [n.split(": the calibration used")[0] for n in getattr(report, "notices", []) if ": the calibration used" in n]
+    if flown:
+        out.append("flown other than planned: " + "; ".join(flown))
+    scale = float(getattr(report, "sigma_scale", 1.0) or 1.0)
+    if scale >= POOR_FIT:
+        out.append(f"CAUTION: the fit is {scale:.0f}x worse than the measured noise predicts (every uncertainty scaled up by it)")
+    return "; " + "; ".join(out) if out else ""
 
 
 def run_batch(args: argparse.Namespace) -> int:

@@ -91,6 +91,7 @@ def _legs_section(report) -> dict:
                    "image track at the fix instant (after the camera-GNSS offset and the rolling shutter); each pair's sigma "
                    "includes its timing uncertainty",
         "legs": rows,
+        "agreement": agreement.to_dict() if (agreement := getattr(report, "agreement", None)) is not None else None,
     }
 
 

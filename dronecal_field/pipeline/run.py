@@ -24,8 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dronecal_field.errors import ContractError, DegenerateGeometryError, DronecalError, InputError
+from dronecal_field.errors import CalibrationError, ContractError, DegenerateGeometryError, DronecalError, InputError
 from dronecal_field.geodesy import EnuOrigin, geodetic_to_enu
+from dronecal_field.pipeline.agreement import AGREES, merged
 from dronecal_field.pipeline.align import TimeOffset, Timing, estimate_time_offset, refine_timing
 from dronecal_field.pipeline.detect import Detection, centres_under_distortion
 from dronecal_field.pipeline.fixes import DistinctFixes, distinct_fixes
@@ -180,6 +181,8 @@ class CalibrationReport:
     validity: object | None = None  # the region of validity (filled by the uncertainty stage when available)
     noise: FixNoise | None = None  # the per-fix noise measured on the residuals (sets the points' sigmas)
     sigma_scale: float = 1.0  # the points' sigmas were scaled by this for every uncertainty figure (see sigma_scale)
+    agreement: object | None = None  # agreement.Agreement: whether the legs agreed with the holds, what was left out
+    notices: list[str] = field(default_factory=list)  # what the first printed line must name: sets left out, a flight not as planned
 
     @property
     def hover_points(self) -> list[WaypointPoint]:
@@ -219,6 +222,7 @@ class TrackRead:
     holds: dict[int, float] | None
     warnings: list[str]
     plan_roi: object | None = None  # validity.PlanRoi of the plan.json attached to the run, in this ENU frame
+    planned_speed_mps: float | None = None  # the mission.plan's DO_CHANGE_SPEED (the slowest, where it changes)
 
 
 @dataclass(frozen=True, eq=False)
@@ -248,6 +252,8 @@ class Solved:
     timing: Timing
     warnings: list[str]
     noise: FixNoise | None = None
+    legs: list[Leg] | None = None  # the legs paired (None: all found); a leg that disagreed with the holds is not
+    agreement: object | None = None  # agreement.Agreement: the holds against each leg
 
 
 @dataclass(frozen=True, eq=False)
@@ -356,7 +362,7 @@ def _read_track(run, path: Path, options: CalibrateOptions) -> TrackRead:
     return TrackRead(
         track=track, identity=identity, gnss_latency_s=latency, origin=origin, origin_source=origin_source,
         attitude=attitude, attitude_source=attitude_source, offset_frd_m=offset_frd, holds=holds, warnings=warnings,
-        plan_roi=plan_roi,
+        plan_roi=plan_roi, planned_speed_mps=_planned_speed(run),
     )
 
 
@@ -397,6 +403,42 @@ def _plan_info(run) -> tuple[dict[int, float] | None, tuple[float, float] | None
             if lat and lon:
                 roi = (float(lat), float(lon))
     return holds or None, roi
+
+
+def _planned_speed(run) -> float | None:
+    """The slowest DO_CHANGE_SPEED (m/s) of the attached mission.plan, None without one."""
+    data = run.attachment("mission.plan")
+    if not data:
+        return None
+    try:
+        items = json.loads(data)["mission"]["items"]
+        speeds = [float(it["params"][1]) for it in items if isinstance(it, dict) and it.get("command") == 178 and float(it["params"][1]) > 0]
+    except (ValueError, KeyError, TypeError, IndexError):
+        return None
+    return min(speeds) if speeds else None
+
+
+def flight_against_plan(read: TrackRead, windows: list[HoverWindow], legs: list[Leg]) -> list[str]:
+    """How the flight differs from its plan where that costs points: legs flown faster, holds cut short.
+
+    Each an phrase for a refusal or a warning, e.g. "the legs were flown at 1.5 m/s where the plan said 0.18 m/s".
+    """
+    out: list[str] = []
+    track = read.track
+    if legs and read.planned_speed_mps:
+        speed = np.linalg.norm(track.velocity_enu_mps, axis=1)
+        on = np.zeros(len(track.t_ns), bool)
+        for g in legs:
+            on |= (track.t_ns >= g.start_ns) & (track.t_ns <= g.end_ns)
+        flown = float(np.nanmedian(speed[on])) if np.any(on & np.isfinite(speed)) else None
+        if flown is not None and flown > 1.5 * read.planned_speed_mps:
+            out.append(f"the legs were flown at {flown:.2g} m/s where the plan said {read.planned_speed_mps:.2g} m/s")
+    if read.holds and windows:
+        planned = np.array([read.holds[w.seq] for w in windows if w.seq in read.holds and read.holds[w.seq] > 0])
+        flown = np.array([w.duration_s for w in windows if w.seq in read.holds and read.holds[w.seq] > 0])
+        if len(planned) and np.median(flown) < 0.6 * np.median(planned):
+            out.append(f"the holds lasted {np.median(flown):.1f} s where the plan said {np.median(planned):.1f} s")
+    return out
 
 
 def _damage_cost(span: tuple[int, int, int], points: list[WaypointPoint], fix_t_ns: np.ndarray) -> str:
@@ -761,9 +803,23 @@ def _solve(points: list[WaypointPoint], md, options: CalibrateOptions, previous=
         fit = calibrate(X, uv, md.width, md.height, model=result.model, loss=options.loss, loss_scale_px=options.loss_scale_px, initial=result.camera)
         return fit, reason
     if options.model == "auto":
-        return maps.select_model(X, uv, md.width, md.height, options.loss, options.loss_scale_px)
+        return maps.select_model(X, uv, md.width, md.height, options.loss, options.loss_scale_px, n_effective=_n_effective(used))
     result = calibrate(X, uv, md.width, md.height, model=options.model, loss=options.loss, loss_scale_px=options.loss_scale_px)
     return result, "--model given"
+
+
+LEG_PAIRS_PER_EFFECTIVE_POINT = 10  # pairs along a leg worth one independent point (1 s of 10 Hz fixes)
+
+
+def _n_effective(used: list[WaypointPoint]) -> float:
+    """How many independent points the used points are worth: a hold is one; a leg's pairs share its timing error
+    and RTK noise correlated over seconds, so ``LEG_PAIRS_PER_EFFECTIVE_POINT`` of them count as one (at least 2 a leg)."""
+    holds = sum(1 for p in used if p.window.source != "leg")
+    legs: dict[int, int] = {}
+    for p in used:
+        if p.window.source == "leg":
+            legs[int(p.window.seq)] = legs.get(int(p.window.seq), 0) + 1
+    return float(holds + sum(max(min(n, 2), n / LEG_PAIRS_PER_EFFECTIVE_POINT) for n in legs.values()))
 
 
 @dataclass(frozen=True, eq=False)
@@ -847,13 +903,67 @@ def _points_and_solve(read: TrackRead, windows, legs, dets: Detections, offset: 
                 f"the marker by up to {100 * timing.bound_m:.1f} cm between the top and bottom rows; fly legs at several image rows "
                 "in both directions to estimate it"
             )
+    agreement = None
+    if legs:
+        # after the legs' timing: a leg paired at the wrong instant also steers the offset the holds are paired at
+        agreement = _agreement(points, result, md, options, legs)
+        richer = _richer_fit(points, result, md, options) if agreement.left_out else None
+        if richer is not None:
+            # the legs may reach where the chosen model cannot follow (the edge of a wide lens): a richer model that
+            # fits holds and legs alike keeps them
+            again = _agreement(points, richer, md, options, legs)
+            if again.line is None and again.reason == AGREES:
+                reason += (f"; {richer.model.name} instead: under {result.model.name} the legs pulled the holds to "
+                           f"{agreement.holds_pooled_rms_px:.2f} px (alone {agreement.holds_alone_rms_px:.2f} px), under "
+                           f"{richer.model.name} to {again.holds_pooled_rms_px:.2f} px")
+                result, agreement = richer, again
+        if agreement.left_out:
+            kept = [g for g in legs if g.index not in agreement.left_out]
+            again = _points_and_solve(read, windows, kept, dets, offset, md, options)
+            return replace(again, legs=again.legs, agreement=merged(agreement, again.agreement))
     noise = _measured_noise(points, track, dets, centres, timing, result, options)
     if noise is not None:  # same points, honest sigmas: no new solve
         points = _points(track, attitude, read.offset_frd_m, windows, legs, dets, centres, timing, inp.marker_size_m, options, noise)
     return Solved(
         points=points, result=result, model_reason=reason, track=track, attitude_source=attitude_source,
-        centres=method, timing=timing, warnings=warnings, noise=noise,
+        centres=method, timing=timing, warnings=warnings, noise=noise, legs=legs, agreement=agreement,
     )
+
+
+def _agreement(points: list[WaypointPoint], result, md, options: CalibrateOptions, legs: list[Leg]):
+    """Do the legs agree with the holds (pipeline/agreement.py)? With ``--leg-source auto`` a leg that does not is left out."""
+    from dronecal_field.pipeline import maps
+    from dronecal_field.pipeline.agreement import AgreementOptions, check_sets
+
+    source = legs[0].source if legs else "event"
+    flag = "`--leg-source track`" if source == "gnss_track" else "`--leg-source events`"
+
+    def fit(X: np.ndarray, uv: np.ndarray):
+        if options.model == "auto":
+            return maps.select_model(X, uv, md.width, md.height, options.loss, options.loss_scale_px)[0]
+        from dronecal_field.core.calibrate import calibrate
+
+        return calibrate(X, uv, md.width, md.height, model=options.model, loss=options.loss, loss_scale_px=options.loss_scale_px)
+
+    return check_sets(points, result, fit, AgreementOptions(keep=options.leg_source != "auto", flag=flag, leg_source_name=source))
+
+
+def _richer_fit(points: list[WaypointPoint], result, md, options: CalibrateOptions):
+    """The used points fitted with the next richer distortion model than ``result``'s (from its camera), or None."""
+    from dronecal_field.core.calibrate import calibrate
+
+    order = ("none", "k1", "k1k2", "k1k2p1p2", "full")
+    k = order.index(result.model.distortion) if result.model.distortion in order else len(order) - 1
+    if options.model != "auto" or k + 1 >= len(order):
+        return None
+    used = [p for p in points if p.used]
+    X = np.array([p.marker_enu_m for p in used])
+    uv = np.array([p.uv_px for p in used])
+    try:
+        return calibrate(X, uv, md.width, md.height, model=replace(result.model, distortion=order[k + 1]), loss=options.loss,
+                         loss_scale_px=options.loss_scale_px, initial=result.camera)
+    except DronecalError:
+        return None
 
 
 PROFILE_STEP_S = 0.004  # the offset profile's step, s
@@ -923,12 +1033,19 @@ def _solve_at_offset(read: TrackRead, windows, legs, dets: Detections, offset: T
     except DegenerateGeometryError as exc:
         if offset.std_s is not None and offset.std_s < UNCERTAIN_OFFSET_S:
             raise
+        if clear_minimum(offset):
+            # the marker's motion says where the clocks meet: other offsets would pair the holds with the wrong frames
+            raise DegenerateGeometryError(
+                f"{exc} (at the time offset from the marker's motion, {offset.offset_s:+.3f} \u00b1 {offset.std_s:.3f} s, a clear "
+                f"minimum: its cost {offset.cost_min_px:.2f} against {offset.cost_zero_px:.2f} at 0 s)"
+            ) from None
         first = exc
     spread = offset.std_s if offset.std_s is not None else options.max_offset_s / 4
     candidates = [offset.offset_s + k * spread for k in (-2, -1, 1, 2)] + [0.0]
     if md.camera_latency_s is not None:
         candidates.append(float(md.camera_latency_s))
     best = None
+    trials: list[tuple] = []
     other: tuple[float, DegenerateGeometryError] | None = None
     for c in candidates:
         if abs(c) > options.max_offset_s:
@@ -940,9 +1057,12 @@ def _solve_at_offset(read: TrackRead, windows, legs, dets: Detections, offset: T
             if other is None and not str(exc).startswith(TOO_FEW):
                 other = (float(c), exc)  # enough holds at this offset, but their geometry says why no camera
             continue
-        key = (sum(p.used for p in solved.points), -solved.result.rms_px)
-        if best is None or key > best[0]:
-            best = (key, solved, trial)
+        n_used = sum(p.used for p in solved.points)
+        trials.append((n_used, _robust_rms(solved.result), solved, trial))
+    n_most = max((t[0] for t in trials), default=0)
+    for n_used, cost, solved, trial in trials:  # the full fit's robust cost, among the candidates that keep most points
+        if n_used >= 0.8 * n_most and (best is None or cost < best[0][1]):
+            best = ((n_used, cost), solved, trial)
     if best is None:
         if other is None:
             raise first
@@ -952,8 +1072,26 @@ def _solve_at_offset(read: TrackRead, windows, legs, dets: Detections, offset: T
         ) from None
     _, solved, trial = best
     note = (f"the time offset from the marker's motion ({offset.offset_s:+.3f} \u00b1 {spread:.3f} s) left too few usable holds; "
-            f"{trial.offset_s:+.3f} s, the candidate near it whose calibration used the most holds ({best[0][0]}), was taken")
+            f"{trial.offset_s:+.3f} s, the candidate near it whose calibration fits best ({best[0][1]:.2f} px robust RMS over "
+            f"{best[0][0]} points), was taken")
     return replace(solved, warnings=[*solved.warnings, note]), trial
+
+
+CLEAR_MINIMUM = 1.5  # the motion scan's cost at 0 s this many times its minimum's: the offset stands
+
+
+def clear_minimum(offset: TimeOffset) -> bool:
+    """Whether the marker's motion pinned the offset: a bounded minimum well below the cost at 0 s."""
+    return (offset.method == "image-vs-gnss" and offset.std_s is not None and offset.cost_min_px is not None
+            and offset.cost_zero_px is not None and offset.cost_zero_px > CLEAR_MINIMUM * offset.cost_min_px
+            and abs(offset.offset_s) > 2 * offset.std_s)
+
+
+def _robust_rms(result) -> float:
+    """RMS of a fit's residuals within 3x their median norm, px: its cost, a few wild points aside."""
+    r = np.linalg.norm(np.asarray(result.residuals_px, float), axis=1)
+    keep = r <= 3.0 * max(float(np.median(r)), 1e-9)
+    return float(np.sqrt(np.mean(r[keep] ** 2)))
 
 
 def sigma_scale(result, expected_rms_px: float) -> float:
@@ -1118,8 +1256,16 @@ def _calibrate_run(path: Path, options: CalibrateOptions, live=None) -> Calibrat
     window_source, leg_source, truncated, run_warnings = st.window_source, st.leg_source, st.truncated, st.run_warnings
     damaged, jumps, offset = st.damaged, st.jumps, st.offset
     warnings = list(st.warnings)
-    solved, offset = clock("calibration_s", _solve_at_offset, read, windows, legs, dets, offset, md, options)
-    warnings += solved.warnings
+    causes = flight_against_plan(read, windows, legs)
+    try:
+        solved, offset = clock("calibration_s", _solve_at_offset, read, windows, legs, dets, offset, md, options)
+    except (DegenerateGeometryError, CalibrationError) as exc:
+        if not causes:
+            raise
+        raise type(exc)(f"{'; '.join(causes)}: {exc}") from None
+    flown = [f"{c}: the calibration used what that flight gave" for c in causes]
+    notices = ([solved.agreement.line] if solved.agreement is not None and solved.agreement.line else []) + flown
+    warnings = notices + warnings + solved.warnings
     warnings += [_damage_cost(span, solved.points, read.track.t_ns) for span in damaged]
     warnings += [_clock_jump_cost(e, solved.points, read.track.t_ns) for e in jumps]
     camera = solved.result.camera.with_(enu_origin=tuple(read.origin.as_list()))
@@ -1135,7 +1281,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions, live=None) -> Calibrat
         timings_s=clock.timings, warnings=warnings, options=options, background=dets.background,
         fixes_repeated=read.identity.n_repeats, centres=solved.centres, legs=legs, leg_source=leg_source,
         timing=solved.timing, fix_identity=read.identity, gnss_latency_s=read.gnss_latency_s, validity=unc.validity,
-        noise=solved.noise, sigma_scale=unc.sigma_scale,
+        noise=solved.noise, sigma_scale=unc.sigma_scale, agreement=solved.agreement, notices=notices,
     )
     if options.out_dir is not None:
         from dronecal_field.pipeline.report import write_outputs
