@@ -51,3 +51,33 @@ def test_every_camera_of_the_range_sees_the_scout():
     assert all(n >= 50 for (hfov, tilt), n in seen_min.items() if hfov >= 70 and tilt <= 50)
     # a 30 deg lens tilted 60 deg down looks at ground inside the keep-out from a 4 m pole: the scout says so
     assert seen_min[(30, 60)] == 0 and any("58 deg" in n for n in scout.notes)
+
+
+def test_from_run_estimates_the_camera_of_a_scout_written_by_the_independent_writer(tmp_path):
+    """The scout of a camera known only by its pole (height 0.2 m off, azimuth 15 deg off), flown in the independent
+    writer's world (tests/contract_writer.py), estimated by ``plan --from-run``'s library call; the estimate against the truth."""
+    import numpy as np
+    from contract_writer import ORIGIN, MarkerLook, RunSpec, make_leg_flight, pole_camera, write_run
+
+    from dronecal_field.plan.fromrun import axis_angles_deg, estimate_from_run
+
+    truth = pole_camera(width=960, height=540, f_px=450.0, position_enu=(0.0, 0.0, 4.0), azimuth_deg=30.0, tilt_deg=25.0,
+                        distortion=(-0.28, 0.07, 0.0, 0.0, 0.0))
+    site = replace(SITE, lat_deg=ORIGIN.lat_deg, lon_deg=ORIGIN.lon_deg, ground_h_m=ORIGIN.h_m, mount_height_m=4.2, azimuth_deg=45.0)
+    offset = (0.25, 0.0, 0.10)
+    scout = make_scout(site, ScoutSpec(), replace(LIMITS, marker_offset_frd_m=offset), FlightModel())
+    grid = np.array([k == "grid" for k in scout.route.kind])
+    wps_enu = scout.route.points[grid] @ site.R_enu_from_site.T
+    flight = make_leg_flight(truth, wps_enu, hold_s=scout.route.hold_s[grid], speed_mps=ScoutSpec().speed_m_s, offset_frd_m=offset, seed=3)
+    path = tmp_path / "scout.mcap"
+    write_run(path, truth, flight, MarkerLook(size_m=0.4), RunSpec(site_origin=ORIGIN, fps=10.0, gnss_hz=5.0, seed=5))
+    est = estimate_from_run(path)
+    az_t, tilt_t = axis_angles_deg(truth.pose.R_cam_from_world)
+    i = est.camera.intrinsics
+    print(f"scout estimate: f {i.fx:.1f} (truth 450) +- {est.sigma['focal_px']:.1f}, azimuth {est.azimuth_deg:.2f} ({az_t:.2f}), tilt {est.tilt_deg:.2f} "
+          f"({tilt_t:.2f}), pp ({i.cx:.1f}, {i.cy:.1f}) ({truth.intrinsics.cx:.1f}, {truth.intrinsics.cy:.1f}), k1 {est.camera.distortion.k1:.3f}; "
+          f"{est.points} points; band {est.tolerances()}")
+    tol = est.tolerances()
+    assert abs(i.fx / 450.0 - 1.0) * 100 < tol["focal_pct"]
+    assert abs(est.azimuth_deg - az_t) < tol["azimuth_deg"] and abs(est.tilt_deg - tilt_t) < tol["tilt_deg"]
+    assert abs(est.camera.distortion.k1 + 0.28) < 0.28 * tol["distortion_share"] + 0.03
