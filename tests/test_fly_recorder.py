@@ -117,7 +117,7 @@ VIDEO = VideoStatus(url="http://cam/stream.mjpg", frames=30, fps=30.0, width=192
         ({"fix_type": 5}, "rtk_fixed", {"gnss"}, set()),
         ({"fix_type": 5}, "rtk_float", set(), {"gnss"}),
         ({"fix_type": 3}, "rtk_float", {"gnss"}, set()),
-        ({"autopilot": 12}, "rtk_fixed", {"heartbeat"}, set()),
+        ({"autopilot": 0}, "rtk_fixed", {"heartbeat"}, set()),  # generic: neither ArduPilot nor PX4 (12 passes: tests/test_px4_fly.py)
         ({"armed": True}, "rtk_fixed", {"disarmed"}, set()),
         ({"ekf_flags": 0x0025}, "rtk_fixed", {"ekf"}, set()),
         ({"battery_pct": 12}, "rtk_fixed", {"battery"}, set()),

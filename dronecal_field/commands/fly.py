@@ -41,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     mission = parser.add_argument_group("mission")
     mission.add_argument("--mission", required=True, metavar="FILE", help="mission.plan (QGroundControl) or .waypoints (QGC WPL 110)")
     mission.add_argument("--dry-run", action="store_true", help="print the pre-flight checklist and stop: nothing is uploaded or recorded")
-    mission.add_argument("--start", action="store_true", help="arm in GUIDED and send MISSION_START yourself (default: wait for the pilot to arm and switch to AUTO)")
+    mission.add_argument("--start", action="store_true", help="arm in GUIDED and send MISSION_START yourself (PX4: arm, MISSION_START; default: wait for the pilot to arm and switch to AUTO)")
     mission.add_argument("--timeout-s", type=float, default=None, metavar="S", help="stop recording after S wall seconds if the mission has not ended (file finalised, exit code 2)")
     checks = parser.add_argument_group("pre-flight")
     checks.add_argument("--min-fix", choices=("rtk_fixed", "rtk_float", "3d"), default="rtk_fixed", help="weakest GNSS fix to fly with (default rtk_fixed; others warn loudly)")
@@ -346,14 +346,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"mission: {report.items} items uploaded and read back identical in {report.duration_s:.1f} s", flush=True)
         if report.storage_changes:
             more = f" (+{len(report.storage_changes) - 3} more)" if len(report.storage_changes) > 3 else ""
-            print(f"note: ArduCopter keeps some values differently, as expected: {'; '.join(report.storage_changes[:3])}{more}")
+            print(f"note: {'PX4' if link.is_px4 else 'ArduCopter'} keeps some values differently, as expected: {'; '.join(report.storage_changes[:3])}{more}")
 
         link.remove_listener(before_recording)  # the recorder takes over the clock and the tlog
         recorder = _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, __version__, clock, backlog, live)
         claim.keep()
         if args.start:
             arm_and_start_mission(link)
-            print("started: GUIDED, armed, MISSION_START sent", flush=True)
+            print("started: armed, MISSION_START sent (PX4: AUTO.MISSION)" if link.is_px4 else "started: GUIDED, armed, MISSION_START sent", flush=True)
         else:
             print("waiting for the pilot to arm and switch to AUTO (Ctrl-C ends the recording; nothing is commanded)", flush=True)
         loss = VideoLossAlarm(link, hold=args.on_video_loss == "hold", view=None if live is None else live.view)
@@ -504,7 +504,7 @@ class VideoLossAlarm:
             lines.append((f"VIDEO LOST at waypoint {status.waypoint}/{status.waypoints}: no frame from the camera; "
                           "waypoints flown now have no images and must be flown again"
                           + ("" if self.hold else " (fly --on-video-loss hold would hold the vehicle until frames return)"), True))
-            if self.hold and status.armed and status.mode == "AUTO":
+            if self.hold and status.armed and status.mode in ("AUTO", "AUTO.MISSION"):  # ArduCopter's, PX4's
                 try:
                     ok = self.link.set_mode("GUIDED", timeout_s=2.0) == ap.MAV_RESULT_ACCEPTED
                 except LinkError:

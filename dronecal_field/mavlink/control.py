@@ -14,6 +14,7 @@ from typing import Any
 
 from dronecal_field.errors import LinkError
 from dronecal_field.mavlink import ardupilot as ap
+from dronecal_field.mavlink import px4
 from dronecal_field.mavlink.link import MavLink
 
 # Telemetry the recorder needs, in Hz. GNSS at 10 Hz, what an RTK receiver gives
@@ -29,6 +30,15 @@ TELEMETRY_RATES_HZ: tuple[tuple[str, float], ...] = (
     ("SYSTEM_TIME", 1.0),
     ("HOME_POSITION", 0.5),
 )
+# PX4 sends no EKF_STATUS_REPORT: ESTIMATOR_STATUS has the same flag bits (measured on 1.16 SITL)
+PX4_TELEMETRY_RATES_HZ: tuple[tuple[str, float], ...] = tuple(
+    ("ESTIMATOR_STATUS", hz) if name == "EKF_STATUS_REPORT" else (name, hz) for name, hz in TELEMETRY_RATES_HZ
+)
+
+
+def telemetry_rates(link: MavLink) -> tuple[tuple[str, float], ...]:
+    """The rates ``fly`` asks for from this vehicle (ArduPilot's or PX4's message set)."""
+    return PX4_TELEMETRY_RATES_HZ if link.is_px4 else TELEMETRY_RATES_HZ
 
 
 @dataclass(frozen=True)
@@ -38,9 +48,9 @@ class VehicleState:
     Attributes
     ----------
     mode : int
-        ArduCopter custom mode number.
+        HEARTBEAT.custom_mode (ArduCopter's mode number; PX4's packed main/sub mode).
     mode_name : str
-        ``AUTO``, ``GUIDED``, ... or ``MODE<n>``.
+        ``AUTO``, ``GUIDED``, ... or ``MODE<n>``; PX4: ``AUTO.MISSION``, ``AUTO.LOITER``...
     armed : bool
         Motors armed.
     """
@@ -56,10 +66,11 @@ def vehicle_state(link: MavLink) -> VehicleState | None:
     if hb is None:
         return None
     mode = int(hb.custom_mode)
-    return VehicleState(mode=mode, mode_name=ap.MODE_NAMES.get(mode, f"MODE{mode}"), armed=bool(hb.base_mode & ap.MAV_MODE_FLAG_SAFETY_ARMED))
+    name = px4.mode_name(mode) if px4.is_px4(int(hb.autopilot)) else ap.MODE_NAMES.get(mode, f"MODE{mode}")
+    return VehicleState(mode=mode, mode_name=name, armed=bool(hb.base_mode & ap.MAV_MODE_FLAG_SAFETY_ARMED))
 
 
-def request_telemetry(link: MavLink, rates_hz: tuple[tuple[str, float], ...] = TELEMETRY_RATES_HZ) -> dict[str, int]:
+def request_telemetry(link: MavLink, rates_hz: tuple[tuple[str, float], ...] | None = None) -> dict[str, int]:
     """Ask for each message at its rate with MAV_CMD_SET_MESSAGE_INTERVAL (no flight effect).
 
     Returns
@@ -68,7 +79,7 @@ def request_telemetry(link: MavLink, rates_hz: tuple[tuple[str, float], ...] = T
         Message name -> MAV_RESULT (a vehicle that already streams may refuse; that is fine).
     """
     results = {}
-    for name, hz in rates_hz:
+    for name, hz in telemetry_rates(link) if rates_hz is None else rates_hz:
         msgid = getattr(link.dialect, f"MAVLINK_MSG_ID_{name}")
         try:
             results[name] = link.command_long(ap.CMD_SET_MESSAGE_INTERVAL, (msgid, 1e6 / hz), timeout_s=0.5, retries=1)
@@ -98,9 +109,9 @@ class StreamKeeper:
         Shortest silence (host seconds) that counts as a stopped stream.
     """
 
-    def __init__(self, link: MavLink, rates_hz: tuple[tuple[str, float], ...] = TELEMETRY_RATES_HZ, min_silence_s: float = 3.0) -> None:
+    def __init__(self, link: MavLink, rates_hz: tuple[tuple[str, float], ...] | None = None, min_silence_s: float = 3.0) -> None:
         self.link = link
-        self.rates_hz = tuple(rates_hz)
+        self.rates_hz = tuple(telemetry_rates(link) if rates_hz is None else rates_hz)
         self.min_silence_s = float(min_silence_s)
         now = time.monotonic()
         self._last_seen = {name: now for name, _hz in self.rates_hz}
@@ -140,11 +151,18 @@ def _last_statustext(link: MavLink) -> str:
 def arm_and_start_mission(link: MavLink, timeout_s: float = 2.0) -> None:
     """GUIDED, arm, MAV_CMD_MISSION_START: the start the pilot asked for with ``--start``.
 
+    On PX4 (HEARTBEAT autopilot 12): arm, then MAV_CMD_MISSION_START, which
+    switches to AUTO.MISSION (PX4 1.16 SITL: it would also arm by itself).
+    No GUIDED: PX4 has none, and arming in its boot mode AUTO.LOITER is allowed.
+
     Raises
     ------
     LinkError
         A step was refused, with the vehicle's last STATUSTEXT (e.g. a PreArm reason).
     """
+    if link.is_px4:
+        _px4_arm_and_start(link, timeout_s)
+        return
     result = link.set_mode("GUIDED", timeout_s=timeout_s)
     if result != ap.MAV_RESULT_ACCEPTED:
         raise LinkError(f"vehicle refused GUIDED mode ({ap.MAV_RESULT_NAMES.get(result, result)}){_last_statustext(link)}; check the mode switch and GPS")
@@ -157,10 +175,25 @@ def arm_and_start_mission(link: MavLink, timeout_s: float = 2.0) -> None:
         raise LinkError(f"vehicle refused MISSION_START ({ap.MAV_RESULT_NAMES.get(result, result)}){_last_statustext(link)}; it is armed in GUIDED: disarm or take over")
 
 
+def _px4_arm_and_start(link: MavLink, timeout_s: float) -> None:
+    result = link.command_long(ap.CMD_COMPONENT_ARM_DISARM, (1,), timeout_s=timeout_s)
+    if result != ap.MAV_RESULT_ACCEPTED:
+        time.sleep(0.2)
+        raise LinkError(f"PX4 refused to arm ({ap.MAV_RESULT_NAMES.get(result, result)}){_last_statustext(link)}; "
+                        "its reasons come as events: see them in QGroundControl, fix them and retry")
+    result = link.command_long(ap.CMD_MISSION_START, timeout_s=timeout_s)
+    if result != ap.MAV_RESULT_ACCEPTED:
+        raise LinkError(f"PX4 refused MISSION_START ({ap.MAV_RESULT_NAMES.get(result, result)}){_last_statustext(link)}; "
+                        "it is armed on the ground and disarms by itself in 10 s; check the mission (PX4's feasibility checks)")
+
+
 def describe_heartbeat(msg: Any) -> str:
     """``ArduPilot quadrotor, GUIDED, disarmed`` for a HEARTBEAT."""
-    autopilot = "ArduPilot" if msg.autopilot == ap.MAV_AUTOPILOT_ARDUPILOTMEGA else f"autopilot {msg.autopilot}"
+    autopilot = "ArduPilot" if msg.autopilot == ap.MAV_AUTOPILOT_ARDUPILOTMEGA else ("PX4" if px4.is_px4(msg.autopilot) else f"autopilot {msg.autopilot}")
     kind = "quadrotor" if msg.type == ap.MAV_TYPE_QUADROTOR else f"type {msg.type}"
-    mode = ap.MODE_NAMES.get(int(msg.custom_mode), f"mode {msg.custom_mode}")
+    if px4.is_px4(msg.autopilot):
+        mode = px4.mode_name(int(msg.custom_mode))
+    else:
+        mode = ap.MODE_NAMES.get(int(msg.custom_mode), f"mode {msg.custom_mode}")
     armed = "armed" if msg.base_mode & ap.MAV_MODE_FLAG_SAFETY_ARMED else "disarmed"
     return f"{autopilot} {kind}, {mode}, {armed}"

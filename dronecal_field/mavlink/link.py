@@ -36,6 +36,7 @@ from typing import Any
 
 from dronecal_field.errors import InputError, LinkError
 from dronecal_field.mavlink import ardupilot as ap
+from dronecal_field.mavlink import px4
 
 GCS_SYSTEM_ID = 255
 GCS_COMPONENT_ID = 190
@@ -486,8 +487,22 @@ class MavLink:
                         return int(ack.result)
         raise LinkError(f"vehicle did not acknowledge command {command} after {retries + 1} tries; check the link")
 
+    @property
+    def is_px4(self) -> bool:
+        """The vehicle's HEARTBEAT says PX4 (MAV_AUTOPILOT_PX4); ArduPilot otherwise."""
+        hb = self.vehicle_heartbeat
+        return hb is not None and int(hb.autopilot) == px4.MAV_AUTOPILOT_PX4
+
     def set_mode(self, mode: int | str, timeout_s: float = 1.5) -> int:
-        """Ask for an ArduCopter mode (number or name) with MAV_CMD_DO_SET_MODE; returns MAV_RESULT."""
+        """Ask for a mode with MAV_CMD_DO_SET_MODE; returns MAV_RESULT.
+
+        ArduCopter: a mode number or name (``GUIDED``). PX4: a name, PX4's
+        (``AUTO.LOITER``) or ArduPilot's meaning (``AUTO`` -> AUTO.MISSION,
+        ``GUIDED`` -> AUTO.LOITER, ``RTL``, ``LAND``), sent as main/sub mode.
+        """
+        if self.is_px4 and isinstance(mode, str):
+            main, sub = px4.mode_numbers(mode)
+            return self.command_long(ap.CMD_DO_SET_MODE, (ap.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub), timeout_s=timeout_s)
         number = ap.COPTER_MODES[mode.upper()] if isinstance(mode, str) else int(mode)
         return self.command_long(ap.CMD_DO_SET_MODE, (ap.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, number), timeout_s=timeout_s)
 

@@ -22,6 +22,7 @@ from typing import Any
 
 from dronecal_field.errors import LinkError, MissionRejectedError
 from dronecal_field.mavlink import ardupilot as ap
+from dronecal_field.mavlink import px4
 from dronecal_field.mavlink.link import MavLink
 from dronecal_field.mavlink.missionfile import MissionItem, compare_readback, item_from_message, storage_changes, wire_frame
 
@@ -137,7 +138,7 @@ def send_mission(
         The vehicle stopped answering.
     """
     if not items or any(item.seq != i for i, item in enumerate(items)):
-        raise MissionRejectedError("mission items must be numbered 0..n-1 with home at 0; re-read the mission file")
+        raise MissionRejectedError("mission items must be numbered 0..n-1 (home at 0 on ArduPilot); re-read the mission file")
     n = len(items)
     count_sends = item_sends = no_space = 0
     ready_deadline = time.monotonic() + ready_timeout_s
@@ -264,7 +265,13 @@ def upload_and_verify(
     retries: int = 5,
     ready_timeout_s: float = 120.0,
 ) -> UploadReport:
-    """Upload ``items``, read them back and check they match (ArduPilot's read-back rules).
+    """Upload ``items``, read them back and check they match (the vehicle's read-back rules).
+
+    ``items`` are the file's (seq 0 = home). To PX4 (HEARTBEAT autopilot 12)
+    the mission goes without its home item, numbered from 0, with PX4's
+    commands (:func:`px4.to_wire`), and is compared with PX4's storage
+    (:func:`px4.compare_readback`); the report's ``readback`` is in the
+    file's numbering again.
 
     Raises
     ------
@@ -274,9 +281,18 @@ def upload_and_verify(
         The vehicle stopped answering.
     """
     t0 = time.monotonic()
-    count_sends, item_sends, no_space = send_mission(link, items, timeout_s=timeout_s, retries=retries, ready_timeout_s=ready_timeout_s)
-    back = download_mission(link, timeout_s=timeout_s, retries=retries)
-    problems = compare_readback(list(items), back)
+    if link.is_px4:
+        wire = px4.to_wire(items)
+        count_sends, item_sends, no_space = send_mission(link, wire, timeout_s=timeout_s, retries=retries, ready_timeout_s=ready_timeout_s)
+        back_wire = download_mission(link, timeout_s=timeout_s, retries=retries)
+        problems = px4.compare_readback(wire, back_wire)
+        back = px4.from_wire(back_wire, items[0])
+        changes = px4.storage_changes(list(items))
+    else:
+        count_sends, item_sends, no_space = send_mission(link, items, timeout_s=timeout_s, retries=retries, ready_timeout_s=ready_timeout_s)
+        back = download_mission(link, timeout_s=timeout_s, retries=retries)
+        problems = compare_readback(list(items), back)
+        changes = storage_changes(list(items))
     if problems:
         more = f" (+{len(problems) - 1} more)" if len(problems) > 1 else ""
         raise MissionRejectedError(f"vehicle read the mission back differently: {problems[0]}{more}; re-upload, or check the planner's params")
@@ -287,7 +303,7 @@ def upload_and_verify(
         no_space_retries=no_space,
         duration_s=time.monotonic() - t0,
         readback=tuple(back),
-        storage_changes=tuple(storage_changes(list(items))),
+        storage_changes=tuple(changes),
     )
 
 

@@ -25,6 +25,7 @@ from typing import Any
 
 from dronecal_field.errors import InputError, PreflightError
 from dronecal_field.mavlink import ardupilot as ap
+from dronecal_field.mavlink import px4
 from dronecal_field.mavlink.link import MavLink
 from dronecal_field.mavlink.missionfile import GLOBAL_FRAMES, STORED_IN_LOCATION, Mission
 
@@ -289,10 +290,14 @@ def evaluate_preflight(
         raise InputError(f"--min-fix {min_fix!r} unknown; use one of {', '.join(MIN_FIX_CHOICES)}")
     out: list[CheckResult] = []
 
+    is_px4 = px4.is_px4(vehicle.autopilot)
     if vehicle.autopilot is None:
         out.append(CheckResult("heartbeat", False, "no HEARTBEAT from a vehicle; check --connect"))
+    elif is_px4:
+        kind = "quadrotor" if vehicle.vehicle_type == ap.MAV_TYPE_QUADROTOR else f"MAV_TYPE {vehicle.vehicle_type}"
+        out.append(CheckResult("heartbeat", True, f"PX4 {kind}, mode {vehicle.mode_name}"))
     elif vehicle.autopilot != ap.MAV_AUTOPILOT_ARDUPILOTMEGA:
-        out.append(CheckResult("heartbeat", False, f"autopilot {vehicle.autopilot} is not ArduPilot; this tool flies ArduCopter missions"))
+        out.append(CheckResult("heartbeat", False, f"autopilot {vehicle.autopilot} is neither ArduPilot nor PX4; this tool flies ArduCopter and PX4 missions"))
     else:
         kind = "quadrotor" if vehicle.vehicle_type == ap.MAV_TYPE_QUADROTOR else f"MAV_TYPE {vehicle.vehicle_type}"
         out.append(CheckResult("heartbeat", True, f"ArduPilot {kind}, mode {vehicle.mode_name}"))
@@ -311,6 +316,8 @@ def evaluate_preflight(
         seen = f"{name}, {vehicle.satellites or 0} satellites{acc}"
         if rank >= ap.FIX_TYPE_RANK["rtk_fixed"]:
             out.append(CheckResult("gnss", True, seen))
+        elif is_px4 and rank >= ap.FIX_TYPE_RANK[min_fix] and rank < ap.FIX_TYPE_RANK["dgps"] and vehicle.h_acc_m and vehicle.h_acc_m >= 0.5:
+            out.append(CheckResult("gnss", True, f"WARNING: only {seen}: {gnss_accuracy_meaning(vehicle.h_acc_m)}", warning=True))
         elif rank >= ap.FIX_TYPE_RANK[min_fix]:
             out.append(
                 CheckResult("gnss", True, f"WARNING: only {seen}: positions may be off by decimetres and the calibration will be worse; wait for RTK fixed if you can", warning=True)
@@ -320,7 +327,13 @@ def evaluate_preflight(
 
     if vehicle.gnss_rate_hz is not None:
         rate = vehicle.gnss_rate_hz
-        if rate < MIN_GNSS_RATE_HZ:
+        if rate < MIN_GNSS_RATE_HZ and is_px4:
+            out.append(CheckResult(
+                "gnss_rate", True,
+                f"WARNING: {rate:.1f} new fixes/s: each hold averages fewer fixes (the calibration is worse); {px4.Px4Advice().gps_rate}",
+                warning=True,
+            ))
+        elif rate < MIN_GNSS_RATE_HZ:
             out.append(CheckResult(
                 "gnss_rate", True,
                 f"WARNING: {rate:.1f} new fixes/s: each hold averages fewer fixes (the calibration is worse); "
@@ -331,7 +344,17 @@ def evaluate_preflight(
             out.append(CheckResult("gnss_rate", True, f"{rate:.1f} new fixes/s"))
 
     if vehicle.ekf_flags is None:
-        out.append(CheckResult("ekf", False, "no EKF_STATUS_REPORT received; wait for the EKF to start"))
+        what = "ESTIMATOR_STATUS" if is_px4 else "EKF_STATUS_REPORT"
+        out.append(CheckResult("ekf", False, f"no {what} received; wait for the EKF to start"))
+    elif is_px4:
+        # PX4's ESTIMATOR_STATUS: healthy EKF2 with GPS reports 1023 (its const-pos bit 128 set too); ratios < 1 pass
+        missing = px4.ESTIMATOR_HEALTHY_FLAGS & ~vehicle.ekf_flags
+        bad = vehicle.ekf_flags & (ap.EKF_UNINITIALIZED | ap.EKF_GPS_GLITCH)
+        ratio = vehicle.ekf_max_variance or 0.0
+        if missing or bad or ratio >= 0.8:
+            out.append(CheckResult("ekf", False, f"EKF2 not healthy (ESTIMATOR_STATUS flags 0x{vehicle.ekf_flags:04x}, max test ratio {ratio:.2f}); wait for GPS lock and alignment"))
+        else:
+            out.append(CheckResult("ekf", True, f"EKF2 healthy (ESTIMATOR_STATUS flags 0x{vehicle.ekf_flags:04x}, max test ratio {ratio:.2f})"))
     else:
         missing = ap.EKF_HEALTHY_FLAGS & ~vehicle.ekf_flags
         bad = vehicle.ekf_flags & ap.EKF_BAD_FLAGS
@@ -373,7 +396,8 @@ def evaluate_preflight(
         more = f" (+{len(problems) - 3} more)" if len(problems) > 3 else ""
         out.append(CheckResult("mission", False, "; ".join(problems[:3]) + more + "; fix the mission file (or re-plan) before flying"))
     else:
-        out.append(CheckResult("mission", True, f"{len(mission.items)} items, each a command, frame, position and altitude ArduCopter flies"))
+        flier = "PX4" if is_px4 else "ArduCopter"
+        out.append(CheckResult("mission", True, f"{len(mission.items)} items, each a command, frame, position and altitude {flier} flies"))
 
     if video.error:
         out.append(CheckResult("video", False, video.error if video.url in video.error else f"{video.url}: {video.error}"))
@@ -393,6 +417,8 @@ def snapshot_from_link(link: MavLink, gnss_meter: GnssRateMeter | None = None) -
     hb = link.vehicle_heartbeat
     gps = link.latest("GPS_RAW_INT")
     ekf = link.latest("EKF_STATUS_REPORT")
+    is_px4 = hb is not None and px4.is_px4(int(hb.autopilot))
+    estimator = link.latest("ESTIMATOR_STATUS") if is_px4 else None
     status = link.latest("SYS_STATUS")
     battery = link.latest("BATTERY_STATUS")
     home = link.latest("HOME_POSITION")
@@ -406,12 +432,13 @@ def snapshot_from_link(link: MavLink, gnss_meter: GnssRateMeter | None = None) -
         autopilot=None if hb is None else int(hb.autopilot),
         vehicle_type=None if hb is None else int(hb.type),
         armed=None if hb is None else bool(hb.base_mode & ap.MAV_MODE_FLAG_SAFETY_ARMED),
-        mode_name=None if hb is None else ap.MODE_NAMES.get(int(hb.custom_mode), f"MODE{hb.custom_mode}"),
+        mode_name=None if hb is None else (px4.mode_name(int(hb.custom_mode)) if is_px4 else ap.MODE_NAMES.get(int(hb.custom_mode), f"MODE{hb.custom_mode}")),
         fix_type=None if gps is None else int(gps.fix_type),
         satellites=None if gps is None else int(gps.satellites_visible),
         h_acc_m=None if gps is None or not getattr(gps, "h_acc", 0) else gps.h_acc / 1000.0,
-        ekf_flags=None if ekf is None else int(ekf.flags),
-        ekf_max_variance=None if ekf is None else float(max(ekf.velocity_variance, ekf.pos_horiz_variance, ekf.pos_vert_variance, ekf.compass_variance)),
+        ekf_flags=int(estimator.flags) if estimator is not None else (None if ekf is None else int(ekf.flags)),
+        ekf_max_variance=_estimator_ratio(estimator) if estimator is not None else (
+            None if ekf is None else float(max(ekf.velocity_variance, ekf.pos_horiz_variance, ekf.pos_vert_variance, ekf.compass_variance))),
         battery_pct=battery_pct,
         voltage_v=None if status is None or status.voltage_battery in (0, 65535) else status.voltage_battery / 1000.0,
         ready_to_arm=None if status is None else bool(status.onboard_control_sensors_health & ap.MAV_SYS_STATUS_PREARM_CHECK),
@@ -420,6 +447,28 @@ def snapshot_from_link(link: MavLink, gnss_meter: GnssRateMeter | None = None) -
         last_text=None if text is None else str(text.text),
         gnss_rate_hz=None if gnss_meter is None else gnss_meter.rate_hz(),
     )
+
+
+def _estimator_ratio(msg: Any) -> float:
+    """Largest of ESTIMATOR_STATUS's velocity, position and magnetometer test ratios (NaN = not used)."""
+    ratios = [float(v) for v in (msg.vel_ratio, msg.pos_horiz_ratio, msg.pos_vert_ratio, msg.mag_ratio) if math.isfinite(v)]
+    return max(ratios, default=0.0)
+
+
+def gnss_accuracy_meaning(h_acc_m: float, distance_m: float = 10.0, focal_px: float = 1000.0) -> str:
+    """What a reported horizontal accuracy means for the calibration, in one clause.
+
+    A hold's point is the mean of its fixes, but GNSS error drifts over
+    seconds, so a 3 s hold averages little of it: each point may be off by
+    about ``h_acc_m``. Seen from the camera ``distance_m`` away that is an
+    angle of h_acc/distance, i.e. ``focal_px * h_acc / distance`` pixels of
+    disagreement between where the marker is drawn and where the fix says.
+    """
+    deg = math.degrees(math.atan2(h_acc_m, distance_m))
+    px = focal_px * h_acc_m / distance_m
+    return (f"the receiver claims {h_acc_m:.1f} m horizontal accuracy (no RTK): each hold's point may be off by that much, "
+            f"{deg:.1f} deg or ~{px:.0f} px seen from {distance_m:.0f} m at f={focal_px:.0f} px, against ~1 px with RTK; "
+            "the camera's position comes out to decimetres and its focal to percents at best. Fly with RTK for a metric calibration")
 
 
 def run_preflight(

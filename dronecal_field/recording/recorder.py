@@ -47,6 +47,7 @@ from typing import Any, Protocol
 
 from dronecal_field.errors import RecordingStoppedError, VideoError
 from dronecal_field.mavlink import ardupilot as ap
+from dronecal_field.mavlink import px4
 from dronecal_field.mavlink.control import vehicle_state
 from dronecal_field.mavlink.link import MavLink
 from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT, Mission
@@ -322,6 +323,8 @@ class Recorder:
         self.marker_seen: bool | None = None
         # vehicle progress, for the status line and the end of the mission
         self.reached: list[tuple[int, int]] = []  # (host ns, seq)
+        # PX4 numbers from 0 without home and repeats MISSION_ITEM_REACHED for ~10 s: one report per file seq
+        self._px4_reached = px4.ReachedFilter() if getattr(link, "is_px4", False) else None
         self.current_seq = 0
         self.armed = False
         self.was_armed = False
@@ -446,10 +449,12 @@ class Recorder:
             if jump is not None:
                 self.clock_jump_events += 1
                 self._event(RunEvent(jump[0], 0, "clock_jump", {"jump_s": f"{jump[1]:+.3f}"}))
+        reached: list[int] = []
         if mtype == "MISSION_ITEM_REACHED":
-            self.reached.append((stamp_ns, int(msg.seq)))
+            reached = [int(msg.seq)] if self._px4_reached is None else self._px4_reached.feed(int(msg.seq))
+            self.reached.extend((stamp_ns, seq) for seq in reached)
         elif mtype == "MISSION_CURRENT":
-            self.current_seq = int(msg.seq)
+            self.current_seq = int(msg.seq) + (0 if self._px4_reached is None else px4.SEQ_OFFSET)
         elif mtype == "GLOBAL_POSITION_INT":
             self.max_rel_alt_m = max(self.max_rel_alt_m, msg.relative_alt / 1000.0)
         elif mtype == "HEARTBEAT" and msg.get_srcSystem() == self.link.target_system and msg.type != ap.MAV_TYPE_GCS:
@@ -460,6 +465,8 @@ class Recorder:
                 self.airborne_then_disarmed = True
             self.armed = armed
         self._telemetry.put(("msg", stamp_ns, msg))
+        for seq in reached:  # in the mission file's numbering
+            self._telemetry.put(("reached", stamp_ns, seq))
 
     # ----- writer thread -----
     def _event(self, event: RunEvent) -> None:
@@ -470,6 +477,9 @@ class Recorder:
         if kind == "event":
             self.writer.write_event(item[1])
             self._observe(item[1])
+            return
+        if kind == "reached":
+            self._write_reached(item[2], item[1])
             return
         _kind, stamp_ns, msg = item
         mtype = msg.get_type()
@@ -489,17 +499,19 @@ class Recorder:
             self.writer.write_attitude(attitude)
             self.attitudes += 1
             self._observe(attitude)
-        elif mtype == "MISSION_ITEM_REACHED":
-            event = hover_event(self.mission, int(msg.seq), stamp_ns, self.clock.rate)
-            if event is not None:
-                self.writer.write_event(event)
-                self.hover_events += 1
-                self._observe(event)
-            leg = self._leg_event(int(msg.seq), stamp_ns)
-            if leg is not None:
-                self.writer.write_event(leg)
-                self.leg_events += 1
-                self._observe(leg)
+
+    def _write_reached(self, seq: int, stamp_ns: int) -> None:
+        """The hover and leg events of mission item ``seq`` (file numbering) reached at ``stamp_ns``."""
+        event = hover_event(self.mission, seq, stamp_ns, self.clock.rate)
+        if event is not None:
+            self.writer.write_event(event)
+            self.hover_events += 1
+            self._observe(event)
+        leg = self._leg_event(seq, stamp_ns)
+        if leg is not None:
+            self.writer.write_event(leg)
+            self.leg_events += 1
+            self._observe(leg)
 
     def _write_fix(self, msg: Any, arrival_ns: int) -> None:
         """One ``/gnss/fix`` per new fix (time_usec), stamped at the fix's own time on the run clock."""

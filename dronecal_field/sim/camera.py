@@ -38,10 +38,12 @@ a recorder must not use them, as no real camera sends them.
 
 from __future__ import annotations
 
+import math
 import queue
 import threading
 import time
 from dataclasses import dataclass
+from typing import Any
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from urllib.parse import urlsplit
 
@@ -65,7 +67,19 @@ STREAM_REQUESTS_HZ: tuple[tuple[str, float], ...] = (
     ("GPS_RAW_INT", 2.0),
     ("MISSION_CURRENT", 2.0),
 )
+# PX4 SITL has no SIMSTATE: its truth is HIL_STATE_QUATERNION (SIH's ground truth; 10 Hz when asked, PX4 1.16)
+PX4_STREAM_REQUESTS_HZ: tuple[tuple[str, float], ...] = (("HIL_STATE_QUATERNION", 10.0), *STREAM_REQUESTS_HZ[1:])
+MAV_AUTOPILOT_PX4 = 12
 REQUEST_AGAIN_NS = 2_000_000_000  # no position for this long: ask again
+
+
+def _euler_from_quaternion(q: Any) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) radians of a MAVLink (w, x, y, z) quaternion, body FRD from NED."""
+    w, x, y, z = (float(v) for v in q)
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return roll, pitch, yaw
 
 
 @dataclass(frozen=True)
@@ -292,6 +306,7 @@ class SimCamera:
         self.mission_seq: int | None = None  # the vehicle's MISSION_CURRENT.seq
         self.frames_hidden = 0
         self.stream_requests = 0  # times the camera asked the vehicle for its streams
+        self._vehicle_autopilot: int | None = None  # HEARTBEAT.autopilot (12 = PX4: its truth is HIL_STATE_QUATERNION)
         self.position_source: str | None = None  # "SIMSTATE" (truth) or "GLOBAL_POSITION_INT" (EKF)
         self._vehicle_compid: int | None = None
         self.origin = EnuOrigin(*camera.enu_origin)
@@ -400,13 +415,13 @@ class SimCamera:
         """SET_MESSAGE_INTERVAL on this link for what the camera needs (no ACK awaited: asked again if quiet)."""
         from pymavlink import mavutil
 
-        for name, hz in STREAM_REQUESTS_HZ:
+        for name, hz in PX4_STREAM_REQUESTS_HZ if self._vehicle_autopilot == MAV_AUTOPILOT_PX4 else STREAM_REQUESTS_HZ:
             msgid = getattr(mavutil.mavlink, f"MAVLINK_MSG_ID_{name}")
             mav.mav.command_long_send(target_system, target_component, mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msgid, 1e6 / hz, 0, 0, 0, 0, 0)
         self.stream_requests += 1
 
     def _listen(self) -> None:
-        types = ["HEARTBEAT", "SIMSTATE", "GLOBAL_POSITION_INT", "ATTITUDE", "GPS_RAW_INT", "MISSION_CURRENT"]
+        types = ["HEARTBEAT", "SIMSTATE", "HIL_STATE_QUATERNION", "GLOBAL_POSITION_INT", "ATTITUDE", "GPS_RAW_INT", "MISSION_CURRENT"]
         mav = self._mav
         last_position_ns = 0
         last_request_ns = 0
@@ -442,6 +457,7 @@ class SimCamera:
                         self.vehicle_sysid = sysid  # follow the first vehicle that announces itself
                     if sysid == self.vehicle_sysid:
                         self._vehicle_compid = msg.get_srcComponent()
+                        self._vehicle_autopilot = int(msg.autopilot)
                     continue
                 if self.vehicle_sysid is None:
                     if kind != "GLOBAL_POSITION_INT":
@@ -458,6 +474,13 @@ class SimCamera:
                     if alt_msl_m is not None:
                         self.track.add_position(now_ns, msg.lat * 1e-7, msg.lng * 1e-7, alt_msl_m)
                     self.track.add_attitude(now_ns, msg.roll, msg.pitch, msg.yaw)
+                elif kind == "HIL_STATE_QUATERNION":
+                    # PX4 SIH's truth: position with its own AMSL height, attitude as a quaternion
+                    simstate_seen = True
+                    last_position_ns = now_ns
+                    self.position_source = "HIL_STATE_QUATERNION"
+                    self.track.add_position(now_ns, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+                    self.track.add_attitude(now_ns, *_euler_from_quaternion(msg.attitude_quaternion))
                 elif kind == "GLOBAL_POSITION_INT":
                     alt_msl_m = msg.alt * 1e-3
                     if not simstate_seen:
