@@ -48,6 +48,7 @@ def main() -> None:
     ap.add_argument("--height-error", type=float, default=0.2)
     ap.add_argument("--fps", type=float, default=10.0)
     ap.add_argument("--main", action="store_true")
+    ap.add_argument("--min-agl", type=float, default=None, help="--min-agl for both plans (the Table 1 camera's 2 m pole: 0.5)")
     args = ap.parse_args()
     from dronecal_field.camerafile import read_camera, write_camera
     from dronecal_field.demo import in_enu_frame_of
@@ -64,9 +65,10 @@ def main() -> None:
     speedup = DEFAULT_SPEEDUP[args.camera]
     t0 = time.monotonic()
     scout_dir = out / "scout-plan"
+    agl = [] if args.min_agl is None else ["--min-agl", args.min_agl]
     run_step("plan", cli_argv("plan", "--scout", "--out", scout_dir, f"--lat={SITE['lat']}", f"--lon={SITE['lon']}", "--ground-alt", SITE["ground_h"],
                               "--mount-height", c["mount_height"] + args.height_error, "--azimuth", SITE["azimuth"] + args.az_error,
-                              "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"])), logs / "plan-scout.log", timeout_s=120)
+                              "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]), *agl), logs / "plan-scout.log", timeout_s=120)
     sp = json.loads((scout_dir / "plan.json").read_text())
     print(f"{args.camera}: scout planned {sp['flight']['flight_time_s'] / 60:.2f} min, {sp['points']} waypoints", flush=True)
     scout_run = out / "scout.mcap"
@@ -74,7 +76,7 @@ def main() -> None:
         fly(scout_dir, truth_path, scout_run, logs, speedup, args.fps, "scout")
     main_dir = out / "main-plan"
     run_step("plan", cli_argv("plan", "--from-run", scout_run, "--out", main_dir, "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]),
-                              "--fps", args.fps, "--hover", "3", "--trials", "50", "--max-flight-time", "12"), logs / "plan-main.log", timeout_s=900)
+                              "--fps", args.fps, "--hover", "3", "--trials", "50", "--max-flight-time", "12", *agl), logs / "plan-main.log", timeout_s=900)
     mp = json.loads((main_dir / "plan.json").read_text())
     e = mp["from_run"]["estimate"]
     az_t, tilt_t = axis_angles_deg(truth.pose.R_cam_from_world)
