@@ -162,6 +162,14 @@ class Px4Sitl:
         except OSError:
             return "(no log)"
 
+    def warnings(self) -> str:
+        """PX4's WARN and ERROR lines (mission feasibility, pre-arm), for failure messages."""
+        try:
+            text = (self.workdir / "px4.log").read_text(errors="replace")
+        except OSError:
+            return "(no log)"
+        return " | ".join(line for line in text.splitlines() if "WARN" in line or "ERROR" in line)[-3000:]
+
     def argv(self, argv: Sequence[str]) -> list[str]:
         """``argv`` run inside PX4's network namespace (the host's /tmp and files stay visible)."""
         return ["nsenter", f"--net=/proc/{self.proc.pid}/ns/net", "--", *argv]

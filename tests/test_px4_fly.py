@@ -59,6 +59,9 @@ def test_px4_read_back_rules():
     assert px4.compare_readback(wire, back[:-1]) == ["vehicle holds 4 items, 5 were uploaded"]
     moved = [*back[:3], replace(back[3], z=3.2), back[4]]
     assert px4.compare_readback(wire, moved) == ["PX4 seq 3 (file seq 4): z 3.147 read back as 3.2"]
+    yaw = [*back[:3], replace(back[3], p4=236.56997680664062), back[4]]  # yaw through float32 radians, as the SITL
+    assert px4.compare_readback([*wire[:3], replace(wire[3], p4=236.57), wire[4]], yaw) == []
+    assert px4.compare_readback(wire, yaw) != []
 
 
 def test_reached_is_reported_once_per_item_in_file_numbering():
@@ -94,3 +97,22 @@ def test_px4_preflight_as_measured_on_the_sitl():
 def test_what_0_9_m_means():
     text = gnss_accuracy_meaning(0.9)
     assert "5.1 deg" in text and "~90 px" in text and "10 m" in text
+
+
+def test_plan_writes_a_px4_variant_qgc_opens_and_fly_reads(tmp_path):
+    """mission-px4.plan: firmwareType 12, the ROI as DO_SET_ROI_LOCATION, everything else as planned."""
+    import json
+
+    from dronecal_field.plan.px4 import px4_plan
+
+    plan = json.loads(mf.to_qgc_plan(MISSION))
+    out = px4_plan(plan)
+    assert plan["mission"]["firmwareType"] == 3 and out["mission"]["firmwareType"] == 12
+    cmds = [it["command"] for it in out["mission"]["items"]]
+    assert cmds == [22, 178, 195, 16, 21]
+    roi = out["mission"]["items"][2]
+    assert roi["params"][:4] == [0.0, 0.0, 0.0, 0.0] and roi["params"][4:6] == pytest.approx([-35.3633328, 149.16523], abs=1e-9)
+    (tmp_path / "mission-px4.plan").write_text(json.dumps(out))
+    back = mf.read_mission(tmp_path / "mission-px4.plan")
+    assert [it.command for it in back.items[1:]] == [22, 178, 195, 16, 21]
+    assert px4.to_wire(back.items) == px4.to_wire(ITEMS)  # either file goes to PX4 as the same mission

@@ -41,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     mission = parser.add_argument_group("mission")
     mission.add_argument("--mission", required=True, metavar="FILE", help="mission.plan (QGroundControl) or .waypoints (QGC WPL 110)")
     mission.add_argument("--dry-run", action="store_true", help="print the pre-flight checklist and stop: nothing is uploaded or recorded")
-    mission.add_argument("--start", action="store_true", help="arm in GUIDED and send MISSION_START yourself (PX4: arm, MISSION_START; default: wait for the pilot to arm and switch to AUTO)")
+    mission.add_argument("--start", action="store_true", help="arm in GUIDED and send MISSION_START yourself (PX4: MISSION_START, which arms; default: wait for the pilot to arm and switch to AUTO)")
     mission.add_argument("--timeout-s", type=float, default=None, metavar="S", help="stop recording after S wall seconds if the mission has not ended (file finalised, exit code 2)")
     checks = parser.add_argument_group("pre-flight")
     checks.add_argument("--min-fix", choices=("rtk_fixed", "rtk_float", "3d"), default="rtk_fixed", help="weakest GNSS fix to fly with (default rtk_fixed; others warn loudly)")
@@ -353,7 +353,7 @@ def run(args: argparse.Namespace) -> int:
         claim.keep()
         if args.start:
             arm_and_start_mission(link)
-            print("started: armed, MISSION_START sent (PX4: AUTO.MISSION)" if link.is_px4 else "started: GUIDED, armed, MISSION_START sent", flush=True)
+            print("started: MISSION_START accepted (PX4 armed itself, AUTO.MISSION)" if link.is_px4 else "started: GUIDED, armed, MISSION_START sent", flush=True)
         else:
             print("waiting for the pilot to arm and switch to AUTO (Ctrl-C ends the recording; nothing is commanded)", flush=True)
         loss = VideoLossAlarm(link, hold=args.on_video_loss == "hold", view=None if live is None else live.view)

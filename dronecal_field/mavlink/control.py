@@ -151,9 +151,8 @@ def _last_statustext(link: MavLink) -> str:
 def arm_and_start_mission(link: MavLink, timeout_s: float = 2.0) -> None:
     """GUIDED, arm, MAV_CMD_MISSION_START: the start the pilot asked for with ``--start``.
 
-    On PX4 (HEARTBEAT autopilot 12): arm, then MAV_CMD_MISSION_START, which
-    switches to AUTO.MISSION (PX4 1.16 SITL: it would also arm by itself).
-    No GUIDED: PX4 has none, and arming in its boot mode AUTO.LOITER is allowed.
+    On PX4 (HEARTBEAT autopilot 12): MAV_CMD_MISSION_START alone, which arms
+    and switches to AUTO.MISSION (PX4 1.16 SITL); no GUIDED (PX4 has none).
 
     Raises
     ------
@@ -175,16 +174,23 @@ def arm_and_start_mission(link: MavLink, timeout_s: float = 2.0) -> None:
         raise LinkError(f"vehicle refused MISSION_START ({ap.MAV_RESULT_NAMES.get(result, result)}){_last_statustext(link)}; it is armed in GUIDED: disarm or take over")
 
 
-def _px4_arm_and_start(link: MavLink, timeout_s: float) -> None:
-    result = link.command_long(ap.CMD_COMPONENT_ARM_DISARM, (1,), timeout_s=timeout_s)
-    if result != ap.MAV_RESULT_ACCEPTED:
-        time.sleep(0.2)
-        raise LinkError(f"PX4 refused to arm ({ap.MAV_RESULT_NAMES.get(result, result)}){_last_statustext(link)}; "
-                        "its reasons come as events: see them in QGroundControl, fix them and retry")
-    result = link.command_long(ap.CMD_MISSION_START, timeout_s=timeout_s)
-    if result != ap.MAV_RESULT_ACCEPTED:
-        raise LinkError(f"PX4 refused MISSION_START ({ap.MAV_RESULT_NAMES.get(result, result)}){_last_statustext(link)}; "
-                        "it is armed on the ground and disarms by itself in 10 s; check the mission (PX4's feasibility checks)")
+def _px4_arm_and_start(link: MavLink, timeout_s: float, valid_wait_s: float = 15.0) -> None:
+    """MAV_CMD_MISSION_START alone: PX4 arms and switches to AUTO.MISSION in one command.
+
+    PX4 answers DENIED until its navigator has checked the new mission
+    (``mission_result.valid``), a moment after the upload; so DENIED is
+    retried each second for ``valid_wait_s``. Nothing is armed until accepted.
+    """
+    deadline = time.monotonic() + valid_wait_s
+    while True:
+        result = link.command_long(ap.CMD_MISSION_START, (0, 0), timeout_s=timeout_s)
+        if result == ap.MAV_RESULT_ACCEPTED:
+            return
+        if result not in (ap.MAV_RESULT_DENIED, ap.MAV_RESULT_TEMPORARILY_REJECTED) or time.monotonic() >= deadline:
+            break
+        time.sleep(1.0)
+    raise LinkError(f"PX4 refused MISSION_START ({ap.MAV_RESULT_NAMES.get(result, result)}){_last_statustext(link)} for {valid_wait_s:g} s; "
+                    "its reasons come as events (QGroundControl shows them): a mission it finds infeasible, or a failed pre-arm check")
 
 
 def describe_heartbeat(msg: Any) -> str:

@@ -14,7 +14,9 @@ Measured on PX4 v1.16.0 SITL with SIH (``../shared/sitl/px4-1.16``, README there
   with MISSION_REQUEST_INT; both are answered with MISSION_ITEM_INT.
 * Read-back: frame 3 (relative altitude) comes back as 6, its ``_INT``
   twin; altitude and params are float32 (3.147 m reads back as
-  3.1470000743865967), positions 1e-7 degree integers, DO items keep frame 2.
+  3.1470000743865967), positions 1e-7 degree integers, DO items keep frame 2;
+  a NAV item's yaw (param 4) is kept in float32 radians (236.57 deg reads back
+  as 236.56997680664062).
   DO_SET_ROI (201) with ROI mode 3 is stored with param 1 = 0 and the
   vehicle then refuses MISSION_START (DENIED): the PX4 mission uses
   DO_SET_ROI_LOCATION (195), which it stores and flies (yaw towards the
@@ -41,6 +43,7 @@ from dronecal_field.mavlink import missionfile as mf
 from dronecal_field.mavlink.missionfile import MissionItem
 
 MAV_AUTOPILOT_PX4 = 12
+HOLD_ACCEPTANCE_M = 0.3  # param 2 of a hold waypoint: the hold starts within 0.3 m of the point
 SEQ_OFFSET = 1  # file seq = PX4 seq + SEQ_OFFSET (the file's seq 0 is the planned home)
 
 # PX4 main modes (px4_custom_mode.h)
@@ -127,10 +130,17 @@ def px4_item(item: MissionItem) -> MissionItem:
     """One file item as PX4 takes it (file numbering kept).
 
     DO_SET_ROI (201) in ROI-location mode becomes DO_SET_ROI_LOCATION (195):
-    PX4 stores 201's mode as 0 and refuses to start such a mission.
+    PX4 stores 201's mode as 0 and refuses to start such a mission. A hold
+    waypoint gets an acceptance radius (param 2) of :data:`HOLD_ACCEPTANCE_M`:
+    with PX4's default (NAV_ACC_RAD, 2 m) its hold timer starts 2 m before
+    the point, so holds 0.5 m apart were "reached" every 3.1 s while the
+    vehicle still moved, and its heading (towards the ROI only while not yet
+    reached) stayed at the take-off heading (SITL run, holds at 1 m).
     """
     if item.command == mf.CMD_DO_SET_ROI:
         return replace(item, command=mf.CMD_DO_SET_ROI_LOCATION, p1=0.0, p2=0.0, p3=0.0, p4=0.0)
+    if item.command == mf.CMD_NAV_WAYPOINT and item.hold_s > 0 and not item.p2 > 0:
+        return replace(item, p2=HOLD_ACCEPTANCE_M)
     return item
 
 
@@ -156,6 +166,10 @@ def _same(expected: float, back: float) -> bool:
     return _f32(expected) == _f32(back)
 
 
+# NAV commands whose param 4 (yaw, degrees) PX4 keeps as float32 radians (mission_item.yaw)
+YAW_IN_RADIANS = frozenset({16, 17, 18, 19, 21, 22, 82})
+
+
 def compare_readback(sent: Sequence[MissionItem], back: Sequence[MissionItem]) -> list[str]:
     """Differences between a PX4 upload (:func:`to_wire`'s items) and its read-back, at PX4's storage.
 
@@ -176,6 +190,8 @@ def compare_readback(sent: Sequence[MissionItem], back: Sequence[MissionItem]) -
         if mf.wire_frame(a) != mf.wire_frame(b):
             problems.append(f"{where}: frame {a.frame} read back as {b.frame}")
         for name in ("p1", "p2", "p3", "p4"):
+            if name == "p4" and a.command in YAW_IN_RADIANS and not math.isnan(a.p4) and abs(a.p4 - b.p4) < 1e-3:
+                continue  # yaw kept as float32 radians: 236.57 deg reads back as 236.56997680664062
             if not _same(getattr(a, name), getattr(b, name)):
                 problems.append(f"{where}: {name} {getattr(a, name)!r} read back as {getattr(b, name)!r}")
         if a.frame in mf.GLOBAL_FRAMES and (a.x != b.x or a.y != b.y):

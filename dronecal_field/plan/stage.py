@@ -1004,7 +1004,7 @@ def mission_geojson(result: PlanResult) -> dict:
                               f"properties.alt_m are mission altitudes: {result.mission.alt_frame_text}")
 
 
-_PLAN_OUTPUT = re.compile(r"^mission(-\d+)?\.(plan|waypoints)$|^(mission\.geojson|plan\.json|camera_guess\.yaml|preview\.png)$")
+_PLAN_OUTPUT = re.compile(r"^mission(-\d+)?(-px4)?\.(plan|waypoints)$|^(mission\.geojson|plan\.json|camera_guess\.yaml|preview\.png)$")
 
 
 def write_plan(result: PlanResult, out_dir: str | os.PathLike) -> list[Path]:
@@ -1015,6 +1015,7 @@ def write_plan(result: PlanResult, out_dir: str | os.PathLike) -> list[Path]:
     """
     from dronecal_field.camerafile import write_camera
     from dronecal_field.plan.preview import render_preview
+    from dronecal_field.plan.px4 import px4_plan, px4_plan_name
     from dronecal_field.plan.schema import validate_plan
 
     out = Path(out_dir)
@@ -1033,6 +1034,7 @@ def write_plan(result: PlanResult, out_dir: str | os.PathLike) -> list[Path]:
     with staged_folder(out) as tmp:
         for name, plan, mission in zip(names, plans, result.missions):
             (tmp / f"{name}.plan").write_text(msn.dumps(plan), encoding="utf-8")
+            (tmp / f"{px4_plan_name(name)}.plan").write_text(msn.dumps(px4_plan(plan)), encoding="utf-8")  # QGC + PX4 (plan/px4.py)
             (tmp / f"{name}.waypoints").write_text(msn.waypoints_text(mission), encoding="utf-8")
         (tmp / "mission.geojson").write_text(msn.dumps(mission_geojson(result)), encoding="utf-8")
         (tmp / "plan.json").write_text(msn.dumps(result.summary), encoding="utf-8")
@@ -1040,5 +1042,5 @@ def write_plan(result: PlanResult, out_dir: str | os.PathLike) -> list[Path]:
                      comment=f"dronecal-field plan: GUESSED camera (not calibrated): {req.lens.focal_source}, distortion {req.lens.distortion_level}")
         render_preview(result, tmp / "preview.png")
         replace_folder(tmp, out, lambda name: bool(_PLAN_OUTPUT.match(name)))
-    files = [f"{n}.{ext}" for n in names for ext in ("plan", "waypoints")] + list(PLAN_FILES[2:])
+    files = [f"{n}.{ext}" for n in names for ext in ("plan", "waypoints")] + [f"{px4_plan_name(n)}.plan" for n in names] + list(PLAN_FILES[2:])
     return [out / f for f in files]
