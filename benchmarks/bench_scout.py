@@ -48,6 +48,7 @@ def main() -> None:
     ap.add_argument("--height-error", type=float, default=0.2)
     ap.add_argument("--fps", type=float, default=10.0)
     ap.add_argument("--main", action="store_true")
+    ap.add_argument("--speedup", type=float, default=None, help="sim vehicle speed-up (default bench_wholeview's: 4K 1x)")
     ap.add_argument("--min-agl", type=float, default=None, help="--min-agl for both plans (the Table 1 camera's 2 m pole: 0.5)")
     args = ap.parse_args()
     from dronecal_field.camerafile import read_camera, write_camera
@@ -62,7 +63,7 @@ def main() -> None:
     truth = truth_camera(args.camera)
     truth_path = out / "truth.yaml"
     write_camera(truth_path, truth, comment="bench_scout truth")
-    speedup = DEFAULT_SPEEDUP[args.camera]
+    speedup = args.speedup or DEFAULT_SPEEDUP[args.camera]
     t0 = time.monotonic()
     scout_dir = out / "scout-plan"
     agl = [] if args.min_agl is None else ["--min-agl", args.min_agl]
