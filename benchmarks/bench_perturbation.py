@@ -31,7 +31,7 @@ Perturbations (``--only``): ``base`` (as planned), ``speed2``/``speed8``
 speed), ``hold1`` (holds cut to 1 s), ``first_quarter``/``last_quarter``
 (missing from the recording), ``transit`` (take-off 14 m to the side, a
 straight 3 m/s transit to the first waypoint and back home: two legs in the
-GNSS track), ``noplan`` (no mission.plan attached), ``gnss5`` (5 Hz fixes),
+GNSS track; the hover plans only: the 4K row is flown as planned), ``noplan`` (no mission.plan attached), ``gnss5`` (5 Hz fixes),
 ``shutter`` (30 ms rolling-shutter readout), ``rtk_tau10`` (RTK noise
 correlated over 10 s), ``latency1`` (0.95 s camera latency).
 
@@ -40,7 +40,8 @@ and its ratio to the base run's, what calibrate left out or the refusal) and
 the median |true error| / reported 1-sigma for focal length, principal point,
 position and ground error 15 m out (target 0.5-1.5). A row passes when it
 calibrates within 1.5x the base run's ground error, or refuses in one line,
-or its first printed warning says it is worse (``flagged``).
+or the first printed line names a set left out or a flight not as planned
+(``flagged``: report.notices).
 """
 
 from __future__ import annotations

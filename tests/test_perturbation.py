@@ -20,6 +20,7 @@ from dronecal_field.sim.compare import compare_cameras
 TRUTH = pole_camera(width=640, height=360, f_px=300.0, position_enu=(0.0, 0.0, 3.5), tilt_deg=25.0,
                     distortion=(-0.28, 0.07, 0.0, 0.0, 0.0), principal_offset_px=(4.0, -3.0))
 LOOK = MarkerLook(marker_id=7, size_m=0.4)
+PLANNED_HOLD_S = 8.0  # the mission.plan attached says 8 s holds; they were flown 3 s
 WAYPOINTS = grid_waypoints(east_m=(-3.0, -1.5, 0.0, 1.5, 3.0), north_m=(4.0, 6.0, 8.0), up_m=(0.6, 1.6))
 
 
@@ -29,7 +30,7 @@ def _run(tmp: Path, name: str, transit: bool = False, plan: bool = True, false_f
         spec["fix_bias"] = [(int(flight.t_ns[0]), flight.holds[0][0], (false_fix_m, 0.0, 0.0)),
                             (flight.holds[-1][1], int(flight.t_ns[-1]) + 1, (false_fix_m, 0.0, 0.0))]
     rs = RunSpec(fps=8.0, gnss_hz=10.0, latency_s=0.25, declared_latency="unknown", site_origin=ORIGIN, seed=11,
-                 attachments={"mission.plan": mission_plan(flight, 1.5, TRUTH)} if plan else {}, **spec)
+                 attachments={"mission.plan": mission_plan(flight, 1.5, TRUTH, hold_s=PLANNED_HOLD_S)} if plan else {}, **spec)
     path = tmp / f"{name}.mcap"
     write_run(path, TRUTH, flight, LOOK, rs)
     return path
@@ -72,3 +73,13 @@ def test_the_leg_source_named_keeps_the_legs_and_says_they_disagree(runs, base):
     print(f"ground 3-30 m: base {_ground(base):.2f} px, transit legs kept {_ground(kept):.2f} px")
     assert len(kept.leg_points) >= 20 and kept.warnings[0].endswith("kept, as `--leg-source track` asks")
     assert _ground(kept) > _ground(base)
+
+
+def test_holds_shorter_than_planned_are_named_in_the_first_printed_line(base, tmp_path):
+    """The base run's mission.plan says 8 s holds, flown 3 s: it calibrates, and says so first."""
+    from dronecal_field.commands.calibrate import _summary_lines
+
+    assert base.notices == ["the holds lasted 3.0 s where the plan said 8.0 s: the calibration used what that flight gave"]
+    first = _summary_lines(base, "base.mcap", tmp_path)[0]
+    assert first.startswith("calibrated base.mcap: 30 of 30 waypoints")
+    assert first.endswith("; flown other than planned: the holds lasted 3.0 s where the plan said 8.0 s")
