@@ -45,6 +45,8 @@ def test_the_px4_mission_has_no_home_item_and_flies_roi_location():
     assert [it.seq for it in wire] == [0, 1, 2, 3, 4]
     assert [it.command for it in wire] == [22, 178, 195, 16, 21]  # DO_SET_ROI(201) would be stored with mode 0 and refused
     assert (wire[2].x, wire[2].y, wire[2].z, wire[2].p1) == (ITEMS[3].x, ITEMS[3].y, 2.0, 0.0)
+    assert wire[3].p2 == px4.HOLD_ACCEPTANCE_M == 0.3  # the hold starts at the point, not 2 m before (NAV_ACC_RAD)
+    assert (wire[3].p1, wire[3].p4) == (3.0, 161.49) and wire[0].p2 == 0.0
     back = px4.from_wire(wire, ITEMS[0])
     assert [it.seq for it in back] == [0, 1, 2, 3, 4, 5]
 

@@ -7,8 +7,10 @@ asks for HIL_STATE_QUATERNION, SIH's truth), `dronecal-field fly --start
 --min-fix 3d` on the GCS link (PX4 detected from its HEARTBEAT: the mission
 without its home item, read back by PX4's rules, arm + MISSION_START), then
 `dronecal-field calibrate --min-fix 3d` on the recording, scored against the
-simulator's truth camera. PX4 runs in real time: the plan is cut to about
-2 minutes of flight.
+simulator's truth camera. PX4 runs in real time: the plan is cut to 17
+holds of 3 s (`plan` estimates 2.2 min; PX4 flew it in 2.4 min). Holds of
+2 s (1.9 min) flew, but left calibrate too little to solve through the
+SITL's GNSS noise ("all points project from behind the camera").
 
 PX4 SITL's GNSS is a 3D fix (no RTK) claiming h_acc 0.9 m, with about 0.2 m
 horizontal / 0.5 m vertical noise: the calibration is scored in bands of
@@ -103,7 +105,7 @@ def flight(tmp_path_factory):
         px4_log = sitl.warnings()
     assert fly_rc == 0, (logs / "fly.log").read_text()[-3000:] + "\nPX4: " + px4_log
     with (logs / "calibrate.log").open("w") as f:
-        calib_rc = subprocess.run(cli_argv("calibrate", out / "run.mcap", "--out", out / "calibration", "--trials", 50, "--min-fix", "3d"),
+        calib_rc = subprocess.run(cli_argv("calibrate", out / "run.mcap", "--out", out / "calibration", "--trials", 30, "--min-fix", "3d"),
                                   stdout=f, stderr=subprocess.STDOUT, timeout=300).returncode  # fmt: skip
     assert calib_rc == 0, (logs / "calibrate.log").read_text()[-3000:]
     return dict(out=out, mission=mf.read_mission(mission_path), truth=truth, fly_log=(logs / "fly.log").read_text())
@@ -188,7 +190,7 @@ def test_px4_upload_read_back_and_flight_to_landing(flight):
 
 def test_calibration_of_the_px4_flight_against_the_truth(flight):
     """As good as PX4 SITL's GNSS allows, and the report says so: calibrate measures that noise from its own residuals
-    (0.5-0.6 m, about 6 s correlated: a 3 s hold averages little of it), and its predicted errors (focal, ground at 15 m)
+    (0.5-0.6 m in all, split between white and correlated differently in each run), and its predicted errors (focal, ground at 15 m)
     are not tighter than the true ones. The holds themselves are all used: the marker faces the camera (ROI honoured)."""
     truth = flight["truth"]
     est = in_enu_frame_of(read_camera(flight["out"] / "calibration" / "camera.yaml"), truth.enu_origin)
@@ -206,7 +208,7 @@ def test_calibration_of_the_px4_flight_against_the_truth(flight):
     holds = sum(1 for it in flight["mission"].items[1:] if it.hold_s > 0)
     assert report["hover_windows"]["used"] == holds  # every hold detected: the marker faced the camera
     assert report["gnss"]["fix_types"] == {"3d": report["gnss"]["fixes_used"]}
-    assert noise["sigma_white_m"] > 0.2  # the SITL's GNSS, not RTK's centimetres
+    assert math.hypot(noise["sigma_white_m"], noise["sigma_corr_m"]) > 0.2  # the SITL's GNSS, not RTK's cm (the split varies per run)
     # uncertainty that matches reality: never tighter than the true error
     assert mc["param_std"]["fx"] >= 0.5 * cmp.focal_error_px
     if true_15m is not None:
