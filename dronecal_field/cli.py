@@ -198,10 +198,12 @@ def leave_cleanly(rc: int, grace_s: float = 2.0) -> int:
     import time
 
     deadline = time.monotonic() + grace_s
-    for thread in threading.enumerate():
-        if thread.daemon and thread is not threading.current_thread():
-            thread.join(timeout=max(0.0, deadline - time.monotonic()))
-    lingering = [t.name for t in threading.enumerate() if t.daemon and t.is_alive() and t is not threading.current_thread()]
+    # Threads started outside Python (the Foxglove server's, FFmpeg's) show up as dummies: they cannot be joined
+    # and the interpreter does not unwind them.
+    ours = [t for t in threading.enumerate() if t.daemon and t is not threading.current_thread() and not isinstance(t, threading._DummyThread)]
+    for thread in ours:
+        thread.join(timeout=max(0.0, deadline - time.monotonic()))
+    lingering = [t.name for t in ours if t.is_alive()]
     if lingering:
         if os.environ.get("DRONECAL_REPORT_THREADS"):
             print(f"dronecal-field: threads still running at exit: {', '.join(lingering)}", file=sys.stderr)

@@ -24,8 +24,10 @@ each side), each leg event one widened by ``margin_s``. Every ring frame in a
 zone is detected once, in time order, with ``calibrate``'s detector; a zone
 whose frames all got an outcome becomes a *covered* interval (from after the
 last of its frames the ring evicted undetected). ``calibrate`` then decodes
-only what lies outside. JPEG/PNG only: H.264/H.265 access units are not
-cached (each decode needs its GOP; ``calibrate`` reads them from the file).
+only what lies outside. H.264/H.265 access units are pushed, in stream order,
+to one decoder that decodes a GOP only up to a zone's frames (a GOP with no
+zone frame is never decoded); after the ring let units go unpushed, it starts
+again at the next keyframe, and what it cannot decode is left to ``calibrate``.
 """
 
 from __future__ import annotations
@@ -98,6 +100,7 @@ class LiveResult:
     constrained: bool = False  # the estimate passed progress.constrained (focal to 2 %, camera where the plan put it)
     frames: Any = None  # pipeline.framecache.FrameResults of the zone pass (None for H.264/H.265 or --no-live)
     checked_after_landing: list[int] = field(default_factory=list)  # waypoints the worker could not reach in flight
+    view_errors: dict[str, int] = field(default_factory=dict)  # live view publish failures by kind
 
     def to_dict(self) -> dict:
         return {
@@ -119,6 +122,7 @@ class LiveResult:
             "checked_after_landing_seqs": self.checked_after_landing,
             "leg_points": None if self.estimate is None else self.estimate.n_points,
             "worker_cpu_s": self.cpu_s,
+            "view_errors": self.view_errors,
             "wall_s": self.wall_s,
             "frame_cache": None if self.frames is None else {
                 "frames_detected": len(self.frames), "covered_s": round(self.frames.covered_s, 3), "covered_intervals": len(self.frames.covered),
@@ -187,6 +191,9 @@ class LiveCalibration:
         self._roi: Any = None
         self._detector: Any = None
         self._stop = threading.Event()
+        self._view_stop = threading.Event()
+        self._current_event: RunEvent | None = None  # the job the worker is in
+        self._batch = False  # checking after landing: outcomes are collected, the estimate refreshed once at the end
         self._thread: threading.Thread | None = None
         self._view_thread: threading.Thread | None = None
         self._cpu_s = 0.0
@@ -198,6 +205,9 @@ class LiveCalibration:
         self._covered: list[tuple[int, int]] = []
         self._evicted_undone_ns = -1  # newest ring frame evicted before the worker detected it (written by on_frame)
         self._cache_on: bool | None = None  # JPEG/PNG: True; H.264/H.265: False; None until the first frame
+        self.view_errors: dict[str, int] = {}  # live view publish failures by kind (live.json)
+        self._video: Any = None  # H.264/H.265: the zone pass's decoder (video.decode.VideoFrameDecoder), fed in stream order
+        self._video_last_ns: int | None = None  # the last access unit pushed to it
         self._last_det: Any = None  # tracking in the zone pass (calibrate's search box)
         self._before_det: Any = None
 
@@ -248,7 +258,7 @@ class LiveCalibration:
         return self
 
     def _view_loop(self) -> None:
-        while not self._stop.wait(VIEW_PERIOD_S):
+        while not self._view_stop.wait(VIEW_PERIOD_S):
             try:
                 self._publish_view()
             except Exception:  # noqa: BLE001 - the view is cosmetic
@@ -264,18 +274,18 @@ class LiveCalibration:
         never calls "missed" a waypoint whose frames nobody looked at.
         """
         self._stop.set()
-        if self._view_thread is not None:
-            self._view_thread.join(timeout=timeout_s)
         if self._thread is not None:
             self._thread.join(timeout=timeout_s)
-        if self._thread is not None and self._thread.is_alive():
-            # Still inside one job: leave the rest to calibrate rather than race the worker.
-            pending = list(self._deferred) + self._drain_jobs()
-        else:
-            pending = self._drain_jobs() + list(self._deferred)
-            self._deferred.clear()
-            self._check_after_landing(pending, run_path)
-            pending = list(self._deferred)
+        pending = self._drain_jobs() + list(self._deferred)
+        self._deferred.clear()
+        busy_with = self._current_event
+        if self._thread is not None and self._thread.is_alive() and busy_with is not None:
+            pending.append(busy_with)  # a starved worker (nice +10 on a loaded machine) may never finish it: checked here too
+        self._check_after_landing(pending, run_path)
+        pending = list(self._deferred)
+        self._view_stop.set()  # the view went on saying how the check after landing went
+        if self._view_thread is not None:
+            self._view_thread.join(timeout=timeout_s)
         unchecked = sorted({_event_seq(e) for e in pending if _event_seq(e) is not None})
         frames = self.frame_results()
         with self._lock:
@@ -286,7 +296,7 @@ class LiveCalibration:
                 verdict=v, coverage=self.coverage, offset=self.offset, jobs_dropped=self.jobs_dropped,
                 unchecked=unchecked, cpu_s=self._cpu_s, wall_s=time.monotonic() - self._started,
                 summaries=list(self.summaries), constrained=constrained(self.estimate, self.prior),
-                frames=frames, checked_after_landing=sorted(set(self.checked_after_landing)),
+                frames=frames, checked_after_landing=sorted(set(self.checked_after_landing)), view_errors=dict(self.view_errors),
             )
         if self.view is not None:
             try:
@@ -321,6 +331,7 @@ class LiveCalibration:
             self._prepare()  # the worker never got to start
         ring = list(self._frames)
         from_file: list[RunEvent] = []
+        self._batch = True  # outcomes only; one refresh at the end
         for event in events:
             if self._ring_holds(event, ring):
                 self._check(event, ring, after_landing=True)
@@ -331,9 +342,11 @@ class LiveCalibration:
         frames = self._frames_from_file(from_file, run_path)
         if frames is None:
             self._deferred.extend(from_file)  # no file to read: calibrate checks them
-            return
-        for event in from_file:
-            self._check(event, frames, after_landing=True)
+        else:
+            for event in from_file:
+                self._check(event, frames, after_landing=True)
+        if self.outcomes:
+            self._refresh(self.outcomes[-1], self._track())  # once for them all: a solve per waypoint would take minutes
 
     def _frames_from_file(self, events: list[RunEvent], run_path: Any) -> list | None:
         """The recorded frames around ``events`` (camera clock), or None without a readable run file."""
@@ -426,7 +439,9 @@ class LiveCalibration:
                         self.summaries.append(f"live: frame cache stopped ({type(exc).__name__}: {exc})")
                 ring = list(self._frames)
                 if self._ring_holds(event, ring):
+                    self._current_event = event
                     self._check(event, ring)
+                    self._current_event = None
                 else:
                     self._defer(event)  # its frames are gone from the ring: not "missed", checked after landing
                 busy = True
@@ -529,7 +544,7 @@ class LiveCalibration:
     def _open_zone(self, event: RunEvent) -> None:
         """A hover or leg event: the span of frame stamps calibrate reads around it (SamplingOptions' margins)."""
         if self._cache_on is None and self._frames:
-            self._cache_on = self.options.frame_cache and self._frames[-1].format not in COMPRESSED
+            self._cache_on = self.options.frame_cache
         if not self._cache_on:
             return
         s = self.options.sampling
@@ -547,6 +562,9 @@ class LiveCalibration:
             t = frame.timestamp_ns
             if self._stop.is_set() or (until_ns is not None and t > until_ns) or (budget is not None and done >= budget):
                 break
+            if frame.format in COMPRESSED:
+                done += self._video_step(frame)
+                continue
             if t in self._outcomes or not any(a <= t <= b for a, b in self._zones):
                 continue
             self._detect_one(frame)
@@ -557,6 +575,45 @@ class LiveCalibration:
                 self._zones.remove(zone)
                 self._cover(zone[0], zone[1])
         return done
+
+    def _video_step(self, unit: Any) -> int:
+        """One H.264/H.265 access unit of the ring, in stream order: pushed to the zone pass's decoder (cheap: a GOP
+        with nothing wanted is never decoded) and, inside a zone, decoded and detected. 1 when it was detected."""
+        from dronecal_field.pipeline.detect import detect_marker
+        from dronecal_field.video.decode import VideoFrameDecoder
+        from dronecal_field.video.nal import video_frame_of
+
+        t = unit.timestamp_ns
+        if self._video_last_ns is not None and t <= self._video_last_ns:
+            return 0  # pushed already
+        if self._video is None or (self._video_last_ns is not None and self._evicted_ns > self._video_last_ns):
+            self._video = VideoFrameDecoder(unit.format, threads=1)  # the ring let units go unpushed: start again at a keyframe
+        self._video.push(video_frame_of(unit))
+        self._video_last_ns = t
+        if t in self._outcomes or not any(a <= t <= b for a, b in self._zones):
+            return 0
+        image = self._video.gray()
+        if image is None:
+            # no keyframe before it in what the ring held (or a damaged unit): calibrate decodes it from the file
+            self._evicted_undone_ns = max(self._evicted_undone_ns, t)
+            return 0
+        last = self._last_det
+        roi = None
+        if last is not None and abs(t - last.timestamp_ns) < self._track_ns():
+            from dronecal_field.pipeline.detect import predicted, roi_around
+
+            roi = roi_around(predicted(last, self._before_det, t), image.shape)
+        result = detect_marker(image, self.marker, self._detector, t, roi)
+        if result.detection is not None:
+            self._before_det, self._last_det = last, result.detection
+        self._outcomes[t] = result
+        return 1
+
+    @staticmethod
+    def _track_ns() -> int:
+        from dronecal_field.pipeline.detect import TRACK_NS
+
+        return TRACK_NS
 
     def _cover(self, a: int, b: int) -> None:
         """[a, b] had every ring frame detected, except those the ring evicted first: covered after the last of them."""
@@ -602,7 +659,12 @@ class LiveCalibration:
 
     def _detect_picked(self, picked: list, frames: list) -> list:
         """A job's detections: from the cache where the zone pass got there first (never a frame twice)."""
-        if not picked or picked[0].format in COMPRESSED:
+        if not picked:
+            return []
+        if picked[0].format in COMPRESSED:
+            if all(f.timestamp_ns in self._outcomes for f in picked):  # the zone pass decoded them in stream order
+                results = [self._outcomes[f.timestamp_ns] for f in sorted(picked, key=lambda f: f.timestamp_ns)]
+                return [r.detection for r in results if r is not None and r.detection is not None]
             return detect_in_frames(picked, self.marker, self._detector, frames)
         found = []
         for frame in sorted(picked, key=lambda f: f.timestamp_ns):
@@ -612,10 +674,16 @@ class LiveCalibration:
         return found
 
     def _conclude(self, outcome: WaypointOutcome, track: FixTrack) -> None:
+        with self._lock:
+            self.outcomes.append(outcome)
+        if not self._batch:
+            self._refresh(outcome, track)
+
+    def _refresh(self, outcome: WaypointOutcome, track: FixTrack) -> None:
+        """The running calibration, camera offset, coverage and summary after ``outcome`` (seconds of CPU with many legs)."""
         from dronecal_field.pipeline.align import estimate_time_offset
 
         with self._lock:
-            self.outcomes.append(outcome)
             outcomes = list(self.outcomes)
         with self._lock:
             leg_points = list(self._leg_points)
@@ -655,19 +723,26 @@ class LiveCalibration:
             self.view.publish_calibration(self.estimate, frame.timestamp_ns)
 
     def _publish_view(self) -> None:
+        """Each topic on its own: one that fails (counted in ``view_errors``) never holds back the others; status first."""
         view = self.view
-        fixes = list(self._fixes)
-        view.publish_fixes(fixes)
-        frame = self._latest_frame if self._latest_frame is not None else view.video_image()
-        if frame is not None:
-            view.publish_image(frame, None, self._reprojection(frame.timestamp_ns), self._all_uv())
         with self._lock:
             statuses = {o.seq: ("good" if o.good else (o.problem or "missed")) for o in self.outcomes}
             est = self.estimate
-        view.publish_waypoints(statuses)
+        self._view_step("status", lambda: view.publish_status({"status": self.status_text(), "summary": self.summaries[-1] if self.summaries else ""}))
+        self._view_step("gnss", lambda: view.publish_fixes(list(self._fixes)))
+        frame = self._latest_frame if self._latest_frame is not None else view.video_image()
+        if frame is not None:
+            self._view_step("image", lambda: view.publish_image(frame, None, self._reprojection(frame.timestamp_ns), self._all_uv()))
+        self._view_step("waypoints", lambda: view.publish_waypoints(statuses))
         if est is not None:
-            view.publish_calibration(est, time.time_ns())
-        view.publish_status({"status": self.status_text(), "summary": self.summaries[-1] if self.summaries else ""})
+            self._view_step("calibration", lambda: view.publish_calibration(est, time.time_ns()))
+
+    def _view_step(self, name: str, publish) -> None:
+        try:
+            publish()
+        except Exception as exc:  # noqa: BLE001 - the view is cosmetic: counted, never fatal
+            key = f"{name}: {type(exc).__name__}: {exc}"[:200]
+            self.view_errors[key] = self.view_errors.get(key, 0) + 1
 
     def _reprojection(self, t_ns: int) -> np.ndarray | None:
         """(2,) where the current calibration puts the marker at ``t_ns`` (its GNSS position then), or None."""
