@@ -266,6 +266,7 @@ def _caution(report) -> str:
     flown = [n.split(": the calibration used")[0] for n in getattr(report, "notices", []) if ": the calibration used" in n]
     if flown:
         out.append("flown other than planned: " + "; ".join(flown))
+    out += [n.split(": the points share")[0] + ": expect a larger error" for n in getattr(report, "notices", []) if n.startswith("RTK noise correlated")]
     scale = float(getattr(report, "sigma_scale", 1.0) or 1.0)
     if scale >= POOR_FIT:
         out.append(f"CAUTION: the fit is {scale:.0f}x worse than the measured noise predicts (every uncertainty scaled up by it)")
