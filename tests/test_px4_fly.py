@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from dronecal_field.mavlink import missionfile as mf
@@ -54,8 +55,7 @@ def test_the_px4_mission_has_no_home_item_and_flies_roi_location():
 def test_px4_read_back_rules():
     """What the SITL returned: frame 3 as 6, float32 altitude and params (3.147 -> 3.1470000743865967), NaN kept."""
     wire = px4.to_wire(ITEMS)
-    back = [replace(it, frame=mf.wire_frame(it), z=float(__import__("numpy").float32(it.z)),
-                    p4=float(__import__("numpy").float32(it.p4))) for it in wire]
+    back = [replace(it, frame=mf.wire_frame(it), z=float(np.float32(it.z)), p4=float(np.float32(it.p4))) for it in wire]
     assert back[3].z == 3.1470000743865967
     assert px4.compare_readback(wire, back) == []
     assert px4.compare_readback(wire, back[:-1]) == ["vehicle holds 4 items, 5 were uploaded"]

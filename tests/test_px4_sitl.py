@@ -24,7 +24,6 @@ import math
 import socket
 import subprocess
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest

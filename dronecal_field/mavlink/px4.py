@@ -207,8 +207,6 @@ def storage_changes(items: Sequence[MissionItem]) -> list[str]:
     for item in items[SEQ_OFFSET:]:
         if item.command == mf.CMD_DO_SET_ROI:
             out.append(f"seq {item.seq}: DO_SET_ROI sent as DO_SET_ROI_LOCATION (195)")
-        if item.frame in mf.INT_FRAME_OF:
-            pass  # frame 3 -> 6 is the wire frame already
         if item.z != _f32(item.z) and item.frame in mf.GLOBAL_FRAMES:
             out.append(f"seq {item.seq}: z {item.z:g} kept as float32 {_f32(item.z)!r}")
             if len(out) > 6:
