@@ -27,6 +27,7 @@ import numpy as np
 from dronecal_field.errors import CalibrationError, ContractError, DegenerateGeometryError, DronecalError, InputError
 from dronecal_field.geodesy import EnuOrigin, geodetic_to_enu
 from dronecal_field.pipeline.agreement import AGREES, merged
+from dronecal_field.pipeline.asflown import correlated_noise, flight_against_plan, planned_speed
 from dronecal_field.pipeline.align import TimeOffset, Timing, estimate_time_offset, refine_timing
 from dronecal_field.pipeline.detect import Detection, centres_under_distortion
 from dronecal_field.pipeline.fixes import DistinctFixes, distinct_fixes
@@ -362,7 +363,7 @@ def _read_track(run, path: Path, options: CalibrateOptions) -> TrackRead:
     return TrackRead(
         track=track, identity=identity, gnss_latency_s=latency, origin=origin, origin_source=origin_source,
         attitude=attitude, attitude_source=attitude_source, offset_frd_m=offset_frd, holds=holds, warnings=warnings,
-        plan_roi=plan_roi, planned_speed_mps=_planned_speed(run),
+        plan_roi=plan_roi, planned_speed_mps=planned_speed(run),
     )
 
 
@@ -403,42 +404,6 @@ def _plan_info(run) -> tuple[dict[int, float] | None, tuple[float, float] | None
             if lat and lon:
                 roi = (float(lat), float(lon))
     return holds or None, roi
-
-
-def _planned_speed(run) -> float | None:
-    """The slowest DO_CHANGE_SPEED (m/s) of the attached mission.plan, None without one."""
-    data = run.attachment("mission.plan")
-    if not data:
-        return None
-    try:
-        items = json.loads(data)["mission"]["items"]
-        speeds = [float(it["params"][1]) for it in items if isinstance(it, dict) and it.get("command") == 178 and float(it["params"][1]) > 0]
-    except (ValueError, KeyError, TypeError, IndexError):
-        return None
-    return min(speeds) if speeds else None
-
-
-def flight_against_plan(read: TrackRead, windows: list[HoverWindow], legs: list[Leg]) -> list[str]:
-    """How the flight differs from its plan where that costs points: legs flown faster, holds cut short.
-
-    Each an phrase for a refusal or a warning, e.g. "the legs were flown at 1.5 m/s where the plan said 0.18 m/s".
-    """
-    out: list[str] = []
-    track = read.track
-    if legs and read.planned_speed_mps:
-        speed = np.linalg.norm(track.velocity_enu_mps, axis=1)
-        on = np.zeros(len(track.t_ns), bool)
-        for g in legs:
-            on |= (track.t_ns >= g.start_ns) & (track.t_ns <= g.end_ns)
-        flown = float(np.nanmedian(speed[on])) if np.any(on & np.isfinite(speed)) else None
-        if flown is not None and flown > 1.5 * read.planned_speed_mps:
-            out.append(f"the legs were flown at {flown:.2g} m/s where the plan said {read.planned_speed_mps:.2g} m/s")
-    if read.holds and windows:
-        planned = np.array([read.holds[w.seq] for w in windows if w.seq in read.holds and read.holds[w.seq] > 0])
-        flown = np.array([w.duration_s for w in windows if w.seq in read.holds and read.holds[w.seq] > 0])
-        if len(planned) and np.median(flown) < 0.6 * np.median(planned):
-            out.append(f"the holds lasted {np.median(flown):.1f} s where the plan said {np.median(planned):.1f} s")
-    return out
 
 
 def _damage_cost(span: tuple[int, int, int], points: list[WaypointPoint], fix_t_ns: np.ndarray) -> str:
@@ -1265,7 +1230,7 @@ def _calibrate_run(path: Path, options: CalibrateOptions, live=None) -> Calibrat
         raise type(exc)(f"{'; '.join(causes)}: {exc}") from None
     flown = [f"{c}: the calibration used what that flight gave" for c in causes]
     notices = ([solved.agreement.line] if solved.agreement is not None and solved.agreement.line else []) + flown
-    correlated = _correlated_noise(solved.noise)
+    correlated = correlated_noise(solved.noise)
     if correlated:
         notices.append(correlated)
     warnings = notices + warnings + solved.warnings
@@ -1305,21 +1270,6 @@ class _Clock:
             return stage(*args)
         finally:
             self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - tick
-
-
-CORRELATED_TAU_S = 2.0  # RTK noise correlated over this long or more, and dominating the white part, is named first
-
-
-def _correlated_noise(noise: FixNoise | None) -> str | None:
-    """A first-line notice when the measured fix noise is mostly correlated over seconds: the holds share their
-    errors, so the camera is worse than their number suggests. Measured (contract writer, RTK noise correlated over
-    10 s): white 0 mm, correlated 8-9 mm over 5 s, and the ground 3-30 m error 1.9-4.8x the white-noise run's;
-    white-noise runs measure 10 mm white, at most 3 mm correlated over under 1 s."""
-    if noise is None or noise.tau_s is None or noise.tau_s < CORRELATED_TAU_S or noise.sigma_corr_m < noise.sigma_white_m:
-        return None
-    return (f"RTK noise correlated over {noise.tau_s:.0f} s ({1000 * noise.sigma_corr_m:.0f} mm, white {1000 * noise.sigma_white_m:.0f} mm): "
-            "the points share their errors and say less than their number; expect a larger error than a white-noise flight "
-            ": hold longer, or fly again in better sky")
 
 
 def _offset_with_timing(offset: TimeOffset, timing: Timing, read: TrackRead, noise: FixNoise | None) -> TimeOffset:
