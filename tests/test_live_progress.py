@@ -248,3 +248,13 @@ def test_holds_whose_frames_left_the_ring_are_checked_after_landing_from_the_run
     assert sorted(o.seq for o in result.outcomes if o.good) == seqs  # every hold's marker found, from the file
     assert result.verdict.good and not result.verdict.refly_seqs
     assert result.estimate is not None and abs(result.estimate.focal_px - 560.0) < 0.03 * 560.0
+
+
+def test_a_scout_flight_never_asks_to_re_fly_the_waypoints_its_camera_does_not_see():
+    from dronecal_field.live.progress import scout_verdict
+
+    mission = _mission()
+    assert expected_seqs(mission, {"kind": "scout", "grid": [{"mission_seq": 4}]}) == []
+    v = scout_verdict([_outcome(4), _outcome(5, "marker not detected"), _outcome(6)])
+    assert v.good and v.refly_seqs == () and "seen at 2 of 3 waypoints" in v.text and "--from-run" in v.text
+    assert not scout_verdict([_outcome(4, "marker not detected")]).good

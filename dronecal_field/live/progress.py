@@ -418,8 +418,14 @@ def _grid_here(mission: Any, plan: dict | None) -> list[dict]:
 
 
 def expected_seqs(mission: Any, plan: dict | None) -> list[int]:
-    """The mission seqs that are measurement points: plan.json's grid, else every NAV_WAYPOINT with a hold."""
+    """The mission seqs that are measurement points: plan.json's grid, else every NAV_WAYPOINT with a hold.
+
+    A scout flight (plan.json ``kind: scout``) has none: its rows sweep wider than any camera sees, so the waypoints
+    a camera does not see are expected and never re-fly material."""
     from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT
+
+    if isinstance(plan, dict) and plan.get("kind") == "scout":
+        return []
 
     seqs = sorted({int(g["mission_seq"]) for g in _grid_here(mission, plan)})
     if seqs:
@@ -486,6 +492,15 @@ def verdict(outcomes: list[WaypointOutcome], expected: list[int], estimate: Live
     parts = [f"{', '.join(str(s) for s in seqs)} ({why})" for why, seqs in sorted(reasons.items(), key=lambda kv: min(kv[1]))]
     text = f"re-fly waypoints {'; '.join(parts)}" + f" — {detected}/{len(expected)} detected of {flown} flown" + ("; " + ", ".join(tail) if tail else "")
     return Verdict(False, text, refly)
+
+
+def scout_verdict(outcomes: list[WaypointOutcome]) -> Verdict:
+    """A scout flight's end: how many of its waypoints showed the marker, and what comes next (never a re-fly list)."""
+    seen = sorted({o.seq for o in outcomes if o.good})
+    if not seen:
+        return Verdict(False, "scout: the marker was never seen: check the camera's position and azimuth, then fly the scout again", ())
+    return Verdict(True, f"scout: the marker was seen at {len(seen)} of {len({o.seq for o in outcomes})} waypoints checked; "
+                         "plan the main flight from it: dronecal-field plan --from-run RUN.mcap --out DIR", ())
 
 
 def summary_line(outcomes: list[WaypointOutcome], expected: list[int], estimate: LiveEstimate | None, cover: float | None,

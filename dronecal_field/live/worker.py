@@ -62,6 +62,7 @@ from dronecal_field.live.progress import (
     live_leg_points,
     thin,
     pick_frames,
+    scout_verdict,
     plan_flight,
     solve,
     summary_line,
@@ -289,8 +290,11 @@ class LiveCalibration:
         unchecked = sorted({_event_seq(e) for e in pending if _event_seq(e) is not None})
         frames = self.frame_results()
         with self._lock:
-            v = verdict(self.outcomes, [s for s in self.expected if s not in unchecked], self.estimate, self.coverage, self.prior,
-                        plan_flight(self.mission, self.plan))
+            if isinstance(self.plan, dict) and self.plan.get("kind") == "scout":
+                v = scout_verdict(self.outcomes)
+            else:
+                v = verdict(self.outcomes, [s for s in self.expected if s not in unchecked], self.estimate, self.coverage, self.prior,
+                            plan_flight(self.mission, self.plan))
             result = LiveResult(
                 outcomes=list(self.outcomes), expected=list(self.expected), estimate=self.estimate, history=list(self.history),
                 verdict=v, coverage=self.coverage, offset=self.offset, jobs_dropped=self.jobs_dropped,
