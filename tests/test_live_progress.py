@@ -258,3 +258,57 @@ def test_a_scout_flight_never_asks_to_re_fly_the_waypoints_its_camera_does_not_s
     v = scout_verdict([_outcome(4), _outcome(5, "marker not detected"), _outcome(6)])
     assert v.good and v.refly_seqs == () and "seen at 2 of 3 waypoints" in v.text and "--from-run" in v.text
     assert not scout_verdict([_outcome(4, "marker not detected")]).good
+
+
+def test_the_zone_pass_decodes_h264_access_units_in_stream_order_and_caches_them_for_calibrate():
+    """Issue 22: live detection on compressed video. H.264 (GOP of 10, the marker moving 1 px a frame): a hold's zone
+    is decoded in flight from the keyframe before it, every access unit in it detected once and covered, so calibrate
+    takes those outcomes instead of decoding the file again; units before the first keyframe are left to calibrate."""
+    import time
+
+    import av
+    import cv2
+
+    from dronecal_field.pipeline.sampling import SamplingOptions
+    from dronecal_field.video.nal import VideoFrame, is_keyframe
+    from test_mavlink_support import marker_jpeg
+
+    gray = cv2.imdecode(np.frombuffer(marker_jpeg(640, 480), np.uint8), cv2.IMREAD_GRAYSCALE)
+    enc = av.CodecContext.create("libx264", "w")
+    enc.width, enc.height, enc.pix_fmt, enc.gop_size = 640, 480, "yuv420p", 10
+    enc.options = {"bframes": "0", "repeat-headers": "1", "tune": "zerolatency"}
+    enc.time_base = Fraction(1, 15)
+    data = []
+    for k in range(90):
+        img = av.VideoFrame.from_ndarray(np.dstack([np.roll(gray, k, axis=1)] * 3), format="bgr24").reformat(format="yuv420p")
+        img.pts = k
+        data += [bytes(p) for p in enc.encode(img)]
+    data += [bytes(p) for p in enc.encode(None)]
+    t0, dt = 1_700_000_000_000_000_000, 66_666_667
+    units = [VideoFrame(timestamp_ns=t0 + k * dt, format="h264", data=d, keyframe=is_keyframe(d, "h264")) for k, d in enumerate(data)]
+    marker = MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.4)
+    live = LiveCalibration(_mission(), marker, 640, 480).start()
+    for unit in units[3:8]:  # the stream joined mid-GOP: the ring's first keyframe is unit 10
+        live.on_frame(unit)
+    for unit in units[10:90]:
+        live.on_frame(unit)
+    hold = (t0 + 2 * 1_000_000_000, t0 + 3 * 1_000_000_000)  # units 30-45, its zone widened by calibrate's margins
+    live.on_record(RunEvent(timestamp_ns=hold[0], duration_ns=hold[1] - hold[0], type="hover", metadata={"seq": "4"}))
+    deadline = time.monotonic() + 120
+    s = SamplingOptions()
+    widen = int((s.margin_s + s.dense_s) * 1e9)
+    in_zone = [u.timestamp_ns for u in units[3:8] + units[10:90] if hold[0] - widen <= u.timestamp_ns <= hold[1] + widen]
+    while time.monotonic() < deadline and not all(t in live._outcomes for t in in_zone if t >= units[10].timestamp_ns):
+        time.sleep(0.05)
+    result = live.finish(timeout_s=30.0)
+    cache = result.frames
+    assert cache is not None and cache.formats == ("h264",)
+    in_zone = [t for t in in_zone if t >= units[10].timestamp_ns]  # before the first keyframe: left to calibrate
+    assert cache.t_ns.tolist() == in_zone  # each access unit of the zone once, nothing outside it
+    found = [r.detection for r in cache.results if r is not None and r.detection is not None]
+    assert len(found) == len(in_zone)
+    # the marker moves 1 px a frame: each detection sits at its unit's shift from the first
+    k = np.round((cache.t_ns - t0) / dt).astype(int)
+    u = np.array([d.u_px for d in found])
+    assert np.allclose(u - u[0], k - k[0], atol=0.5)
+    assert len(cache.covered) == 1 and cache.covered[0][0] <= in_zone[0] and cache.covered[0][1] >= in_zone[-1]

@@ -575,7 +575,8 @@ class LiveCalibration:
             done += 1
         newest = frames[-1].timestamp_ns if frames else None
         for zone in list(self._zones):
-            if newest is not None and newest > zone[1] and all(f.timestamp_ns in self._outcomes for f in frames if zone[0] <= f.timestamp_ns <= zone[1]):
+            if newest is not None and newest > zone[1] and all(f.timestamp_ns in self._outcomes or f.timestamp_ns <= self._evicted_undone_ns
+                                                               for f in frames if zone[0] <= f.timestamp_ns <= zone[1]):
                 self._zones.remove(zone)
                 self._cover(zone[0], zone[1])
         return done
@@ -632,8 +633,8 @@ class LiveCalibration:
         for a, b in self._zones:
             last = None
             for f in frames:
-                if f.timestamp_ns < a:
-                    continue
+                if f.timestamp_ns < a or f.timestamp_ns <= self._evicted_undone_ns:
+                    continue  # before the zone, or left to calibrate (the cover starts after it)
                 if f.timestamp_ns > b or f.timestamp_ns not in self._outcomes:
                     break
                 last = f.timestamp_ns

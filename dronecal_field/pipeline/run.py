@@ -524,6 +524,18 @@ def _find_legs(run, track: Track, windows: list[HoverWindow], options: Calibrate
     return legs, ("gnss_track" if legs else "none")
 
 
+def _one_image(run, t_ns: int):
+    """(H, W) grey image of the frame stamped ``t_ns`` (an access unit decoded from its keyframe), or None."""
+    from dronecal_field.pipeline.detect import FrameDecoder, decode_gray
+
+    if not run.video:
+        return next((decode_gray(f.data) for f in run.iter_frames([(t_ns, t_ns)])), None)
+    decoder = FrameDecoder()
+    for frame in run.iter_frames([(t_ns, t_ns)]):
+        decoder.push(frame)
+    return decoder.gray()
+
+
 def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, sampling: SamplingOptions, live=None) -> Detections:
     """Stage 3: one pass over the frames of the windows and the legs: the marker's detections.
 
@@ -546,8 +558,6 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
             raise ContractError(
                 f"marker.dictionary {marker.dictionary!r} is not an OpenCV ArUco dictionary: use a name like DICT_4X4_50"
             ) from None
-    if run.video:
-        live = None  # the live pass keeps no outcomes of access units (docs/live.md)
     detections: list[Detection] = []
     groups: list[int] = []
     read = decoded = corrupt = found = from_live = 0
@@ -612,7 +622,7 @@ def _detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, samplin
     if background is None and live is not None and detections:
         # every detection came from the live pass: the report's figure still needs one frame with the marker
         t = detections[-1].timestamp_ns
-        background = next((decode_gray(f.data) for f in run.iter_frames([(t, t)])), None)
+        background = _one_image(run, t)
     stats = FrameStats(
         frames_read=read,
         frames_decoded=decoded,
