@@ -32,6 +32,20 @@ def planned_speed(run) -> float | None:
     return min(speeds) if speeds else None
 
 
+def vehicle_clock_rate(run) -> float:
+    """Vehicle seconds per run second, from the recorder's events (``vehicle_clock_rate``): a sped-up simulator's
+    rate, so that its 1 s holds and 0.5 m/s legs are not taken for 0.3 s and 1.5 m/s; 1 when no event says."""
+    rates = []
+    for event in run.iter_events():
+        try:
+            rate = float(event.metadata.get("vehicle_clock_rate", "nan"))
+        except (TypeError, ValueError):
+            continue
+        if np.isfinite(rate) and 0.01 < rate < 1000:
+            rates.append(rate)
+    return float(np.median(rates)) if rates else 1.0
+
+
 def flight_against_plan(read, windows: list[HoverWindow], legs: list[Leg]) -> list[str]:
     """How the flight differs from its plan where that costs points: legs flown faster, holds cut short.
 
@@ -45,12 +59,12 @@ def flight_against_plan(read, windows: list[HoverWindow], legs: list[Leg]) -> li
         on = np.zeros(len(track.t_ns), bool)
         for g in legs:
             on |= (track.t_ns >= g.start_ns) & (track.t_ns <= g.end_ns)
-        flown = float(np.nanmedian(speed[on])) if np.any(on & np.isfinite(speed)) else None
+        flown = float(np.nanmedian(speed[on])) / read.vehicle_clock_rate if np.any(on & np.isfinite(speed)) else None
         if flown is not None and flown > 1.5 * read.planned_speed_mps:
             out.append(f"the legs were flown at {flown:.2g} m/s where the plan said {read.planned_speed_mps:.2g} m/s")
     if read.holds and windows:
         planned = np.array([read.holds[w.seq] for w in windows if w.seq in read.holds and read.holds[w.seq] > 0])
-        flown = np.array([w.duration_s for w in windows if w.seq in read.holds and read.holds[w.seq] > 0])
+        flown = np.array([w.duration_s * read.vehicle_clock_rate for w in windows if w.seq in read.holds and read.holds[w.seq] > 0])
         if len(planned) and np.median(flown) < 0.6 * np.median(planned):
             out.append(f"the holds lasted {np.median(flown):.1f} s where the plan said {np.median(planned):.1f} s")
     return out

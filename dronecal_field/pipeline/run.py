@@ -27,7 +27,7 @@ import numpy as np
 from dronecal_field.errors import CalibrationError, ContractError, DegenerateGeometryError, DronecalError, InputError
 from dronecal_field.geodesy import EnuOrigin, geodetic_to_enu
 from dronecal_field.pipeline.agreement import AGREES, merged
-from dronecal_field.pipeline.asflown import correlated_noise, flight_against_plan, planned_speed
+from dronecal_field.pipeline.asflown import correlated_noise, flight_against_plan, planned_speed, vehicle_clock_rate
 from dronecal_field.pipeline.align import TimeOffset, Timing, estimate_time_offset, refine_timing
 from dronecal_field.pipeline.detect import Detection, centres_under_distortion
 from dronecal_field.pipeline.fixes import DistinctFixes, distinct_fixes
@@ -224,6 +224,7 @@ class TrackRead:
     warnings: list[str]
     plan_roi: object | None = None  # validity.PlanRoi of the plan.json attached to the run, in this ENU frame
     planned_speed_mps: float | None = None  # the mission.plan's DO_CHANGE_SPEED (the slowest, where it changes)
+    vehicle_clock_rate: float = 1.0  # vehicle seconds per run second (a sped-up simulator's; 1 for a real vehicle)
 
 
 @dataclass(frozen=True, eq=False)
@@ -363,7 +364,7 @@ def _read_track(run, path: Path, options: CalibrateOptions) -> TrackRead:
     return TrackRead(
         track=track, identity=identity, gnss_latency_s=latency, origin=origin, origin_source=origin_source,
         attitude=attitude, attitude_source=attitude_source, offset_frd_m=offset_frd, holds=holds, warnings=warnings,
-        plan_roi=plan_roi, planned_speed_mps=planned_speed(run),
+        plan_roi=plan_roi, planned_speed_mps=planned_speed(run), vehicle_clock_rate=vehicle_clock_rate(run),
     )
 
 
