@@ -187,6 +187,8 @@ def test_ctrl_c_finalises_the_file_and_commands_nothing(tmp_path, camera):
     proc = subprocess.Popen(
         [sys.executable, "-m", "dronecal_field", *_fly_args(sim.addresses()[0], plan, camera, out, "--start")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
+        # Ctrl-C as at a terminal: a test run started in the background (nohup, &) inherits SIGINT ignored
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         assert wait_until(lambda: any(m.seq == 4 for _, m in rec.of("MISSION_ITEM_REACHED")), 40)

@@ -314,6 +314,7 @@ def test_parse_iso8601():
         parse_iso8601_ns("yesterday")
 
 
+@needs_replays
 @pytest.mark.parametrize("fmt,ext", [("h265", "mkv")])  # H.264 in MP4 (avcC): tests/test_video_packets.py
 def test_import_of_an_nvr_export_writes_camera_video_without_reencoding(tmp_path, capsys, fmt, ext):
     from test_video_packets import encode_clip
