@@ -127,13 +127,11 @@ def test_sim_camera_refuses_bad_hide_marker_seqs_in_one_line(text, capsys):
     assert rc == 2 and "--hide-marker-at" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
-def test_h264_access_units_are_decoded_from_their_keyframe_and_the_marker_found():
-    """A /camera/video stream (H.264, GOP of 10): the live detector decodes from the keyframe before the picked frames."""
+def moving_marker_h264(n: int, t0_ns: int, dt_ns: int) -> list:
+    """``n`` H.264 access units (GOP of 10, no B-frames, 640x480) of the marker moving 1 px a frame, stamped t0 + k dt."""
     import av
     import cv2
 
-    from dronecal_field.live.progress import detect_in_frames, pick_frames
-    from dronecal_field.pipeline.detect import make_aruco_detector
     from dronecal_field.video.nal import VideoFrame, is_keyframe
     from test_mavlink_support import marker_jpeg
 
@@ -141,14 +139,23 @@ def test_h264_access_units_are_decoded_from_their_keyframe_and_the_marker_found(
     enc = av.CodecContext.create("libx264", "w")
     enc.width, enc.height, enc.pix_fmt, enc.gop_size = 640, 480, "yuv420p", 10
     enc.options = {"bframes": "0", "repeat-headers": "1", "tune": "zerolatency"}
-    enc.time_base = Fraction(1, 30)
-    units = []
-    for k in range(25):
+    enc.time_base = Fraction(dt_ns, 1_000_000_000)
+    data = []
+    for k in range(n):
         img = av.VideoFrame.from_ndarray(np.dstack([np.roll(gray, k, axis=1)] * 3), format="bgr24").reformat(format="yuv420p")
         img.pts = k
-        units += [bytes(p) for p in enc.encode(img)]
-    units += [bytes(p) for p in enc.encode(None)]
-    stream = [VideoFrame(timestamp_ns=k * 33_333_333, format="h264", data=d, keyframe=is_keyframe(d, "h264")) for k, d in enumerate(units)]
+        data += [bytes(p) for p in enc.encode(img)]
+    data += [bytes(p) for p in enc.encode(None)]
+    return [VideoFrame(timestamp_ns=t0_ns + k * dt_ns, format="h264", data=d, keyframe=is_keyframe(d, "h264")) for k, d in enumerate(data)]
+
+
+def test_h264_access_units_are_decoded_from_their_keyframe_and_the_marker_found():
+    """A /camera/video stream (H.264, GOP of 10): the live detector decodes from the keyframe before the picked frames."""
+    from dronecal_field.live.progress import detect_in_frames, pick_frames
+    from dronecal_field.pipeline.detect import make_aruco_detector
+    from test_mavlink_support import marker_jpeg
+
+    stream = moving_marker_h264(25, 0, 33_333_333)
     assert [f.keyframe for f in stream].count(True) == 3
     picked = pick_frames(stream, 13 * 33_333_333, 18 * 33_333_333, 3)  # inside the second GOP, after its keyframe
     marker = MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.3)
@@ -266,26 +273,10 @@ def test_the_zone_pass_decodes_h264_access_units_in_stream_order_and_caches_them
     takes those outcomes instead of decoding the file again; units before the first keyframe are left to calibrate."""
     import time
 
-    import av
-    import cv2
-
     from dronecal_field.pipeline.sampling import SamplingOptions
-    from dronecal_field.video.nal import VideoFrame, is_keyframe
-    from test_mavlink_support import marker_jpeg
 
-    gray = cv2.imdecode(np.frombuffer(marker_jpeg(640, 480), np.uint8), cv2.IMREAD_GRAYSCALE)
-    enc = av.CodecContext.create("libx264", "w")
-    enc.width, enc.height, enc.pix_fmt, enc.gop_size = 640, 480, "yuv420p", 10
-    enc.options = {"bframes": "0", "repeat-headers": "1", "tune": "zerolatency"}
-    enc.time_base = Fraction(1, 15)
-    data = []
-    for k in range(90):
-        img = av.VideoFrame.from_ndarray(np.dstack([np.roll(gray, k, axis=1)] * 3), format="bgr24").reformat(format="yuv420p")
-        img.pts = k
-        data += [bytes(p) for p in enc.encode(img)]
-    data += [bytes(p) for p in enc.encode(None)]
     t0, dt = 1_700_000_000_000_000_000, 66_666_667
-    units = [VideoFrame(timestamp_ns=t0 + k * dt, format="h264", data=d, keyframe=is_keyframe(d, "h264")) for k, d in enumerate(data)]
+    units = moving_marker_h264(90, t0, dt)
     marker = MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.4)
     live = LiveCalibration(_mission(), marker, 640, 480).start()
     for unit in units[3:8]:  # the stream joined mid-GOP: the ring's first keyframe is unit 10
