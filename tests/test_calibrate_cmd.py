@@ -75,3 +75,10 @@ def test_nonsense_options_are_refused_in_one_line(small_run, tmp_path, flag, val
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert proc.stderr.count("\n") == 1 and names in proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_calibrate_refuses_an_absurd_number_of_trials_before_reading_the_run(tmp_path):
+    """Issue 21: `calibrate --trials 100000000` ran on; it is refused in one line before any run is opened."""
+    proc = run_cli("calibrate", str(tmp_path / "absent.mcap"), "--trials", "100000000")
+    assert proc.returncode == 2 and "--trials" in proc.stderr and "outside [0, 100000]" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr

@@ -138,6 +138,7 @@ def _check_flags(args: argparse.Namespace) -> None:
 
     check_seed("--seed", args.seed)
     check_number("--settle-s", args.settle_s, 0, 60, hint="give the seconds left out at the start of each hold, e.g. 1")
+    check_number("--trials", args.trials, 0, 100_000, hint="give the Monte-Carlo trials, e.g. 500 (the paper's k), or 0 to skip it")
     if args.workers is not None and args.workers < 0:
         raise InputError(f"--workers {args.workers} is negative: give a number of worker processes (0 runs them in this process)")
     if args.scheduler is not None:
