@@ -277,7 +277,7 @@ def test_a_server_restart_mid_stream_is_one_gap_event_and_the_stamps_stay_on_one
     gap = gaps[0]
     assert stamps[jump] < gap.timestamp_ns < stamps[jump + 1] <= gap.timestamp_ns + gap.duration_ns
     others = sorted(steps[:jump] + steps[jump + 1:])
-    assert 1_000_000_000 < steps[jump] < 15_000_000_000
+    assert 80_000_000 < steps[jump] < 15_000_000_000  # the restart: more than two frames (a quick server was back in 0.17 s)
     # The new session's first frames are stamped on the RTCP clock by the delay measured before its first report
     # (bridged), then by its own reports: the hand-over moves a stamp by a few ms at most.
     assert source.frames_bridged > 0 and len(source.bridge_errors_ns) == 1
