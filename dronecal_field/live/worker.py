@@ -584,7 +584,6 @@ class LiveCalibration:
     def _video_step(self, unit: Any) -> int:
         """One H.264/H.265 access unit of the ring, in stream order: pushed to the zone pass's decoder (cheap: a GOP
         with nothing wanted is never decoded) and, inside a zone, decoded and detected. 1 when it was detected."""
-        from dronecal_field.pipeline.detect import detect_marker
         from dronecal_field.video.decode import VideoFrameDecoder
         from dronecal_field.video.nal import video_frame_of
 
@@ -602,23 +601,8 @@ class LiveCalibration:
             # no keyframe before it in what the ring held (or a damaged unit): calibrate decodes it from the file
             self._evicted_undone_ns = max(self._evicted_undone_ns, t)
             return 0
-        last = self._last_det
-        roi = None
-        if last is not None and abs(t - last.timestamp_ns) < self._track_ns():
-            from dronecal_field.pipeline.detect import predicted, roi_around
-
-            roi = roi_around(predicted(last, self._before_det, t), image.shape)
-        result = detect_marker(image, self.marker, self._detector, t, roi)
-        if result.detection is not None:
-            self._before_det, self._last_det = last, result.detection
-        self._outcomes[t] = result
+        self._outcomes[t] = self._detect_tracked(image, t)
         return 1
-
-    @staticmethod
-    def _track_ns() -> int:
-        from dronecal_field.pipeline.detect import TRACK_NS
-
-        return TRACK_NS
 
     def _cover(self, a: int, b: int) -> None:
         """[a, b] had every ring frame detected, except those the ring evicted first: covered after the last of them."""
@@ -644,22 +628,27 @@ class LiveCalibration:
 
     def _detect_one(self, frame: Any) -> Any:
         """calibrate's search on one JPEG/PNG frame (its tracking box from the last detection); kept by stamp."""
-        from dronecal_field.pipeline.detect import TRACK_NS, decode_gray, detect_marker, predicted, roi_around
+        from dronecal_field.pipeline.detect import decode_gray
 
         t = frame.timestamp_ns
         if t in self._outcomes:
             return self._outcomes[t]
         image = decode_gray(frame.data)
-        result = None
-        if image is not None:
-            last = self._last_det
-            roi = None
-            if last is not None and abs(t - last.timestamp_ns) < TRACK_NS:
-                roi = roi_around(predicted(last, self._before_det, t), image.shape)
-            result = detect_marker(image, self.marker, self._detector, t, roi)
-            if result.detection is not None and (last is None or t > last.timestamp_ns):
-                self._before_det, self._last_det = last, result.detection
+        result = None if image is None else self._detect_tracked(image, t)
         self._outcomes[t] = result
+        return result
+
+    def _detect_tracked(self, image: np.ndarray, t: int) -> Any:
+        """calibrate's search on a decoded (H, W) image stamped ``t``, boxed by the zone pass's last detections."""
+        from dronecal_field.pipeline.detect import TRACK_NS, detect_marker, predicted, roi_around
+
+        last = self._last_det
+        roi = None
+        if last is not None and abs(t - last.timestamp_ns) < TRACK_NS:
+            roi = roi_around(predicted(last, self._before_det, t), image.shape)
+        result = detect_marker(image, self.marker, self._detector, t, roi)
+        if result.detection is not None and (last is None or t > last.timestamp_ns):
+            self._before_det, self._last_det = last, result.detection
         return result
 
     def _detect_picked(self, picked: list, frames: list) -> list:
