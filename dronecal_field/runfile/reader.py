@@ -22,6 +22,7 @@ import io
 import json
 import math
 import os
+import re
 import stat
 import struct
 import zlib
@@ -32,6 +33,7 @@ from typing import Any, Callable, Iterable, Iterator
 from dronecal_field.errors import ContractError
 from dronecal_field.runfile import messages as pm
 from dronecal_field.runfile.records import (
+    CAMERA_NAME_PATTERN,
     CUT_METADATA_NAME,
     RUN_METADATA_NAME,
     SITE_METADATA_NAME,
@@ -51,6 +53,15 @@ REQUIRED_TOPICS = {pm.IMAGE_TOPIC: pm.IMAGE_SCHEMA, pm.FIX_TOPIC: pm.FIX_SCHEMA}
 # ... where /camera/video (the camera's H.264/H.265 stream) may stand in for /camera/image.
 CAMERA_TOPICS = {pm.IMAGE_TOPIC: pm.IMAGE_SCHEMA, pm.VIDEO_TOPIC: pm.VIDEO_SCHEMA}
 OPTIONAL_TOPICS = {pm.ATTITUDE_TOPIC: pm.ATTITUDE_SCHEMA, pm.EVENTS_TOPIC: pm.EVENT_SCHEMA}
+# A several-camera run: /cameras/<name>/image or /cameras/<name>/video per camera, instead of /camera/...
+CAMERAS_PREFIX = "/cameras/"
+_CAMERA_TOPIC = re.compile(r"/cameras/(?P<name>[^/]*)/(?P<kind>image|video)\Z")
+CAMERA_KIND_SCHEMAS = {"image": pm.IMAGE_SCHEMA, "video": pm.VIDEO_SCHEMA}
+
+
+def camera_topic_of(name: str, kind: str = "image") -> str:
+    """The topic of camera ``name`` in a several-camera run: ``/cameras/<name>/image`` (or ``video``)."""
+    return f"{CAMERAS_PREFIX}{name}/{kind}"
 
 # Frames are selected by MCAP log time first (cheap, per chunk), then by the
 # message's own timestamp. A writer whose log time lags capture by more than
@@ -83,12 +94,15 @@ class _Channel:
     schema_encoding: str
 
 
-def open_run(path: str | os.PathLike) -> "Run":
+def open_run(path: str | os.PathLike, camera: str | None = None) -> "Run":
     """Open and check a run file; use as a context manager.
 
     Parameters
     ----------
     path : the .mcap run file.
+    camera : in a several-camera run (``/cameras/<name>/...``), the camera whose frames
+        ``iter_frames`` reads and whose size and latency ``metadata`` carries; None: the
+        first of metadata ``cameras``. Must be None for a one-camera run.
 
     Returns
     -------
@@ -108,7 +122,7 @@ def open_run(path: str | os.PathLike) -> "Run":
     >>> with open_run("run.mcap") as run:          # doctest: +SKIP
     ...     for fix in run.iter_fixes(): ...
     """
-    return Run(path)
+    return Run(path, camera)
 
 
 class Run:
@@ -128,10 +142,12 @@ class Run:
         much of the file a windowed read touched.
     """
 
-    def __init__(self, path: str | os.PathLike) -> None:
+    def __init__(self, path: str | os.PathLike, camera: str | None = None) -> None:
         from dronecal_field.errors import InputError
 
         self.path = Path(path)
+        self._want_camera = camera
+        self.camera_topics: dict[str, str] = {}  # camera name -> its topic, in a several-camera run
         self._name = self.path.name
         try:
             mode = os.stat(self.path).st_mode
@@ -235,7 +251,17 @@ class Run:
     @property
     def video(self) -> bool:
         """True when the frames are the camera's H.264/H.265 stream (``/camera/video``), not images."""
-        return self.camera_topic == pm.VIDEO_TOPIC
+        return self.camera_topic.endswith("/video")
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        """Names of the cameras of a several-camera run, in metadata order; () for a one-camera run."""
+        return tuple(self.camera_topics)
+
+    @property
+    def camera(self) -> str | None:
+        """The camera this Run reads frames of in a several-camera run; None in a one-camera run."""
+        return self.metadata.camera_name
 
     def iter_frames(self, windows: list[tuple[int, int]] | None = None) -> Iterator[Frame]:
         """Video frames of ``/camera/image`` (or the access units of ``/camera/video``) in log-time order.
@@ -448,16 +474,18 @@ class Run:
         """Metadata camera.width/height against the first frame's own size: the frames win, with a warning."""
         from dataclasses import replace
 
-        if self.camera_topic != pm.IMAGE_TOPIC or self.metadata.width is None:
+        topic = self.camera_topic
+        if topic.endswith("/video") or self.metadata.width is None:
             return
-        for _, data, log_time in self._iter_topic({pm.IMAGE_TOPIC}):
-            frame = self._decode(pm.IMAGE_TOPIC, pm.frame_from_bytes, data, log_time)
+        for _, data, log_time in self._iter_topic({topic}):
+            frame = self._decode(topic, pm.frame_from_bytes, data, log_time)
             if frame is None:
                 continue
             size = image_size(frame.data)
             if size is not None and size != (self.metadata.width, self.metadata.height):
+                key = "camera.width x height" if self.camera is None else f"camera.{self.camera}.width x height"
                 self.warnings.append(
-                    f"metadata camera.width x height = {self.metadata.width}x{self.metadata.height} but the frames are "
+                    f"metadata {key} = {self.metadata.width}x{self.metadata.height} but the frames are "
                     f"{size[0]}x{size[1]}: the frames' size is used (fix the writer's metadata)")
                 self.metadata = replace(self.metadata, width=size[0], height=size[1])
             return
@@ -592,16 +620,26 @@ class Run:
                 "format_version, camera.width/height and marker.* (docs/runfile.md)"
             )
         metadata = RunMetadata.from_mcap_metadata(run_md, self._metadata.get(SITE_METADATA_NAME), source=self._name)
+        self._listed = metadata.camera_names()
         if not self._has_camera() or not self._has_topic(pm.FIX_TOPIC):
             self._discover_channels()
-        if self._has_topic(pm.IMAGE_TOPIC) and self._has_topic(pm.VIDEO_TOPIC):
+        if metadata.cameras or any(c.topic.startswith(CAMERAS_PREFIX) for c in self._channels.values()):
+            metadata = self._check_cameras(metadata, cut)
+        elif self._want_camera is not None:
+            from dronecal_field.errors import InputError
+
+            raise InputError(f"{self._name} is a one-camera run (/camera/...): it has no camera {self._want_camera!r}; leave the camera out")
+        if not self.camera_topics and self._has_topic(pm.IMAGE_TOPIC) and self._has_topic(pm.VIDEO_TOPIC):
             raise ContractError(
                 f"{self._name}: both '{pm.IMAGE_TOPIC}' and '{pm.VIDEO_TOPIC}'; a run has one camera topic: "
                 "write the frames to one of them"
             )
-        camera = pm.VIDEO_TOPIC if self._has_topic(pm.VIDEO_TOPIC) else pm.IMAGE_TOPIC
-        self.camera_topic = camera
-        for topic in (camera, pm.FIX_TOPIC):
+        if self.camera_topics:
+            camera = self.camera_topic
+        else:
+            camera = pm.VIDEO_TOPIC if self._has_topic(pm.VIDEO_TOPIC) else pm.IMAGE_TOPIC
+            self.camera_topic = camera
+        for topic in ([] if self.camera_topics else [camera]) + [pm.FIX_TOPIC]:
             schema = CAMERA_TOPICS.get(topic) or REQUIRED_TOPICS[topic]
             channels = [c for c in self._channels.values() if c.topic == topic]
             if not channels:
@@ -629,6 +667,62 @@ class Run:
             self.warnings.append(f"the recording stopped early ({self.recording_stopped}): the run ends there")
         return metadata
 
+    def _check_cameras(self, metadata: RunMetadata, cut: str) -> RunMetadata:
+        """A several-camera run: each listed camera has one topic of the contract's schema, nothing else; the
+        metadata of the chosen camera (``open_run(camera=...)``, else the first)."""
+        from dronecal_field.errors import InputError
+
+        single = [t for t in (pm.IMAGE_TOPIC, pm.VIDEO_TOPIC) if self._has_topic(t)]
+        multi = sorted({c.topic for c in self._channels.values() if c.topic.startswith(CAMERAS_PREFIX)})
+        if single and (multi or metadata.cameras):
+            what = f"topics {multi[0]} and {single[0]}" if multi else f"metadata 'cameras' and topic {single[0]}"
+            raise ContractError(
+                f"{self._name}: {what}: a run has either one camera on /camera/... or several on /cameras/<name>/..., "
+                "not both: write every camera under /cameras/<name>/ (and list it in 'cameras')"
+            )
+        if not metadata.cameras:
+            raise ContractError(
+                f"{self._name}: topic {multi[0]} but the '{RUN_METADATA_NAME}' metadata has no 'cameras': list the camera "
+                "names (comma separated) with camera.<name>.width/height for each"
+            )
+        topics: dict[str, list[str]] = {}
+        for topic in multi:
+            m = _CAMERA_TOPIC.match(topic)
+            if m is None or not re.fullmatch(CAMERA_NAME_PATTERN, m["name"]):
+                raise ContractError(
+                    f"{self._name}: topic {topic!r} is not /cameras/<name>/image or /cameras/<name>/video with a name of "
+                    "1-32 of a-z, 0-9, '_', '-': rename the camera"
+                )
+            if m["name"] not in self._listed:
+                raise ContractError(
+                    f"{self._name}: topic {topic} is of camera {m['name']!r}, which metadata 'cameras' "
+                    f"({', '.join(self._listed)}) does not list: add it to 'cameras' with its camera.{m['name']}.width/height"
+                )
+            topics.setdefault(m["name"], []).append(topic)
+        for name in self._listed:
+            have = topics.get(name, [])
+            if not have:
+                raise ContractError(
+                    f"{self._name}: camera {name!r} is listed in 'cameras' but has no topic {camera_topic_of(name)} or "
+                    f"{camera_topic_of(name, 'video')}{cut}: record its frames, or leave it out of 'cameras'"
+                )
+            if len(have) > 1:
+                raise ContractError(f"{self._name}: camera {name!r} has both {have[0]} and {have[1]}: write its frames to one of them")
+            kind = _CAMERA_TOPIC.match(have[0])["kind"]
+            schema = CAMERA_KIND_SCHEMAS[kind]
+            for c in self._channels.values():
+                if c.topic == have[0] and (c.schema_name != schema or c.message_encoding != "protobuf"):
+                    raise ContractError(
+                        f"{self._name}: topic '{c.topic}' has schema '{c.schema_name}' ({c.message_encoding or 'no'} encoding); "
+                        f"the contract needs '{schema}' in protobuf"
+                    )
+            self.camera_topics[name] = have[0]
+        name = self._want_camera if self._want_camera is not None else self._listed[0]
+        if name not in self.camera_topics:
+            raise InputError(f"{self._name} has no camera {name!r}: its cameras are {', '.join(self._listed)}")
+        self.camera_topic = self.camera_topics[name]
+        return metadata.for_camera(name)
+
     def _discover_channels(self) -> None:
         """Decompress units in file order until the channels of GNSS fixes and a camera topic are known."""
         for unit in sorted(self._units, key=lambda u: u.offset):
@@ -637,13 +731,20 @@ class Run:
                 return
 
     def _has_camera(self) -> bool:
+        """A camera topic is known: /camera/..., or in a several-camera run one for each listed camera."""
+        listed = getattr(self, "_listed", ())
+        if listed:
+            known = {c.topic for c in self._channels.values()}
+            return all(camera_topic_of(n) in known or camera_topic_of(n, "video") in known for n in listed)
         return self._has_topic(pm.IMAGE_TOPIC) or self._has_topic(pm.VIDEO_TOPIC)
 
     def _has_topic(self, topic: str) -> bool:
         return any(c.topic == topic for c in self._channels.values())
 
     def _good_channel(self, c: _Channel) -> bool:
-        schema = REQUIRED_TOPICS.get(c.topic) or CAMERA_TOPICS.get(c.topic) or OPTIONAL_TOPICS.get(c.topic)
+        m = _CAMERA_TOPIC.match(c.topic) if c.topic.startswith(CAMERAS_PREFIX) else None
+        schema = (REQUIRED_TOPICS.get(c.topic) or CAMERA_TOPICS.get(c.topic) or OPTIONAL_TOPICS.get(c.topic)
+                  or (CAMERA_KIND_SCHEMAS[m["kind"]] if m else None))
         return schema is None or (c.schema_name == schema and c.message_encoding == "protobuf")
 
     # -- unit reading --------------------------------------------------------

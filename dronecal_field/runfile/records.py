@@ -6,7 +6,8 @@ Every timestamp is integer nanoseconds UTC on the run clock
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import re
+from dataclasses import dataclass, field, replace
 from typing import Any, Mapping
 
 import numpy as np
@@ -36,7 +37,22 @@ _KNOWN_KEYS = (
     "marker.size_m",
     "marker.offset_frd_m",
     "gnss.altitude_datum",
+    "cameras",
 )
+
+# A camera of a several-camera run (its topics /cameras/<name>/image|video), as the contract spells it.
+CAMERA_NAME_PATTERN = r"[a-z0-9][a-z0-9_-]{0,31}"
+_CAMERA_NAME = re.compile(CAMERA_NAME_PATTERN + r"\Z")
+_CAMERA_KEY = re.compile(r"camera\.(?P<name>[^.]+)\.(?P<key>width|height|latency_s|clock)\Z")
+
+
+def check_camera_name(name: str, where: str = "run.mcap") -> str:
+    """``name`` when it is a contract camera name (``[a-z0-9][a-z0-9_-]{0,31}``); ContractError naming it otherwise."""
+    if not _CAMERA_NAME.match(name):
+        raise ContractError(
+            f"{where}: camera name {name!r} is not a contract name: use 1-32 of a-z, 0-9, '_', '-', starting with a letter or digit"
+        )
+    return name
 
 
 @dataclass(frozen=True)
@@ -61,6 +77,25 @@ class MarkerSpec:
 
 
 @dataclass(frozen=True)
+class CameraMeta:
+    """One camera of a several-camera run (metadata ``camera.<name>.*``).
+
+    Attributes
+    ----------
+    name : the camera's name, its topic ``/cameras/<name>/image`` or ``/cameras/<name>/video``.
+    width, height : image size, pixels.
+    latency_s : capture-to-stamp latency of its frames, seconds; None when unknown.
+    clock : how its frames were stamped (``camera.<name>.clock``, e.g. ``rtcp`` or ``arrival``), None when not said.
+    """
+
+    name: str
+    width: int
+    height: int
+    latency_s: float | None = None
+    clock: str | None = None
+
+
+@dataclass(frozen=True)
 class RunMetadata:
     """The ``dronecal.run`` metadata record (plus ``dronecal.site`` when known).
 
@@ -75,6 +110,10 @@ class RunMetadata:
         stamped at the host on arrival, seconds; None when unknown.
     site_origin : ENU origin for reports (metadata ``dronecal.site``), or None.
     extra : further string keys of ``dronecal.run``, kept verbatim.
+    cameras : the cameras of a several-camera run, in the order of metadata ``cameras``; () for a
+        one-camera run (``/camera/...``). ``width``, ``height`` and ``camera_latency_s`` are then
+        those of ``camera_name`` (the first camera unless :meth:`for_camera` chose another).
+    camera_name : the camera this metadata describes in a several-camera run, else None.
     """
 
     format_version: int
@@ -85,6 +124,25 @@ class RunMetadata:
     camera_latency_s: float | None = None
     site_origin: EnuOrigin | None = None
     extra: dict[str, str] = field(default_factory=dict)
+    cameras: tuple[CameraMeta, ...] = ()
+    camera_name: str | None = None
+
+    def camera_names(self) -> tuple[str, ...]:
+        """Names of the cameras of a several-camera run, in order; () for a one-camera run."""
+        return tuple(c.name for c in self.cameras)
+
+    def for_camera(self, name: str) -> "RunMetadata":
+        """This metadata as one camera of a several-camera run sees it (its size and latency).
+
+        Raises
+        ------
+        InputError : ``name`` is not a camera of the run (names the ones it has)
+        """
+        for c in self.cameras:
+            if c.name == name:
+                return replace(self, width=c.width, height=c.height, camera_latency_s=c.latency_s, camera_name=name)
+        have = ", ".join(self.camera_names()) or "none (a one-camera run)"
+        raise InputError(f"the run has no camera {name!r}: its cameras are {have}")
 
     def to_mcap_metadata(self) -> dict[str, str]:
         """The ``dronecal.run`` metadata record, string to string.
@@ -113,6 +171,17 @@ class RunMetadata:
             out["marker.id"] = str(int(m.marker_id))
         if m.size_m is not None:
             out["marker.size_m"] = repr(float(m.size_m))
+        if self.cameras:
+            # several cameras: each has its own size and latency; camera.width/height are absent (the contract)
+            for key in ("camera.width", "camera.height", "camera.latency_s"):
+                out.pop(key, None)
+            out["cameras"] = ",".join(c.name for c in self.cameras)
+            for c in self.cameras:
+                out[f"camera.{c.name}.width"] = str(int(c.width))
+                out[f"camera.{c.name}.height"] = str(int(c.height))
+                out[f"camera.{c.name}.latency_s"] = "unknown" if c.latency_s is None else repr(float(c.latency_s))
+                if c.clock is not None:
+                    out[f"camera.{c.name}.clock"] = c.clock
         return out
 
     def site_metadata(self) -> dict[str, str] | None:
@@ -175,11 +244,40 @@ class RunMetadata:
                 f"{where}: format_version {version} is newer than this tool reads "
                 f"({FORMAT_VERSION}); upgrade dronecal-field"
             )
-        width = as_int("camera.width", need("camera.width", "the image width in pixels"), minimum=1)
-        height = as_int("camera.height", need("camera.height", "the image height in pixels"), minimum=1)
-        for key, value in (("camera.width", width), ("camera.height", height)):
+        def size(key: str, what: str) -> int:
+            value = as_int(key, need(key, what), minimum=1)
             if value > MAX_IMAGE_SIDE_PX:
                 raise ContractError(f"{where}: '{key}' = {value} px is beyond any camera (at most {MAX_IMAGE_SIDE_PX}); write the frames' size")
+            return value
+
+        def latency_of(key: str) -> float | None:
+            text = str(run.get(key) or "unknown").strip()
+            return None if text == "unknown" else as_float(key, text)
+
+        cameras: list[CameraMeta] = []
+        if run.get("cameras") is not None:
+            names = [n.strip() for n in str(run["cameras"]).split(",")]
+            if not any(names):
+                raise ContractError(f"{where}: 'cameras' is empty: list the camera names, comma separated, or leave the key out for one camera")
+            for name in names:
+                check_camera_name(name, f"{where}: 'cameras'")
+                if name in (c.name for c in cameras):
+                    raise ContractError(f"{where}: 'cameras' lists {name!r} twice: give each camera once")
+                clock = run.get(f"camera.{name}.clock")
+                cameras.append(CameraMeta(
+                    name=name, width=size(f"camera.{name}.width", f"camera {name}'s image width in pixels"),
+                    height=size(f"camera.{name}.height", f"camera {name}'s image height in pixels"),
+                    latency_s=latency_of(f"camera.{name}.latency_s"), clock=str(clock).strip() if clock else None,
+                ))
+            listed = {c.name for c in cameras}
+            for key in run:
+                m = _CAMERA_KEY.match(key)
+                if m and m["name"] not in listed:
+                    raise ContractError(f"{where}: '{key}' is for camera {m['name']!r}, which 'cameras' does not list: add it to 'cameras'")
+            width, height = cameras[0].width, cameras[0].height
+        else:
+            width = size("camera.width", "the image width in pixels")
+            height = size("camera.height", "the image height in pixels")
         kind = need("marker.kind", "'aruco' or 'led'")
         if kind not in MARKER_KINDS:
             raise ContractError(f"{where}: 'marker.kind' = {kind!r}; use one of {', '.join(MARKER_KINDS)}")
@@ -204,9 +302,8 @@ class RunMetadata:
         datum = str(run.get("gnss.altitude_datum") or "ellipsoid").strip()
         if datum not in ALTITUDE_DATUMS:
             raise ContractError(f"{where}: 'gnss.altitude_datum' = {datum!r}; use 'ellipsoid' or 'msl'")
-        latency_text = str(run.get("camera.latency_s") or "unknown").strip()
-        latency = None if latency_text == "unknown" else as_float("camera.latency_s", latency_text)
-        extra = {k: str(v) for k, v in run.items() if k not in _KNOWN_KEYS}
+        latency = cameras[0].latency_s if cameras else latency_of("camera.latency_s")
+        extra = {k: str(v) for k, v in run.items() if k not in _KNOWN_KEYS and not (cameras and _CAMERA_KEY.match(k))}
         origin = site_from_metadata(site, source) if site else None
         return cls(
             format_version=version,
@@ -223,6 +320,8 @@ class RunMetadata:
             camera_latency_s=latency,
             site_origin=origin,
             extra=extra,
+            cameras=tuple(cameras),
+            camera_name=cameras[0].name if cameras else None,
         )
 
 
