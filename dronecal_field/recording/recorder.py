@@ -4,8 +4,12 @@ Threads and queues::
 
     link reader thread --(every message, host-stamped)--> .tlog (both directions)
                        \\-> telemetry queue (unbounded: small, never dropped) --\\
-    video thread -------> frame queue (bounded: a slow disk drops frames) -------> writer thread -> RunWriter
-    monitor thread (2 Hz): link loss / restore events, marker probe once a second
+    video thread per camera --> frame queue (bounded: a slow disk drops frames) --> writer thread -> RunWriter
+    monitor thread (2 Hz): link loss / restore events, marker probe (one camera a probe)
+
+Each camera is a :class:`~dronecal_field.recording.feed.CameraFeed` on its own
+clock: a single-camera run has one (``/camera/...``), a several-camera run one
+per ``--video NAME=URL`` (``/cameras/<name>/...``, events naming the camera).
 
 The writer thread always drains the telemetry queue before taking the next
 frame, so a slow disk costs frames (counted) and never fixes, and memory is
@@ -45,12 +49,13 @@ import time
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from dronecal_field.errors import RecordingStoppedError, VideoError
+from dronecal_field.errors import RecordingStoppedError
 from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink import px4
 from dronecal_field.mavlink.control import vehicle_state
 from dronecal_field.mavlink.link import MavLink
 from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT, Mission
+from dronecal_field.recording.feed import CameraFeed, CameraReport
 from dronecal_field.recording.marker_check import MarkerCheck
 from dronecal_field.recording.status import (
     ClockJumpMonitor,
@@ -187,6 +192,7 @@ class RecordingReport:
     stopped: str | None = None
     frames_not_recorded: int = 0
     telemetry_not_recorded: int = 0
+    cameras: tuple[CameraReport, ...] = ()  # each named camera of a several-camera run; () for a single camera
 
     def summary(self) -> str:
         """One line for the operator."""
@@ -206,6 +212,7 @@ class RecordingReport:
                 if self.video_lag_events or self.frames_lost_stream or self.packets_corrupt
                 else ""
             )
+            + ("; cameras: " + ", ".join(c.summary() for c in self.cameras) if self.cameras else "")
         )
 
 
@@ -246,6 +253,10 @@ class Recorder:
         moment :meth:`start` is called.
     observer : RecordingObserver or None
         Told of every frame, fix, attitude and event (the live calibration).
+    feeds : list of CameraFeed or None
+        The cameras of a several-camera run (each named, with its own source,
+        first frame and frame observer); ``video``, ``first_frame`` and the
+        observer's ``on_frame`` are then unused. None: one camera, ``video``.
     """
 
     def __init__(
@@ -265,11 +276,19 @@ class Recorder:
         clock: VehicleClock | None = None,
         start_ns: int | None = None,
         observer: RecordingObserver | None = None,
+        feeds: list[CameraFeed] | None = None,
     ) -> None:
         self.link = link
         self.observer = observer
         self.observer_errors = 0
-        self.video = video
+        if feeds:
+            names = [f.name for f in feeds]
+            if None in names or len(set(names)) != len(names):
+                raise ValueError(f"several cameras need distinct names, got {names}")
+            self.feeds = list(feeds)
+        else:
+            self.feeds = [CameraFeed(None, video, first_frame, observer=observer, video_timeout_s=video_timeout_s)]
+        self.video = self.feeds[0].video
         self.writer = writer
         self.tlog = tlog
         self.mission = mission
@@ -279,28 +298,20 @@ class Recorder:
         self.video_timeout_s = video_timeout_s
         self.clock = clock or VehicleClock()
         self._telemetry: queue.SimpleQueue[tuple] = queue.SimpleQueue()
-        self._frames: queue.Queue[Frame] = queue.Queue(maxsize=max(1, frame_queue_size))
+        # (feed, frame); the bound grows with the cameras so that each keeps about frame_queue_size
+        self._frames: queue.Queue[tuple[CameraFeed, Frame]] = queue.Queue(maxsize=max(1, frame_queue_size) * len(self.feeds))
         self._stop = threading.Event()
         self._writer_done = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._first_frame = first_frame
         self._start_ns = start_ns
         self.started_ns = 0
-        self._source_dropped_at_start = 0
         self._started_mono = 0.0
-        self._frame_times: collections.deque[float] = collections.deque(maxlen=256)
-        self._latest_frame: Frame | None = first_frame
-        self._last_frame_mono = time.monotonic()
-        self._gap_start_ns: int | None = None
         self._link_lost_ns: int | None = None
         self._write_error: BaseException | None = None
         self.stopped: str | None = None  # the run file stopped taking data (a full disk): why
         self.frames_not_recorded = 0
         self.telemetry_not_recorded = 0
-        # counters (written by one thread each, read by anyone)
-        self.frames_written = 0
-        self.frames_dropped = 0
-        self.frames_discarded_at_start = 0
+        # counters (written by one thread each, read by anyone); the frames' are the feeds'
         self.fixes_written = 0
         self.fixes_without_position = 0
         self.fixes_repeated = 0  # GPS_RAW_INT messages repeating the fix before (same time_usec): not written again
@@ -313,14 +324,7 @@ class Recorder:
         self.mavlink_messages = 0
         self.attitudes = 0
         self.hover_events = 0
-        self.video_gaps = 0
-        # an H.264/H.265 stream's own health (video.monitor.StreamMonitor): lag spans, frames lost, corrupt packets
-        self.video_lag_events = 0
-        self.video_max_lag_s = 0.0
-        self.frames_lost_stream = 0
-        self.packets_corrupt = 0
         self.link_losses = 0
-        self.marker_seen: bool | None = None
         # vehicle progress, for the status line and the end of the mission
         self.reached: list[tuple[int, int]] = []  # (host ns, seq)
         # PX4 numbers from 0 without home and repeats MISSION_ITEM_REACHED for ~10 s: one report per file seq
@@ -331,54 +335,66 @@ class Recorder:
         self.max_rel_alt_m = 0.0
         self.airborne_then_disarmed = False
 
+    # ----- the feeds' counts, summed (a single camera: its own) -----
+    def _sum(self, attr: str) -> int:
+        return sum(int(getattr(f, attr)) for f in self.feeds)
+
+    @property
+    def frames_written(self) -> int:
+        return self._sum("frames_written")
+
+    @property
+    def frames_dropped(self) -> int:
+        return self._sum("frames_dropped")
+
+    @property
+    def frames_discarded_at_start(self) -> int:
+        return self._sum("frames_discarded_at_start")
+
+    @property
+    def video_gaps(self) -> int:
+        return self._sum("video_gaps")
+
+    @property
+    def frames_lost_stream(self) -> int:
+        return self._sum("frames_lost_stream")
+
+    @property
+    def packets_corrupt(self) -> int:
+        return self._sum("packets_corrupt")
+
+    @property
+    def marker_seen(self) -> bool | None:
+        """The marker in any camera's last probed frame (None: none probed yet)."""
+        seen = [f.marker_seen for f in self.feeds if f.marker_seen is not None]
+        return any(seen) if seen else None
+
     # ----- lifecycle -----
     def start(self) -> Recorder:
         """Start recording (threads), after discarding the frames that arrived before the start."""
         self._started_mono = time.monotonic()
         self.started_ns = self._start_ns if self._start_ns is not None else time.time_ns()
-        fresh = self._discard_stale_frames()
-        # Taken after the discard: while the queue was full, each arrival pushed
-        # out an older, pre-start frame, and those are not recording losses.
-        self._source_dropped_at_start = int(getattr(self.video, "frames_dropped", 0))
-        if fresh is not None:
-            self._latest_frame = fresh
-            self._offer_frame(fresh)
+        for feed in self.feeds:
+            fresh = feed.discard_stale(self.started_ns)
+            if fresh is not None:
+                self._offer_frame(feed, fresh)
         self.link.add_listener(self._on_message)
-        for target, name in ((self._writer_loop, "recorder-writer"), (self._video_loop, "recorder-video"), (self._monitor_loop, "recorder-monitor")):
-            thread = threading.Thread(target=target, name=name, daemon=True)
-            thread.start()
-            self._threads.append(thread)
+        self._start_thread(self._writer_loop, "recorder-writer")
+        for feed in self.feeds:
+            name = "recorder-video" if feed.name is None else f"recorder-video-{feed.name}"
+            self._start_thread(lambda feed=feed: feed.run(self._stop, self._offer_frame, self._event), name)
+        self._start_thread(self._monitor_loop, "recorder-monitor")
         return self
 
-    def _discard_stale_frames(self) -> Frame | None:
-        """Empty a live source's queue of frames stamped before the start; the first fresh frame, if any.
-
-        A file source loses nothing by waiting, so its queued frames and the
-        first frame are all recorded.
-        """
-        first = self._first_frame
-        if not getattr(self.video, "live", True):
-            return first
-        if first is not None and first.timestamp_ns >= self.started_ns:
-            return first
-        if first is not None:
-            self.frames_discarded_at_start += 1
-            self._latest_frame = None
-        # Ends at the first fresh frame or an empty queue; the cap only guards
-        # against a source that stamps frames in the past faster than we read.
-        for _ in range(100_000):
-            frame = self.video.read(timeout_s=0.0)
-            if frame is None:
-                return None
-            if frame.timestamp_ns >= self.started_ns:
-                return frame
-            self.frames_discarded_at_start += 1
-        return None
+    def _start_thread(self, target: Any, name: str) -> None:
+        thread = threading.Thread(target=target, name=name, daemon=True)
+        thread.start()
+        self._threads.append(thread)
 
     @property
     def frames_dropped_source(self) -> int:
-        """Frames the video source dropped since the start (it was not read fast enough)."""
-        return max(0, int(getattr(self.video, "frames_dropped", 0)) - self._source_dropped_at_start)
+        """Frames the video sources dropped since the start (they were not read fast enough)."""
+        return self._sum("frames_dropped_source")
 
     def stop(self) -> RecordingReport:
         """Stop, write what is queued, close open events, close the files. Commands nothing."""
@@ -388,9 +404,9 @@ class Recorder:
             if thread.name != "recorder-writer":
                 thread.join(timeout=5.0)
         now_ns = time.time_ns()
-        if self._gap_start_ns is not None:
-            self._event(RunEvent(self._gap_start_ns, now_ns - self._gap_start_ns, "video_gap", {"open": "true"}))
-            self.video_gaps += 1
+        for feed in self.feeds:
+            if (gap := feed.close_gap(now_ns)) is not None:
+                self._event(gap)
         if self._link_lost_ns is not None:
             self._event(RunEvent(self._link_lost_ns, now_ns - self._link_lost_ns, "link_lost", {"open": "true"}))
             self.link_losses += 1
@@ -426,10 +442,11 @@ class Recorder:
             fixes_repeated=self.fixes_repeated,
             fixes_at_arrival=self.fix_clock.fallbacks,
             leg_events=self.leg_events,
-            video_lag_events=self.video_lag_events,
-            video_max_lag_s=self.video_max_lag_s,
+            video_lag_events=self._sum("video_lag_events"),
+            video_max_lag_s=max(f.video_max_lag_s for f in self.feeds),
             frames_lost_stream=self.frames_lost_stream,
             packets_corrupt=self.packets_corrupt,
+            cameras=tuple(f.report() for f in self.feeds if f.name is not None),
         )
 
     # ----- link reader thread -----
@@ -579,98 +596,49 @@ class Recorder:
                         self.stopped = str(exc)
                         self.telemetry_not_recorded += 1
                 try:
-                    frame = self._frames.get(timeout=0.02)
+                    feed, frame = self._frames.get(timeout=0.02)
                 except queue.Empty:
                     if ending:
                         return
                     continue
                 if self.stopped is not None:
-                    self.frames_not_recorded += 1  # drained, so the video thread never blocks
+                    self.frames_not_recorded += 1  # drained, so the video threads never block
                     continue
                 try:
-                    self.writer.write_frame(frame)
+                    if feed.name is None:
+                        self.writer.write_frame(frame)
+                    else:
+                        self.writer.write_frame(frame, feed.name)
                 except RecordingStoppedError as exc:
                     self.stopped = str(exc)  # the status line turns red at once; the file is cut at its last whole chunk
                     self.frames_not_recorded += 1
                     continue
-                self.frames_written += 1
+                feed.frames_written += 1
             except Exception as exc:  # noqa: BLE001 - reported by stop(); keep draining so nothing blocks
                 self._write_error = self._write_error or exc
                 if ending:
                     return
 
-    # ----- video thread -----
-    def _offer_frame(self, frame: Frame) -> None:
+    # ----- video threads (CameraFeed.run) -----
+    def _offer_frame(self, feed: CameraFeed, frame: Frame) -> None:
         try:
-            self._frames.put_nowait(frame)
+            self._frames.put_nowait((feed, frame))
         except queue.Full:
-            self.frames_dropped += 1  # a slow disk costs frames, never memory
-
-    def _video_loop(self) -> None:
-        last_reopen = 0.0
-        while not self._stop.is_set():
-            frame = self.video.read(timeout_s=0.2)
-            now = time.monotonic()
-            if frame is None:
-                silent_s = now - self._last_frame_mono
-                if self._gap_start_ns is None and silent_s > self.video_timeout_s:
-                    self._gap_start_ns = time.time_ns() - int(silent_s * 1e9)
-                if (self._gap_start_ns is not None or getattr(self.video, "ended", False)) and now - last_reopen > 1.0:
-                    if self._gap_start_ns is None:  # the stream ended: a reconnect is a gap however short
-                        self._gap_start_ns = time.time_ns() - int(silent_s * 1e9)
-                    last_reopen = now
-                    try:
-                        self.video.reopen()
-                    except VideoError:
-                        pass  # camera still away: try again in a second
-                continue
-            if self._gap_start_ns is not None:
-                start = self._gap_start_ns
-                self._gap_start_ns = None
-                self._event(RunEvent(start, max(0, frame.timestamp_ns - start), "video_gap", {"reopens": str(getattr(self.video, "reconnects", 0))}))
-                self.video_gaps += 1
-            self._last_frame_mono = now
-            self._frame_times.append(now)
-            if getattr(frame, "keyframe", True):
-                self._latest_frame = frame  # the marker probe decodes keyframes only (an H.264/H.265 stream)
-            self._offer_frame(frame)
-            self._stream_incidents()
-            observer = self.observer
-            if observer is not None:
-                try:
-                    observer.on_frame(frame)
-                except Exception:  # noqa: BLE001 - a live view must never cost the recording
-                    self.observer_errors += 1
-                    self.observer = None
-
-    def _stream_incidents(self) -> None:
-        """Events and counts of the stream's own incidents (lag, frames lost, corrupt packets): loud, never hidden."""
-        take = getattr(self.video, "incidents", None)
-        if take is None:
-            return
-        for incident in take():
-            span = max(0, incident.end_ns - incident.start_ns)
-            if incident.kind == "video_lag":
-                self.video_lag_events += 1
-                self.video_max_lag_s = max(self.video_max_lag_s, incident.value)
-                meta = {"lag_s": f"{incident.value:.3f}"}
-            elif incident.kind == "video_lost":
-                self.frames_lost_stream += int(incident.value)
-                meta = {"frames": str(int(incident.value))}
-            else:
-                self.packets_corrupt += int(incident.value)
-                meta = {"packets": str(int(incident.value))}
-            self._event(RunEvent(incident.start_ns, span, incident.kind, meta))
+            feed.frames_dropped += 1  # a slow disk costs frames, never memory
 
     @property
     def video_lag_s(self) -> float | None:
-        """How far the recorder lags the stream's own clock now, seconds (H.264/H.265 sources); None otherwise."""
-        monitor = getattr(self.video, "monitor", None)
-        return None if monitor is None else monitor.lag_ns / 1e9
+        """How far the recorder lags the stream's own clock now, seconds (the most behind H.264/H.265 camera); None otherwise."""
+        lags = [lag for f in self.feeds if (lag := f.video_lag_s) is not None]
+        return max(lags) if lags else None
 
     # ----- monitor thread -----
     def _monitor_loop(self) -> None:
+        # The marker probe decodes one frame: once a second for one camera; with several, one camera each
+        # half second in turn (four cameras: each every 2 s), so the probe's CPU does not grow with the cameras.
         last_marker = 0.0
+        probe_every_s = 1.0 if len(self.feeds) == 1 else 0.5
+        turn = 0
         while not self._stop.wait(0.5):
             silent_s = self.link.seconds_since_receive()
             if self._link_lost_ns is None and silent_s > self.link_timeout_s:
@@ -684,12 +652,17 @@ class Recorder:
                 self._event(RunEvent(now_ns, 0, "link_restored", meta))
                 self.link_losses += 1
             now = time.monotonic()
-            if self.marker_check is not None and now - last_marker >= 1.0 and self._latest_frame is not None:
+            if self.marker_check is not None and now - last_marker >= probe_every_s - 0.05:
+                feed = self.feeds[turn % len(self.feeds)]
+                turn += 1
+                frame = feed.latest_keyframe
+                if frame is None:
+                    continue
                 last_marker = now
                 try:
-                    self.marker_seen = self.marker_check.seen(self._latest_frame.data, self._latest_frame.format)
+                    feed.marker_seen = self.marker_check.seen(frame.data, frame.format)
                 except Exception:  # noqa: BLE001 - the probe is cosmetic; never stop recording for it
-                    self.marker_seen = None
+                    feed.marker_seen = None
 
     # ----- status -----
     @property
@@ -698,12 +671,13 @@ class Recorder:
 
     @property
     def video_ok(self) -> bool:
-        return self._gap_start_ns is None
+        """Every camera's frames arriving."""
+        return all(f.video_ok for f in self.feeds)
 
     def status(self) -> RecorderStatus:
         """A snapshot for the live status line."""
         now = time.monotonic()
-        fps = float(sum(1 for t in list(self._frame_times) if now - t <= 1.0))
+        cameras = tuple(f.status(now) for f in self.feeds)
         waypoints = [item.seq for item in self.mission.items if item.command == CMD_NAV_WAYPOINT and item.seq > 0]
         done = sum(1 for seq in waypoints if seq < self.current_seq)
         current = min(len(waypoints), done + 1) if self.current_seq > 0 else 0
@@ -721,16 +695,17 @@ class Recorder:
             armed=bool(state and state.armed),
             fix="none" if gps is None else ap.FIX_TYPE_NAMES.get(int(gps.fix_type), "no_fix"),
             satellites=0 if gps is None else int(gps.satellites_visible),
-            fps=fps,
-            frames=self.frames_written,
-            dropped=self.frames_dropped + self.frames_dropped_source,
+            fps=sum(c.fps for c in cameras),
+            frames=sum(c.frames for c in cameras),
+            dropped=sum(c.dropped for c in cameras),
             marker_seen=self.marker_seen,
             link_ok=self.link_ok,
-            video_ok=self.video_ok,
+            video_ok=all(c.video_ok for c in cameras),
             elapsed_s=now - self._started_mono,
             remaining_s=left,
             video_lag_s=self.video_lag_s,
-            video_lagging=bool(getattr(getattr(self.video, "monitor", None), "lagging", False)),
-            video_lost=self.frames_lost_stream + self.packets_corrupt,
+            video_lagging=any(c.video_lagging for c in cameras),
+            video_lost=sum(c.video_lost for c in cameras),
             recording_stopped=self.stopped,
+            cameras=cameras if self.feeds[0].name is not None else (),
         )

@@ -14,6 +14,7 @@ import numpy as np
 
 from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink.missionfile import CMD_DO_CHANGE_SPEED, CMD_NAV_WAYPOINT, Mission
+from dronecal_field.recording.feed import CameraStatus
 from dronecal_field.runfile.records import Attitude, GnssFix, RunEvent
 
 
@@ -226,6 +227,9 @@ class RecorderStatus:
         Frames lost in the stream plus corrupt packets.
     recording_stopped : str or None
         Why the run file stopped taking data (a full disk); None while it records.
+    cameras : tuple of CameraStatus
+        Each named camera of a several-camera run (its own line); () for a single camera.
+        The fields above then sum (fps, frames, dropped, video_lost) or join (video_ok: all) them.
     """
 
     waypoint: int
@@ -246,6 +250,7 @@ class RecorderStatus:
     video_lagging: bool = False
     video_lost: int = 0
     recording_stopped: str | None = None
+    cameras: tuple[CameraStatus, ...] = ()
 
 
 def _mmss(seconds: float) -> str:
@@ -258,21 +263,53 @@ def status_alarm(s: RecorderStatus) -> bool:
     return not s.link_ok or not s.video_ok or s.video_lagging or s.video_lost > 0 or s.dropped > 0 or s.recording_stopped is not None
 
 
+def _marker(seen: bool | None) -> str:
+    return "?" if seen is None else ("yes" if seen else "no")
+
+
 def format_status(s: RecorderStatus, color: bool = False) -> str:
-    """``wp 3/12 AUTO armed | rtk_fixed 18 sats | 29.8 fps 0 dropped | marker yes | 01:02 / ~03:10 left``."""
-    marker = "?" if s.marker_seen is None else ("yes" if s.marker_seen else "no")
+    """``wp 3/12 AUTO armed | rtk_fixed 18 sats | 29.8 fps 0 dropped | marker yes | 01:02 / ~03:10 left``.
+
+    With several cameras the video part is ``4 cameras (1 NO VIDEO: east)`` and each camera has its own
+    line (:func:`format_camera_status`).
+    """
     link = "" if s.link_ok else " | LINK LOST"
-    video = "" if s.video_ok else " | NO VIDEO"
-    if s.video_lagging:
-        video += f" | VIDEO BEHIND {s.video_lag_s or 0.0:.2f} s"
-    if s.video_lost:
-        video += f" | {s.video_lost} VIDEO LOST"
     left = "" if s.remaining_s is None else f" / ~{_mmss(s.remaining_s)} left"
+    if s.cameras:
+        lost = [c.name for c in s.cameras if not c.video_ok]
+        video_part = f"{len(s.cameras)} cameras {s.dropped} dropped"
+        video = f" | NO VIDEO from {len(lost)} of {len(s.cameras)}: {', '.join(map(str, lost))}" if lost else ""
+    else:
+        video_part = f"{s.fps:4.1f} fps {s.dropped} dropped | marker {_marker(s.marker_seen)}"
+        video = "" if s.video_ok else " | NO VIDEO"
+        if s.video_lagging:
+            video += f" | VIDEO BEHIND {s.video_lag_s or 0.0:.2f} s"
+        if s.video_lost:
+            video += f" | {s.video_lost} VIDEO LOST"
     if s.recording_stopped is not None:
         video += f" | RECORDING STOPPED: {s.recording_stopped.split(':', 1)[0].upper()}"
     line = (
         f"wp {s.waypoint}/{s.waypoints} {s.mode} {'armed' if s.armed else 'disarmed'} | {s.fix} {s.satellites} sats | "
-        f"{s.fps:4.1f} fps {s.dropped} dropped | marker {marker} | {_mmss(s.elapsed_s)}{left}{link}{video}"
+        f"{video_part} | {_mmss(s.elapsed_s)}{left}{link}{video}"
     )
     # ``color``: a terminal gets the line in red (ANSI) while anything is wrong.
     return f"\x1b[31m{line}\x1b[0m" if color and status_alarm(s) else line
+
+
+def camera_alarm(c: CameraStatus) -> bool:
+    """True when a camera's line must be red: no video, behind, frames lost or dropped."""
+    return not c.video_ok or c.video_lagging or c.video_lost > 0 or c.dropped > 0
+
+
+def format_camera_status(c: CameraStatus, color: bool = False, live: str = "") -> str:
+    """``  cam north: 29.8 fps 1204 frames 0 dropped 0 gaps | marker yes`` (+ `` | live ...``), one camera of several."""
+    line = f"  cam {c.name}: {c.fps:4.1f} fps {c.frames} frames {c.dropped} dropped {c.gaps} gaps | marker {_marker(c.marker_seen)}"
+    if not c.video_ok:
+        line += " | NO VIDEO"
+    if c.video_lagging:
+        line += f" | VIDEO BEHIND {c.video_lag_s or 0.0:.2f} s"
+    if c.video_lost:
+        line += f" | {c.video_lost} VIDEO LOST"
+    if live:
+        line += " | " + live
+    return f"\x1b[31m{line}\x1b[0m" if color and camera_alarm(c) else line

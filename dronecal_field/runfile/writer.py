@@ -18,8 +18,10 @@ import errno
 import json
 import math
 import os
+import re
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +43,66 @@ IMAGE_FORMATS = ("jpeg", "png")
 VIDEO_FORMATS = ("h264", "h265")
 CAMERA_TOPICS = ("image", "video")
 COMPRESSIONS = ("zstd", "lz4", "none")
+CAMERA_NAME_PATTERN = r"[a-z0-9][a-z0-9_-]{0,31}"  # the contract's "Several cameras in one run"
+CAMERAS_TOPIC_PREFIX = "/cameras/"
+# The single camera's keys, absent from a several-camera run (each camera has its own camera.<name>.*).
+_SINGLE_CAMERA_KEYS = ("camera.width", "camera.height", "camera.latency_s", "camera.clock", "camera.timestamps", "camera.rtcp_to_arrival_s")
+
+
+@dataclass(frozen=True)
+class RunCamera:
+    """One camera of a several-camera run (contract: "Several cameras in one run").
+
+    Attributes
+    ----------
+    name : matches ``[a-z0-9][a-z0-9_-]{0,31}``; its topic is ``/cameras/<name>/<topic>``.
+    topic : ``"image"`` (JPEG/PNG) or ``"video"`` (H.264/H.265 access units).
+    width, height : image size, pixels.
+    latency_s : capture-to-stamp delay of its frames, seconds; None when unknown.
+    clock : how its frames are stamped (``rtcp``, ``arrival``, ``file``), or None.
+    extra : further ``camera.<name>.<key>`` metadata (e.g. ``url``), kept verbatim.
+    """
+
+    name: str
+    topic: str
+    width: int
+    height: int
+    latency_s: float | None = None
+    clock: str | None = None
+    extra: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def topic_name(self) -> str:
+        return f"{CAMERAS_TOPIC_PREFIX}{self.name}/{self.topic}"
+
+    def metadata(self) -> dict[str, str]:
+        """Its ``camera.<name>.*`` keys of ``dronecal.run``."""
+        key = f"camera.{self.name}."
+        out = {key + k: str(v) for k, v in self.extra.items()}
+        out[key + "width"] = str(int(self.width))
+        out[key + "height"] = str(int(self.height))
+        out[key + "latency_s"] = "unknown" if self.latency_s is None else repr(float(self.latency_s))
+        if self.clock is not None:
+            out[key + "clock"] = self.clock
+        return out
+
+
+def check_camera_name(name: str) -> str | None:
+    """Why ``name`` cannot name a camera of a run (None when it can)."""
+    if re.fullmatch(CAMERA_NAME_PATTERN, name or ""):
+        return None
+    return (f"camera name {name!r} is not [a-z0-9][a-z0-9_-]{{0,31}} (lower-case letters, digits, '_' and '-', "
+            "at most 32, starting with a letter or digit)")
+
+
+def several_cameras_metadata(metadata: RunMetadata, cameras: "list[RunCamera] | tuple[RunCamera, ...]") -> dict[str, str]:
+    """The ``dronecal.run`` record of a several-camera run: ``cameras`` in order and each one's ``camera.<name>.*``;
+    no ``camera.width``/``camera.height`` (nor the single camera's other keys)."""
+    out = {k: v for k, v in metadata.to_mcap_metadata().items() if k not in _SINGLE_CAMERA_KEYS}
+    out["cameras"] = ",".join(c.name for c in cameras)
+    for cam in cameras:
+        out.update(cam.metadata())
+    return out
 
 
 class _WholeWrites:
@@ -128,6 +190,10 @@ class RunWriter:
     camera : ``"image"`` (``/camera/image``, JPEG/PNG frames, the default) or
         ``"video"`` (``/camera/video``, H.264/H.265 access units passed through):
         a run has one of them, registered at open.
+    cameras : several cameras (:class:`RunCamera`, in order) instead of ``camera``:
+        ``/cameras/<name>/image|video`` each, the ``cameras`` and
+        ``camera.<name>.*`` metadata, no ``/camera/...`` topic and no
+        ``camera.width``/``camera.height`` (``metadata.width``/``height`` unused).
 
     Examples
     --------
@@ -144,6 +210,7 @@ class RunWriter:
         max_chunk_age_s: float = 1.0,
         background_flush: bool = True,
         camera: str = "image",
+        cameras: "list[RunCamera] | tuple[RunCamera, ...] | None" = None,
     ) -> None:
         from mcap.writer import CompressionType, Writer
         from mcap.well_known import MessageEncoding
@@ -153,6 +220,15 @@ class RunWriter:
         if camera not in CAMERA_TOPICS:
             raise InputError(f"camera {camera!r} unknown; use image (/camera/image) or video (/camera/video)")
         self.camera = camera
+        self.cameras = {c.name: c for c in cameras} if cameras else None
+        if cameras:
+            for cam in cameras:
+                if (why := check_camera_name(cam.name)) is not None:
+                    raise InputError(why)
+                if cam.topic not in CAMERA_TOPICS:
+                    raise InputError(f"camera {cam.name}: topic {cam.topic!r} unknown; use image or video")
+            if len(self.cameras) != len(cameras):
+                raise InputError(f"camera names repeat ({', '.join(c.name for c in cameras)}): give each camera its own name")
         if max_chunk_age_s <= 0:
             raise InputError(f"max_chunk_age_s = {max_chunk_age_s} must be positive")
         self.path = Path(path)
@@ -184,7 +260,8 @@ class RunWriter:
             self._mcap.start(profile="", library=f"dronecal-field/{__version__}")
             self._protobuf = MessageEncoding.Protobuf
             self._channels: dict[str, int] = {}
-            self._mcap.add_metadata(RUN_METADATA_NAME, metadata.to_mcap_metadata())
+            record = several_cameras_metadata(metadata, cameras) if cameras else metadata.to_mcap_metadata()
+            self._mcap.add_metadata(RUN_METADATA_NAME, record)
             site = metadata.site_metadata()
             if site is not None:
                 self._mcap.add_metadata(SITE_METADATA_NAME, site)
@@ -193,7 +270,10 @@ class RunWriter:
             from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
             from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 
-            if camera == "video":
+            if cameras:
+                for cam in cameras:
+                    self._proto_channel(cam.topic_name, CompressedVideo if cam.topic == "video" else CompressedImage)
+            elif camera == "video":
                 self._proto_channel(pm.VIDEO_TOPIC, CompressedVideo)
             else:
                 self._proto_channel(pm.IMAGE_TOPIC, CompressedImage)
@@ -221,12 +301,27 @@ class RunWriter:
 
     # -- writing -----------------------------------------------------------
 
-    def write_frame(self, frame: Frame) -> None:
+    def write_frame(self, frame: Frame, camera: str | None = None) -> None:
         """Write one video frame (log time = the frame's timestamp).
 
         A JPEG/PNG frame goes to ``/camera/image``; an H.264/H.265 access unit
         (Annex B) to ``/camera/video``, whichever the writer was opened for.
+        In a several-camera run, ``camera`` names the camera: its own topic
+        ``/cameras/<camera>/image|video`` (frame_id ``<camera>``).
         """
+        if self.cameras is not None:
+            cam = self.cameras.get(camera or "")
+            if cam is None:
+                raise InputError(f"camera {camera!r} is not one of this run's ({', '.join(self.cameras)}); name one of them")
+            video = cam.topic == "video"
+            if frame.format not in (VIDEO_FORMATS if video else IMAGE_FORMATS):
+                raise InputError(f"frame format {frame.format!r} on {cam.topic_name}; give {'h264 or h265' if video else 'jpeg or png'} frames")
+            message = pm.video_frame_to_proto(frame) if video else pm.frame_to_proto(frame)
+            message.frame_id = cam.name
+            self._write_proto(cam.topic_name, message, frame.timestamp_ns)
+            return
+        if camera is not None:
+            raise InputError(f"camera {camera!r} named in a single-camera run; open the writer with cameras=[...]")
         if self.camera == "video":
             if frame.format not in VIDEO_FORMATS:
                 raise InputError(
