@@ -181,6 +181,8 @@ class VehicleConfig:
     gps_reported_acc_mm: int = GPS_REPORTED_ACC_MM
     ekf_sigma_m: float = 0.0
     ekf_tau_s: float = 10.0
+    autopilot: str = "ardupilot"  # "px4": PX4 1.16's personality (sim/vehicle_px4.py)
+    gnss: str = "auto"  # PX4 only: "auto" = the SITL's 3D fix (0.2 m / 0.5 m, h_acc 900 mm), "rtk" = RTK fixed (gnss_sigma_*)
 
 
 def parse_home(text: str) -> tuple[float, float, float]:
@@ -319,6 +321,13 @@ class SimVehicle:
     out : list of str
         Endpoints to send to (``udp:HOST:PORT``).
     """
+
+    def __new__(cls, config: VehicleConfig, *args: Any, **kwargs: Any) -> SimVehicle:
+        if cls is SimVehicle and config.autopilot == "px4":  # PX4's personality (lazy: vehicle_px4 imports this module)
+            from dronecal_field.sim.vehicle_px4 import Px4Vehicle
+
+            return super().__new__(Px4Vehicle)
+        return super().__new__(cls)
 
     def __init__(self, config: VehicleConfig, listen: list[str], out: list[str] | None = None) -> None:
         if config.speedup <= 0:
