@@ -11,6 +11,11 @@ finalises the file and commands nothing.
 The marker comes from the --marker-* flags, else from plan.json beside the
 mission (written by `dronecal-field plan`). See docs/fly.md.
 
+Several cameras (a site: four on a pole, a car park's ring) record into one
+run with --video NAME=URL, once per camera: each on its own topic
+/cameras/NAME/..., its own clock, its own status line, video-loss alarm and
+live check.
+
 While recording, the live pipeline checks each hold as it ends (the marker
 detected, the running calibration, coverage of the plan's ROI) and ends with
 a verdict and, for missed waypoints, RUN's refly.plan; --live-port serves it
@@ -22,7 +27,9 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -49,15 +56,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     checks.add_argument("--max-home-distance", type=float, default=500.0, metavar="M", help="largest home-to-mission distance, metres (default 500)")
     checks.add_argument("--ready-timeout", type=float, default=60.0, metavar="S", help="wait this long for a booting vehicle to pass the checks (default 60)")
     video = parser.add_argument_group("video")
-    video.add_argument("--video", required=True, metavar="URL", help="camera stream: http://.../stream.mjpg (MJPEG, JPEG passed through), rtsp://... (H.264/H.265 passed through to /camera/video), /dev/videoN or a file")
+    video.add_argument("--video", required=True, action="append", metavar="[NAME=]URL",
+                       help="camera stream: http://.../stream.mjpg (MJPEG, JPEG passed through), rtsp://... (H.264/H.265 passed through to /camera/video), "
+                            "/dev/videoN or a file. Several cameras: NAME=URL once per camera (NAME: a-z 0-9 _ -, up to 32), "
+                            "each recorded to /cameras/NAME/image or /cameras/NAME/video")
     video.add_argument("--rtsp-transport", choices=("tcp", "udp"), default="tcp", help="RTSP transport (default tcp: a slow reader delays, never corrupts; udp losses are counted and shown)")
-    video.add_argument("--camera-width", type=int, metavar="PX", help="expected image width (default: from the first frame)")
-    video.add_argument("--camera-height", type=int, metavar="PX", help="expected image height (default: from the first frame)")
-    video.add_argument("--camera-latency", type=float, metavar="S", help="capture-to-arrival delay of the stream, seconds, if known (metadata camera.latency_s; default unknown)")
-    video.add_argument("--frame-queue", type=int, default=64, metavar="N", help="frames buffered for the disk before frames are dropped (default 64)")
+    video.add_argument("--camera-width", type=int, metavar="PX", help="expected image width (default: from the first frame; one camera only)")
+    video.add_argument("--camera-height", type=int, metavar="PX", help="expected image height (default: from the first frame; one camera only)")
+    video.add_argument("--camera-latency", type=float, metavar="S", help="capture-to-arrival delay of the stream(s), seconds, if known (metadata camera.latency_s; default unknown)")
+    video.add_argument("--frame-queue", type=int, default=64, metavar="N", help="frames buffered for the disk per camera before frames are dropped (default 64)")
     video.add_argument("--on-video-loss", choices=("alarm", "hold"), default="alarm",
                        help="when the camera's frames stop in flight: alarm (default: a red line and a bell, nothing commanded) or hold "
-                            "(also switch the vehicle from AUTO to GUIDED, holding position, and back to AUTO when frames return)")
+                            "(also switch the vehicle from AUTO to GUIDED, holding position, and back to AUTO when frames return; "
+                            "with several cameras: while any camera is lost)")
     marker = parser.add_argument_group("marker (default: plan.json beside the mission)")
     marker.add_argument("--marker-kind", choices=("aruco", "led"), help="marker kind (default aruco)")
     marker.add_argument("--marker-dictionary", metavar="NAME", help="ArUco dictionary (default DICT_4X4_50)")
@@ -132,11 +143,20 @@ def _check_flags(args: argparse.Namespace) -> None:
     parse_endpoint(args.connect, args.baud)  # a malformed address fails here, before anything opens
     if args.connect.count("[") != args.connect.count("]"):
         raise InputError(f"--connect {args.connect!r} has an unclosed bracket: write an IPv6 host as udp:[::1]:14550")
-    if "://" in args.video:
-        try:
-            urlsplit(args.video).port
-        except ValueError as exc:
-            raise InputError(f"--video {args.video!r} is not a valid URL ({exc}): write e.g. http://192.168.1.10/stream.mjpg or rtsp://camera/stream") from None
+    from dronecal_field.recording.cameras import parse_video_flags
+
+    videos = parse_video_flags(list(args.video))
+    for spec in videos:
+        if "://" in spec.url:
+            try:
+                urlsplit(spec.url).port
+            except ValueError as exc:
+                raise InputError(f"{spec.flag} {spec.url!r} is not a valid URL ({exc}): write e.g. http://192.168.1.10/stream.mjpg or rtsp://camera/stream") from None
+    if len(videos) > 1 or videos[0].name is not None:
+        for flag, value in (("--camera-width", args.camera_width), ("--camera-height", args.camera_height)):
+            if value is not None:
+                raise InputError(f"{flag} is for a single camera; with named cameras (--video NAME=URL) each size is read from its stream: drop {flag}")
+    args.videos = videos
     out = Path(args.out)
     if out.is_dir():
         raise InputError(f"--out {out} is a folder: give the run file's name, e.g. --out {out / 'run.mcap'}")
@@ -208,6 +228,50 @@ def _judge_video(status, plan_json: dict | None, args: argparse.Namespace):
     return status
 
 
+@dataclass
+class _Camera:
+    """One --video as probed: its spec (name, url), open source, first frame and pre-flight status."""
+
+    spec: Any
+    source: Any
+    first: Any
+    status: Any
+
+
+def _probe_cameras(args: argparse.Namespace, plan_json: dict | None) -> list[_Camera]:
+    """Every --video probed at once (one thread each: four RTSP cameras wait for their RTCP reports together), judged."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from dronecal_field.live.site import camera_plan
+
+    specs = args.videos
+    with ThreadPoolExecutor(max_workers=len(specs)) as pool:
+        probed = list(pool.map(lambda spec: _probe_video(spec.url, rtsp_transport=args.rtsp_transport), specs))
+    cams = []
+    for spec, (source, first, status) in zip(specs, probed):
+        plan = plan_json if spec.name is None else camera_plan(plan_json, spec.name)
+        cams.append(_Camera(spec, source, first, _judge_video(status, plan, args)))
+    return cams
+
+
+def _camera_checks(results: list, cams: list[_Camera]) -> list:
+    """The checklist with one ``video NAME`` line per camera in place of the single ``video`` line."""
+    from dronecal_field.mavlink.preflight import CheckResult
+
+    out = [r for r in results if r.name != "video"]
+    for cam in cams:
+        v, name = cam.status, f"video {cam.spec.name}"
+        if v.error:
+            out.append(CheckResult(name, False, v.error if v.url in v.error else f"{v.url}: {v.error}"))
+        elif v.frames == 0:
+            out.append(CheckResult(name, False, f"{v.url} opened but sent no frame; check the camera stream"))
+        elif v.warning:
+            out.append(CheckResult(name, True, f"WARNING: {v.width}x{v.height}, {v.fps:.1f} fps, but {v.warning}", warning=True))
+        else:
+            out.append(CheckResult(name, True, f"{v.width}x{v.height}, {v.fps:.1f} fps"))
+    return out
+
+
 def _wait_for_gnss_rate(meter, timeout_s: float) -> None:
     """Give the GNSS stream up to ``timeout_s`` to show its rate (a second of fixes at the asked rate)."""
     deadline = time.monotonic() + timeout_s
@@ -260,9 +324,10 @@ def run(args: argparse.Namespace) -> int:
     tlog_path = out.with_suffix(".tlog")
     from dronecal_field.recording.claim import OutputClaim, check_outputs, claim_outputs
 
-    video_file = Path(args.video) if "://" not in args.video and not args.video.startswith("/dev/") else None
-    check_outputs("--out", [out, tlog_path], {"--mission": mission_path, "plan.json": plan_json_path if plan_json is not None else None,
-                                              "--video": video_file})
+    inputs = {"--mission": mission_path, "plan.json": plan_json_path if plan_json is not None else None}
+    for spec in args.videos:
+        inputs[spec.flag] = Path(spec.url) if "://" not in spec.url and not spec.url.startswith("/dev/") else None
+    check_outputs("--out", [out, tlog_path], inputs)
     from dronecal_field.recording.claim import free_space_note
 
     if (note := free_space_note(out)) is not None:  # before anything connects
@@ -294,7 +359,7 @@ def run(args: argparse.Namespace) -> int:
             clock.update(stamp_ns, int(msg.time_boot_ms))
 
     link.add_listener(before_recording)
-    source = None
+    cams: list[_Camera] = []
     recorder = None
     live = None
     watch = None
@@ -309,29 +374,38 @@ def run(args: argparse.Namespace) -> int:
         link.add_listener(keeper.feed)
         gnss_meter = GnssRateMeter()
         link.add_listener(lambda direction, _stamp_ns, msg: gnss_meter.feed(msg) if direction == "in" else None)
-        source, first, video_status = _probe_video(args.video, rtsp_transport=args.rtsp_transport)
-        video_status = _judge_video(video_status, plan_json, args)
+        cams = _probe_cameras(args, plan_json)
         _wait_for_gnss_rate(gnss_meter, timeout_s=3.0)
-        if first is not None:
+        video_status = cams[0].status
+        if cams[0].first is not None:
             for flag, expected, actual in (("--camera-width", args.camera_width, video_status.width), ("--camera-height", args.camera_height, video_status.height)):
                 if expected is not None and expected != actual:
                     raise InputError(f"{flag} {expected} but the stream sends {video_status.width}x{video_status.height}; drop the flag or fix the stream")
+        several = cams[0].spec.name is not None
         results = run_preflight(
             link,
             mission,
-            video_status,
+            next((c.status for c in cams if c.status.error or not c.status.frames), video_status),
             min_fix=args.min_fix,
             min_battery_pct=args.min_battery,
             max_home_distance_m=args.max_home_distance,
             wait_s=args.ready_timeout,
             gnss_meter=gnss_meter,
         )
+        if several:
+            results = _camera_checks(results, cams)
         print("pre-flight:\n" + format_checklist(results), flush=True)
         require_preflight(results)
         if args.dry_run:
             print("dry run: nothing uploaded, nothing recorded")
             return 0
-        if not args.no_live:  # before the upload: a --live-port that cannot be served stops fly with nothing uploaded
+        if not args.no_live and several:  # before the upload: a --live-port that cannot be served stops fly with nothing uploaded
+            from dronecal_field.live.site import SiteCamera, camera_plan, start_live_site
+
+            live = start_live_site(mission, marker, [SiteCamera(c.spec.name, c.status.width, c.status.height, camera_plan(plan_json, c.spec.name))
+                                                     for c in cams], _site_origin(plan_json), args.min_fix, args.camera_latency,
+                                   args.live_host, args.live_port)
+        elif not args.no_live:
             from dronecal_field.live.session import start_live
 
             live = start_live(mission, marker, video_status.width, video_status.height, plan_json, _site_origin(plan_json), args.min_fix,
@@ -349,13 +423,15 @@ def run(args: argparse.Namespace) -> int:
             print(f"note: {'PX4' if link.is_px4 else 'ArduCopter'} keeps some values differently, as expected: {'; '.join(report.storage_changes[:3])}{more}")
 
         link.remove_listener(before_recording)  # the recorder takes over the clock and the tlog
-        recorder = _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, __version__, clock, backlog, live)
+        recorder = _start_recorder(args, link, cams, mission, mission_path, marker, plan_json, out, tlog_path, __version__, clock, backlog, live)
         claim.keep()
         if args.start:
             arm_and_start_mission(link)
             print("started: MISSION_START accepted (PX4 armed itself, AUTO.MISSION)" if link.is_px4 else "started: GUIDED, armed, MISSION_START sent", flush=True)
         else:
             print("waiting for the pilot to arm and switch to AUTO (Ctrl-C ends the recording; nothing is commanded)", flush=True)
+        from dronecal_field.recording.alarm import VideoLossAlarm
+
         loss = VideoLossAlarm(link, hold=args.on_video_loss == "hold", view=None if live is None else live.view)
         if not _record_until_done(recorder, mission, args.timeout_s, live, watch, keeper, loss):
             summary = recorder.stop().summary()
@@ -378,10 +454,16 @@ def run(args: argparse.Namespace) -> int:
             print(f"\nrecorded {out} and {tlog_path.name}: {summary}", flush=True)
         if watch is not None and watch.changed:
             print(f"WARNING: {watch.describe()}", file=sys.stderr, flush=True)
-        if source is not None:
-            source.close()
+        for cam in cams:
+            if cam.source is not None:
+                cam.source.close()
         link.close()
-        if live is not None:
+        if live is not None and hasattr(live, "cameras"):
+            from dronecal_field.live.site import conclude_site
+
+            _results, lines = conclude_site(live, out, mission)
+            print("\n".join(lines), flush=True)
+        elif live is not None:
             from dronecal_field.live.session import conclude
 
             _result, lines = conclude(live, out, mission)
@@ -389,7 +471,8 @@ def run(args: argparse.Namespace) -> int:
     if args.calibrate and closed_mono is not None:
         from dronecal_field.live.session import calibrate_after_landing
 
-        print("\n".join(calibrate_after_landing(out, args.min_fix, closed_mono, live)), flush=True)
+        several = bool(cams) and cams[0].spec.name is not None  # calibrate reads every camera from the file
+        print("\n".join(calibrate_after_landing(out, args.min_fix, closed_mono, None if several else live)), flush=True)
     if stopped_early is not None:
         from dronecal_field.errors import RecordingStoppedError
 
@@ -397,8 +480,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _start_recorder(args, link, source, first, mission, mission_path, marker, plan_json, video_status, out, tlog_path, version, clock, backlog, observer=None):
+def _start_recorder(args, link, cams, mission, mission_path, marker, plan_json, out, tlog_path, version, clock, backlog, observer=None):
     from dronecal_field.mavlink.missionfile import to_qgc_plan
+    from dronecal_field.recording.feed import CameraFeed
     from dronecal_field.recording.marker_check import MarkerCheck
     from dronecal_field.recording.recorder import Recorder
     from dronecal_field.runfile.records import FORMAT_VERSION, RunMetadata
@@ -415,29 +499,38 @@ def _start_recorder(args, link, source, first, mission, mission_path, marker, pl
     gps = link.latest("GPS_RAW_INT")
     datum = "msl" if gps is not None and not gps.alt_ellipsoid else "ellipsoid"
     hb = link.vehicle_heartbeat
+    several = cams[0].spec.name is not None
     metadata = RunMetadata(
         format_version=FORMAT_VERSION,
-        width=int(video_status.width),
-        height=int(video_status.height),
+        width=int(cams[0].status.width),
+        height=int(cams[0].status.height),
         marker=marker,
         altitude_datum=datum,
         camera_latency_s=args.camera_latency,
         site_origin=_site_origin(plan_json),
         extra={
             "recorder": f"dronecal-field {version} fly",
-            "video.url": args.video,
             "vehicle.sysid": str(link.target_system),
             "vehicle.autopilot": str(int(hb.autopilot)) if hb is not None else "unknown",
             "mission.items": str(len(mission.items)),
             "mission.file": mission_path.name,
-            "camera.timestamps": "host UTC at frame arrival",
             "recording.start_ns": str(start_ns),
         },
     )
-    passthrough = first is not None and first.format in ("h264", "h265")
-    if passthrough:
-        metadata = _video_metadata(metadata, source, args)
-    writer = RunWriter(out, metadata, camera="video" if passthrough else "image")
+    if several:
+        run_cameras = [_run_camera(cam, args) for cam in cams]
+        writer = RunWriter(out, metadata, cameras=run_cameras)
+        feeds = [CameraFeed(cam.spec.name, cam.source, cam.first, observer=None if observer is None else observer.camera(cam.spec.name))
+                 for cam in cams]
+    else:
+        cam = cams[0]
+        extra = {**metadata.extra, "video.url": cam.spec.url, "camera.timestamps": "host UTC at frame arrival"}
+        metadata = replace(metadata, extra=extra)
+        passthrough = cam.first is not None and cam.first.format in ("h264", "h265")
+        if passthrough:
+            metadata = _video_metadata(metadata, cam.source, args)
+        writer = RunWriter(out, metadata, camera="video" if passthrough else "image")
+        feeds = None
     data = mission_path.read_bytes() if mission.source_format == "plan" else to_qgc_plan(mission).encode("utf-8")
     writer.attach("mission.plan", data, "application/json")
     if plan_json is not None:
@@ -445,33 +538,54 @@ def _start_recorder(args, link, source, first, mission, mission_path, marker, pl
         writer.attach("plan.json", (mission_path.parent / "plan.json").read_bytes(), "application/json")
     return Recorder(
         link,
-        source,
+        cams[0].source,
         writer,
         tlog,
         mission,
         altitude_datum=datum,
         marker_check=check,
-        first_frame=first,
+        first_frame=cams[0].first,
         frame_queue_size=args.frame_queue,
         link_timeout_s=args.link_timeout,
         clock=clock,
         start_ns=start_ns,
         observer=observer,
+        feeds=feeds,
     ).start()
+
+
+def _run_camera(cam, args):
+    """The RunCamera of one named camera: its topic, size, and how its frames are stamped (``camera.<name>.clock``)."""
+    from dronecal_field.runfile.writer import RunCamera
+
+    extra = {"url": cam.spec.url}
+    if cam.first is not None and cam.first.format in ("h264", "h265"):
+        clock = cam.source.lock_clock()  # one clock for the whole run, per camera
+        extra["timestamps"] = _CLOCK_TIMESTAMPS[clock]
+        extra["rtsp_transport"] = args.rtsp_transport
+        if cam.source.rtcp_delay_ns is not None:
+            extra["rtcp_to_arrival_s"] = repr(cam.source.rtcp_delay_ns / 1e9)
+        latency = 0.0 if clock == "rtcp" else args.camera_latency
+        return RunCamera(name=cam.spec.name, topic="video", width=int(cam.status.width), height=int(cam.status.height),
+                         latency_s=latency, clock=clock, extra=extra)
+    extra["timestamps"] = "host UTC at frame arrival"
+    return RunCamera(name=cam.spec.name, topic="image", width=int(cam.status.width), height=int(cam.status.height),
+                     latency_s=args.camera_latency, clock="arrival", extra=extra)
+
+
+_CLOCK_TIMESTAMPS = {
+    "rtcp": "capture time: RTP presentation time through the camera's RTCP sender reports (its wall clock)",
+    "arrival": "host UTC at arrival through the stream's own pacing (smallest network delay); no RTCP sender report",
+    "file": "recording start + presentation time in the file",
+}
 
 
 def _video_metadata(metadata, source, args):
     """The run metadata of a /camera/video recording: how its frames are stamped (``camera.clock``)."""
-    from dataclasses import replace
-
     clock = source.lock_clock()  # one clock for the whole run
     extra = dict(metadata.extra)
     extra["camera.clock"] = clock
-    extra["camera.timestamps"] = {
-        "rtcp": "capture time: RTP presentation time through the camera's RTCP sender reports (its wall clock)",
-        "arrival": "host UTC at arrival through the stream's own pacing (smallest network delay); no RTCP sender report",
-        "file": "recording start + presentation time in the file",
-    }[clock]
+    extra["camera.timestamps"] = _CLOCK_TIMESTAMPS[clock]
     extra["video.rtsp_transport"] = args.rtsp_transport
     if source.rtcp_delay_ns is not None:
         extra["camera.rtcp_to_arrival_s"] = repr(source.rtcp_delay_ns / 1e9)  # network + camera clock offset, measured
@@ -479,59 +593,31 @@ def _video_metadata(metadata, source, args):
     return replace(metadata, camera_latency_s=latency, extra=extra)
 
 
-class VideoLossAlarm:
-    """Frames stopping in flight is an alarm: a red line and a bell on the console, an alert in the live view and,
-    with ``--on-video-loss hold`` only, the vehicle held in GUIDED until frames return (then AUTO resumes the mission)."""
+class _StatusBlock:
+    """The status line (and a line per camera) printed each second: rewritten in place on a terminal, appended to a log.
 
-    REPEAT_S = 15.0
+    On a terminal the cursor is left at the top of the block, so a line printed in between (``\r`` + text + newline)
+    overwrites its first row and the next block is drawn one row lower, over the rest: nothing stale stays.
+    """
 
-    def __init__(self, link, hold: bool = False, view=None) -> None:
-        self.link, self.hold, self.view = link, hold, view
-        self.lost_since: float | None = None
-        self.last_said = 0.0
-        self.held = False
-        self.losses = 0
+    def __init__(self, tty: bool) -> None:
+        self.tty = tty
+        self.rows = 0
 
-    def update(self, status, now: float) -> list[tuple[str, bool]]:
-        """(line, is an alarm) to print for this status (recorder.RecorderStatus) at monotonic ``now``."""
-        from dronecal_field.errors import LinkError
-        from dronecal_field.mavlink import ardupilot as ap
+    def show(self, lines: list[str]) -> None:
+        if not self.tty:
+            print("\n".join(lines), flush=True)
+            return
+        text = "\r" + "\n".join(line.ljust(120) for line in lines)
+        up = f"\x1b[{len(lines) - 1}A\r" if len(lines) > 1 else ""
+        print(text + up, end="", flush=True)
+        self.rows = len(lines)
 
-        lines: list[tuple[str, bool]] = []
-        if not status.video_ok and self.lost_since is None:
-            self.lost_since, self.last_said = now, now
-            self.losses += 1
-            lines.append((f"VIDEO LOST at waypoint {status.waypoint}/{status.waypoints}: no frame from the camera; "
-                          "waypoints flown now have no images and must be flown again"
-                          + ("" if self.hold else " (fly --on-video-loss hold would hold the vehicle until frames return)"), True))
-            if self.hold and status.armed and status.mode in ("AUTO", "AUTO.MISSION"):  # ArduCopter's, PX4's
-                try:
-                    ok = self.link.set_mode("GUIDED", timeout_s=2.0) == ap.MAV_RESULT_ACCEPTED
-                except LinkError:
-                    ok = False
-                self.held = ok
-                lines.append(("held: GUIDED at its position until frames return (--on-video-loss hold)", False) if ok
-                             else ("HOLD REFUSED by the vehicle: it flies on in AUTO; take over to hold it", True))
-        elif not status.video_ok and now - self.last_said >= self.REPEAT_S:
-            self.last_said = now
-            lines.append((f"VIDEO STILL LOST ({now - self.lost_since:.0f} s)" + (": the vehicle is held" if self.held else ""), True))
-        elif status.video_ok and self.lost_since is not None:
-            lines.append((f"video back after {now - self.lost_since:.1f} s (the gap is marked in the run)", False))
-            self.lost_since = None
-            if self.held:
-                self.held = False
-                try:
-                    ok = self.link.set_mode("AUTO", timeout_s=2.0) == ap.MAV_RESULT_ACCEPTED
-                except LinkError:
-                    ok = False
-                lines.append(("resumed: AUTO continues the mission", False) if ok
-                             else ("AUTO REFUSED: the vehicle still holds in GUIDED; switch to AUTO to go on", True))
-        if lines and self.view is not None:
-            try:
-                self.view.publish_status({"alert": " | ".join(text for text, _ in lines), "video_ok": bool(status.video_ok)})
-            except Exception:  # noqa: BLE001 - the view is cosmetic; the console said it
-                pass
-        return lines
+    def leave(self) -> None:
+        """Move below the block (so what follows does not overwrite its camera lines)."""
+        if self.tty and self.rows > 1:
+            print(f"\x1b[{self.rows - 1}B", end="", flush=True)
+        self.rows = 0
 
 
 def _record_until_done(recorder, mission, timeout_s: float | None = None, live=None, watch=None, keeper=None, loss=None) -> bool:
@@ -541,10 +627,12 @@ def _record_until_done(recorder, mission, timeout_s: float | None = None, live=N
     A stream that stopped while the vehicle talks is asked for again (``keeper``, a StreamKeeper).
 
     With the live pipeline, its part joins the status line and its summaries get lines of their own.
+    Several cameras: a line per camera below the status line (its rate, drops, gaps, marker, live check).
     """
-    from dronecal_field.recording.status import format_status
+    from dronecal_field.recording.status import format_camera_status, format_status
 
     tty = sys.stdout.isatty()
+    block = _StatusBlock(tty)
     last_print = 0.0
     done_since = None
     warned = False
@@ -553,6 +641,7 @@ def _record_until_done(recorder, mission, timeout_s: float | None = None, live=N
         time.sleep(0.1)
         now = time.monotonic()
         if timeout_s is not None and now - started > timeout_s:
+            block.leave()
             return False
         if watch is not None and watch.changed and not warned:
             warned = True
@@ -566,17 +655,21 @@ def _record_until_done(recorder, mission, timeout_s: float | None = None, live=N
             last_print = now
             if keeper is not None and (again := keeper.check()):
                 print(f"\nnote: asked the vehicle again for {', '.join(again)} (it had stopped sending them: rebooted, or a request lost)", flush=True)
-            line = format_status(recorder.status(), color=tty)
+            status = recorder.status()
+            line = format_status(status, color=tty)
             if late > 1.0:  # the machine is too busy for a status a second: say so rather than look frozen
                 line += f" | STATUS {late:.1f} s LATE"
             if live is not None:
                 for summary in live.new_summaries():
                     print(("\r" + summary.ljust(120) + "\n") if tty else summary, end="" if tty else "\n", flush=True)
-                line += " | " + live.status_text()
-            print(("\r" + line.ljust(120)) if tty else line, end="" if tty else "\n", flush=True)
+                if not status.cameras:
+                    line += " | " + live.status_text()
+            lines = [line] + [format_camera_status(c, color=tty, live="" if live is None else live.status_text(c.name)) for c in status.cameras]
+            block.show(lines)
         if _mission_over(recorder, mission):
             done_since = done_since or now
             if now - done_since >= 1.0:  # a second more, to catch the final messages
+                block.leave()
                 return True
 
 

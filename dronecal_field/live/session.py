@@ -20,7 +20,16 @@ def start_live(
     mission: Any, marker: Any, width: int, height: int, plan_json: dict | None, origin: Any, min_fix: str,
     camera_latency_s: float | None, live_host: str, live_port: int,
 ) -> LiveCalibration:
-    """The live calibration, started; with ``live_port`` > 0 its Foxglove server too.
+    """The live calibration, started; with ``live_port`` > 0 its Foxglove server too (:func:`open_view`)."""
+    view = open_view(live_host, live_port)
+    return LiveCalibration(
+        mission, marker, width, height, plan=plan_json, origin=origin, options=LiveOptions(min_fix=min_fix), view=view,
+        camera_latency_s=camera_latency_s,
+    ).start()
+
+
+def open_view(live_host: str, live_port: int) -> Any:
+    """The Foxglove live view on ``live_port`` (None for 0).
 
     A port that cannot be bound is an InputError naming the flag: the pilot asked for the view.
     """
@@ -28,18 +37,14 @@ def start_live(
 
     if not 0 <= int(live_port) <= 65535:
         raise InputError(f"--live-port {live_port}: give a TCP port 1-65535 (8765 is Foxglove's usual one), or 0 for no live view")
-    view = None
-    if live_port != 0:
-        from dronecal_field.live.view import LiveView
+    if live_port == 0:
+        return None
+    from dronecal_field.live.view import LiveView
 
-        try:
-            view = LiveView(host=live_host, port=int(live_port))
-        except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types for a taken port
-            raise InputError(f"--live-port {live_port}: cannot serve Foxglove on {live_host}:{live_port} ({exc}); choose a free port or 0 for none") from None
-    return LiveCalibration(
-        mission, marker, width, height, plan=plan_json, origin=origin, options=LiveOptions(min_fix=min_fix), view=view,
-        camera_latency_s=camera_latency_s,
-    ).start()
+    try:
+        return LiveView(host=live_host, port=int(live_port))
+    except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types for a taken port
+        raise InputError(f"--live-port {live_port}: cannot serve Foxglove on {live_host}:{live_port} ({exc}); choose a free port or 0 for none") from None
 
 
 def refly_path(run_path: Path) -> Path:
@@ -93,7 +98,10 @@ def calibrate_after_landing(run_path: Path, min_fix: str, closed_mono: float, li
     frames = live.frame_results() if live is not None else None
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        calibrate_cmd.run_single(args, run_path, live=frames)
+        if live is None:
+            calibrate_cmd.run(args)  # exactly `calibrate RUN` (a several-camera run: every camera of it)
+        else:
+            calibrate_cmd.run_single(args, run_path, live=frames)
     lines = out.getvalue().rstrip().splitlines()
     lines.append(f"calibration ready {time.monotonic() - closed_mono:.1f} s after the run file was closed")
     return lines

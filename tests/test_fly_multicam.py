@@ -1,0 +1,154 @@
+"""Issue 24, fly's side: ``fly --video NAME=URL`` (repeated) records several cameras into one run.
+
+One simulated vehicle, two simulated pole cameras, each on its own MAVLink link
+and its own stream: ``north`` serves MJPEG over HTTP, ``south`` H.264 over RTSP
+(GStreamer's server, RTCP sender reports). The run is read back with the raw
+``mcap`` reader against the contract's "Several cameras in one run".
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from dronecal_field.cli import main
+from dronecal_field.core.camera import Distortion
+from dronecal_field.sim.camera import SimCamera
+from dronecal_field.sim.scene import MarkerSpec, make_truth_camera
+from dronecal_field.sim.vehicle import SimVehicle, VehicleConfig
+from test_mavlink_support import FAST_PARAMS, HOME, write_plan
+
+OFFSET = (0.10, 0.0, 0.05)
+WAYPOINTS = [(-1.5, 5.0, 1.5), (1.5, 8.0, 3.0), (0.0, 6.5, 2.0)]
+FPS = 15
+
+
+def _raw(path):
+    """(dronecal.run metadata, {topic: (schema name, [(log_time, decoded message)])}) through mcap's own reader."""
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+    from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
+    from foxglove_schemas_protobuf.Event_pb2 import Event
+
+    classes = {"foxglove.CompressedImage": CompressedImage, "foxglove.CompressedVideo": CompressedVideo, "foxglove.Event": Event}
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        meta = [m.metadata for m in reader.iter_metadata() if m.name == "dronecal.run"]
+        topics: dict[str, tuple[str, list]] = {}
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
+            entry = topics.setdefault(channel.topic, (schema.name if schema else "", []))
+            cls = classes.get(entry[0])
+            if cls is not None:
+                entry[1].append((message.log_time, cls.FromString(message.data)))
+    assert len(meta) == 1
+    return meta[0], topics
+
+
+def _stamp(msg) -> int:
+    return msg.timestamp.seconds * 1_000_000_000 + msg.timestamp.nanos
+
+
+def test_two_cameras_mjpeg_and_rtsp_record_into_one_run_each_on_its_own_topic_and_clock(tmp_path, capsys):
+    north_truth = make_truth_camera(HOME, 4.0, 0.0, 20.0, 560.0, 640, 480, distortion=Distortion(k1=-0.1))
+    south_truth = make_truth_camera(HOME, 4.0, 0.0, 20.0, 420.0, 480, 360, distortion=Distortion(k1=-0.05))
+    marker = MarkerSpec(size_m=0.4, offset_frd_m=OFFSET)
+    north = SimCamera(north_truth, marker, connect="udpin:127.0.0.1:0", serve_url="http://127.0.0.1:0/stream.mjpg",
+                      fps=FPS, noise_sigma_dn=1.0, seed=3).start()
+    south = SimCamera(south_truth, marker, connect="udpin:127.0.0.1:0", serve_url="rtsp://127.0.0.1:0/cam",
+                      codec="h264", fps=FPS, noise_sigma_dn=1.0, seed=4).start()
+    config = VehicleConfig(home_lat_deg=HOME[0], home_lon_deg=HOME[1], home_alt_m=HOME[2], speedup=4.0, boot_s=1.0, params=FAST_PARAMS)
+    outs = [f"udp:{h}:{p}" for h, p in (north.mavlink_address, south.mavlink_address)]  # each camera on its own link
+    sim = SimVehicle(config, listen=["udp:127.0.0.1:0"], out=outs).start()
+    plan = write_plan(tmp_path / "mission.plan", WAYPOINTS, hold_s=4.0, takeoff_alt_m=2.0, speed_mps=3.0)
+    out = tmp_path / "run.mcap"
+    try:
+        rc = main(["fly", "--connect", sim.addresses()[0], "--mission", str(plan), "--video", f"north={north.url}",
+                   "--video", f"south={south.url}", "--out", str(out), "--marker-size", "0.4",
+                   "--marker-offset", ",".join(map(str, OFFSET)), "--start", "--timeout-s", "240"])
+    finally:
+        sim.stop()
+        north.stop()
+        south.stop()
+    printed = capsys.readouterr().out
+    assert rc == 0, printed[-3000:]
+    # the checklist and the status: a line per camera
+    assert re.search(r"\[ OK \] video north +640x480", printed) and re.search(r"\[ OK \] video south +480x360", printed), printed[:3000]
+    assert re.search(r"2 cameras \d+ dropped", printed)
+    assert re.search(r"  cam north: +[0-9.]+ fps \d+ frames", printed) and re.search(r"  cam south: +[0-9.]+ fps \d+ frames", printed)
+
+    meta, topics = _raw(out)
+    # metadata: the cameras in order, each one's size, latency and clock; no single-camera keys
+    assert meta["cameras"] == "north,south"
+    assert (meta["camera.north.width"], meta["camera.north.height"]) == ("640", "480")
+    assert (meta["camera.south.width"], meta["camera.south.height"]) == ("480", "360")
+    assert meta["camera.north.clock"] == "arrival" and meta["camera.north.latency_s"] == "unknown"
+    assert meta["camera.south.clock"] == "rtcp" and float(meta["camera.south.latency_s"]) == 0.0
+    assert "camera.width" not in meta and "camera.height" not in meta and "camera.latency_s" not in meta
+    # topics: one per camera with its standard schema, no /camera/... topic
+    assert not [t for t in topics if t.startswith("/camera/")]
+    assert topics["/cameras/north/image"][0] == "foxglove.CompressedImage"
+    assert topics["/cameras/south/video"][0] == "foxglove.CompressedVideo"
+    jpegs = topics["/cameras/north/image"][1]
+    units = topics["/cameras/south/video"][1]
+    assert len(jpegs) > 40 and len(units) > 40, (len(jpegs), len(units))
+    assert {m.format for _t, m in jpegs} == {"jpeg"} and {m.frame_id for _t, m in jpegs} == {"north"}
+    assert {m.format for _t, m in units} == {"h264"} and {m.frame_id for _t, m in units} == {"south"}
+    # stamps: each frame's timestamp is its log time, rising on each camera's own clock
+    for frames in (jpegs, units):
+        stamps = np.array([_stamp(m) for _t, m in frames], np.int64)
+        assert np.array_equal(stamps, np.array([t for t, _m in frames], np.int64))
+        assert np.all(np.diff(stamps) > 0)
+    # the RTSP camera is stamped at capture through RTCP: every step a whole number of its 1/15 s periods
+    steps = np.diff([_stamp(m) for _t, m in units]) / (1e9 / FPS)
+    assert np.all(np.abs(steps - np.round(steps)) < 0.002) and np.mean(np.round(steps) == 1) > 0.8
+    # both cameras cover the same flight: their first and last frames within a second of each other
+    for end in (0, -1):
+        assert abs(_stamp(jpegs[end][1]) - _stamp(units[end][1])) < 1.5e9
+    # events: the holds are shared; every video event names its camera
+    events = topics["/events"][1]
+    kinds = [dict((kv.key, kv.value) for kv in m.metadata) for _t, m in events]
+    assert [int(k["seq"]) for k in kinds if k["type"] == "hover"] == [4, 5, 6]
+    assert not [k for k in kinds if "camera" in k and k["type"] in ("hover", "leg")]  # shared: no camera named
+    video = [k for k in kinds if k["type"].startswith("video_")]
+    assert all(k.get("camera") in ("north", "south") for k in video), video  # a stream's incident always says whose
+    assert not [k for k in video if k["type"] == "video_gap"]
+
+    # the live check ran per camera: each camera's verdict, and the marker seen by both at every hold
+    live = json.loads((tmp_path / "run.live.json").read_text())
+    assert sorted(live["cameras"]) == ["north", "south"]
+    for name in ("north", "south"):
+        good = sorted(w["seq"] for w in live["cameras"][name]["waypoints"] if w["good"])
+        assert good == [4, 5, 6], (name, live["cameras"][name]["waypoints"])
+        assert re.search(rf"verdict camera {name}: marker seen at 3 of 3 waypoints checked", printed)
+    assert not (tmp_path / "refly.plan").exists()
+
+
+@pytest.mark.parametrize("videos, says", [
+    (["North=http://a/s.mjpg"], "camera name 'North' is not [a-z0-9][a-z0-9_-]{0,31}"),
+    (["a=http://a/s.mjpg", "a=http://b/s.mjpg"], "--video a=... is given twice"),
+    (["http://a/s.mjpg", "b=http://b/s.mjpg"], "has no name but there are 2 cameras"),
+    (["a=http://a/s.mjpg", "b=http://a/s.mjpg"], "is given twice: each camera needs its own stream"),
+    (["x" * 33 + "=http://a/s.mjpg"], "is not [a-z0-9][a-z0-9_-]{0,31}"),
+    (["a="], "gives no stream"),
+])
+def test_bad_camera_names_are_one_line_errors_before_anything_opens(tmp_path, capsys, videos, says):
+    plan = write_plan(tmp_path / "mission.plan", WAYPOINTS, hold_s=1.0)
+    args = ["fly", "--connect", "udp:127.0.0.1:9", "--mission", str(plan), "--out", str(tmp_path / "run.mcap"), "--marker-size", "0.3"]
+    for v in videos:
+        args += ["--video", v]
+    rc = main(args)
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and says in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "run.mcap").exists()
+
+
+def test_a_url_with_a_query_is_a_bare_single_camera():
+    from dronecal_field.recording.cameras import parse_video_flags
+
+    specs = parse_video_flags(["http://cam/stream.mjpg?res=1080&fps=25"])
+    assert [(s.name, s.url) for s in specs] == [(None, "http://cam/stream.mjpg?res=1080&fps=25")]
+    specs = parse_video_flags(["n-1=rtsp://cam/a?x=1", "n_2=/dev/video0"])
+    assert [(s.name, s.url) for s in specs] == [("n-1", "rtsp://cam/a?x=1"), ("n_2", "/dev/video0")]
