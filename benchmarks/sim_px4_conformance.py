@@ -313,64 +313,82 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
-def rows(sitl: dict, sim: dict) -> list[tuple[str, str, str, bool]]:
-    """(item, SITL, sim, agree?) for every probe value, each with its own tolerance."""
+def rows(sitls: list[dict], sim: dict) -> list[tuple[str, str, str, bool]]:
+    """(item, SITL, sim, agree?) for every probe value, each with its own tolerance.
+
+    ``sitls`` holds one or more SITL probes: the SITL column shows each run
+    (``a / b``), and a value agrees when it is within the tolerance of one of
+    them or between them (the firmware's own run-to-run spread).
+    """
     out: list[tuple[str, str, str, bool]] = []
 
+    def col(values: list) -> str:
+        texts = [_fmt(v) for v in values]
+        return texts[0] if len(set(texts)) == 1 else " / ".join(texts)
+
+    def pick(src: dict, key: str | tuple) -> Any:
+        if isinstance(key, tuple):
+            return tuple(src.get(k) for k in key)
+        return src.get(key)
+
     def same(name: str, a: Any, b: Any) -> None:
-        out.append((name, _fmt(a), _fmt(b), a == b))
+        values = [pick(x, a) for x in sitls]
+        mine = pick(sim, b if b is not None else a)
+        out.append((name, col(values), _fmt(mine), mine in values))
 
-    def near(name: str, a: float | None, b: float | None, tol: float, rel: bool = False) -> None:
-        ok = a is not None and b is not None and abs(a - b) <= (tol * abs(a) if rel else tol)
-        out.append((name, _fmt(a), _fmt(b), bool(ok)))
+    def near(name: str, key: Any, tol: float, rel: bool = False, get=None) -> None:
+        getter = get or (lambda src: src.get(key))
+        values = [getter(x) for x in sitls]
+        mine = getter(sim)
+        known = [v for v in values if v is not None]
+        ok = mine is not None and bool(known) and (
+            min(known) <= mine <= max(known) or any(abs(mine - v) <= (tol * abs(v) if rel else tol) for v in known))
+        out.append((name, col(values), _fmt(mine), bool(ok)))
 
-    same("HEARTBEAT autopilot, type", (sitl["autopilot"], sitl["type"]), (sim["autopilot"], sim["type"]))
-    same("boot mode", sitl["boot_mode"], sim["boot_mode"])
-    same("HIL_STATE_QUATERNION (truth) when asked", sitl["hil_state"], sim["hil_state"])
-    same("MISSION_CURRENT.total, no mission", sitl["mission_total_empty"], sim["mission_total_empty"])
-    same("pre-flight (ekf, ready_to_arm, home, gnss) with --min-fix 3d", sitl["preflight"], sim["preflight"])
-    same("GPS fix type, h_acc, v_acc mm", (sitl["gps_fix_type"], sitl["gps_h_acc_mm"], sitl["gps_v_acc_mm"]),
-         (sim["gps_fix_type"], sim["gps_h_acc_mm"], sim["gps_v_acc_mm"]))  # fmt: skip
-    near("GPS time_usec minus boot clock, s", sitl["gps_time_minus_boot_s"], sim["gps_time_minus_boot_s"], 0.5)
-    near("GPS new fixes/s (asked 10 Hz)", sitl["gps_fix_hz"], sim["gps_fix_hz"], 1.5)
-    same("SYS_STATUS pre-arm bit, sensors healthy", (sitl["sys_status_prearm_bit"], sitl["sys_status_health_ok"]),
-         (sim["sys_status_prearm_bit"], sim["sys_status_health_ok"]))  # fmt: skip
-    same("ESTIMATOR_STATUS flags (no EKF_STATUS_REPORT)", (sitl["estimator_flags"], sitl["ekf_status_report"]), (sim["estimator_flags"], sim["ekf_status_report"]))
-    same("requests, first upload of the session", sitl["requests_first_upload"], sim["requests_first_upload"])
-    same("DO_SET_ROI(201) mode 3 stored as", sitl["roi201_p1_back"], sim["roi201_p1_back"])
-    same("MISSION_START with DO_SET_ROI (2 = DENIED)", sitl["start_with_roi201"], sim["start_with_roi201"])
-    same("requests, next upload", bool(sitl["requests_next_upload"]), bool(sim["requests_next_upload"]))
-    same("read back identical by fly's PX4 rules", sitl["readback_identical"], sim["readback_identical"])
-    same("seq 0 is the first item (command)", sitl["mission_seq0_command"], sim["mission_seq0_command"])
-    same("frame 3 read back as; DO item frame", (sitl["frame3_back"], sitl["do_frame_back"]), (sim["frame3_back"], sim["do_frame_back"]))
-    same("z 2.5 read back", sitl["z_back"], sim["z_back"])
-    same("yaw 236.57 read back (float32 radians)", sitl["yaw_back"], sim["yaw_back"])
-    same("ROI command stored", sitl["roi_command_back"], sim["roi_command_back"])
-    same("MISSION_CURRENT.total, 8 items", sitl["mission_total"], sim["mission_total"])
-    same("modes flown (* armed)", sitl["modes"], sim["modes"])
-    near("airborne after MISSION_START, s", sitl.get("airborne_after_start_s"), sim.get("airborne_after_start_s"), 1.5)
-    near("climb rate, m/s", sitl.get("climb_rate_mps"), sim.get("climb_rate_mps"), 0.25, rel=True)
+    same("HEARTBEAT autopilot, type", ("autopilot", "type"), None)
+    same("HEARTBEAT base_mode, boot", "boot_base_mode", None)
+    same("boot mode", "boot_mode", None)
+    same("HIL_STATE_QUATERNION (truth) when asked", "hil_state", None)
+    same("MISSION_CURRENT.total, no mission", "mission_total_empty", None)
+    same("pre-flight (ekf, ready_to_arm, home, gnss) with --min-fix 3d", "preflight", None)
+    same("GPS fix type, h_acc, v_acc mm", ("gps_fix_type", "gps_h_acc_mm", "gps_v_acc_mm"), None)
+    near("GPS time_usec minus boot clock, s", "gps_time_minus_boot_s", 0.25)
+    near("GPS new fixes/s (asked 10 Hz)", "gps_fix_hz", 1.0)
+    same("SYS_STATUS pre-arm bit, sensors healthy", ("sys_status_prearm_bit", "sys_status_health_ok"), None)
+    same("ESTIMATOR_STATUS flags; EKF_STATUS_REPORT sent", ("estimator_flags", "ekf_status_report"), None)
+    same("requests, first upload of the session", "requests_first_upload", None)
+    same("DO_SET_ROI(201) mode 3 stored as", "roi201_p1_back", None)
+    same("MISSION_START with DO_SET_ROI (2 = DENIED)", "start_with_roi201", None)
+    same("requests, next upload", "requests_next_upload", None)
+    same("read back identical by fly's PX4 rules", "readback_identical", None)
+    same("seq 0 is the first item (command)", "mission_seq0_command", None)
+    same("frame 3 read back as; DO item frame", ("frame3_back", "do_frame_back"), None)
+    same("z 2.5 read back", "z_back", None)
+    same("yaw 236.57 read back (float32 radians)", "yaw_back", None)
+    same("ROI command stored", "roi_command_back", None)
+    same("MISSION_CURRENT.total, 8 items", "mission_total", None)
+    same("modes flown (* armed)", "modes", None)
+    near("airborne after MISSION_START, s", "airborne_after_start_s", 1.0)
+    near("climb rate, m/s", "climb_rate_mps", 0.15, rel=True)
     for name in ("A", "C"):
-        a, b = sitl["holds"][name], sim["holds"][name]
-        near(f"hold {name} ({a['planned_s']:g} s planned): still s", a["still_s"], b["still_s"], 1.0)
-        near(f"hold {name}: yaw error to the pole, deg", a["yaw_err_deg"], b["yaw_err_deg"], 5.0)
-        near(f"hold {name}: first reached minus hold end, s", a.get("reached_minus_hold_end_s"), b.get("reached_minus_hold_end_s"), 1.0)
-    near(f"leg 1 top speed ({SPEED_1:g} m/s planned)", sitl.get("leg1_top_mps"), sim.get("leg1_top_mps"), 0.15, rel=True)
-    near("leg 1 acceleration out of the hold, m/s^2", sitl.get("leg1_accel_mps2"), sim.get("leg1_accel_mps2"), 0.4, rel=True)
-    near("leg 1 duration (hold A end to B), s", sitl.get("leg1_s"), sim.get("leg1_s"), 0.25, rel=True)
-    near("fly-through B: closest, m", sitl.get("pass_b_miss_m"), sim.get("pass_b_miss_m"), 0.5)
-    near("fly-through B: speed there, m/s", sitl.get("pass_b_speed_mps"), sim.get("pass_b_speed_mps"), 0.5)
-    near(f"leg 2 top speed ({SPEED_2:g} m/s planned)", sitl.get("leg2_top_mps"), sim.get("leg2_top_mps"), 0.15, rel=True)
-    near("yaw rate (99th pct), deg/s", sitl.get("max_yaw_rate_dps"), sim.get("max_yaw_rate_dps"), 0.4, rel=True)
-    same("MISSION_ITEM_REACHED seqs", sitl["reached_seqs"], sim["reached_seqs"])
-    near("reached repeats, period s", sitl.get("reached_repeat_period_s"), sim.get("reached_repeat_period_s"), 0.3)
-    ca = [c for c in sitl["reached_counts"].values()]
-    cb = [c for c in sim["reached_counts"].values()]
-    near("reached repeats per item (median)", float(np.median(ca)) if ca else None, float(np.median(cb)) if cb else None, 3.0)
-    near("descent rate, m/s", sitl.get("descent_rate_mps"), sim.get("descent_rate_mps"), 0.25, rel=True)
-    near("landed from the LAND point, m", sitl.get("land_miss_m"), sim.get("land_miss_m"), 2.0)
-    near("disarm after touchdown, s", sitl.get("disarm_after_touchdown_s"), sim.get("disarm_after_touchdown_s"), 1.5)
-    near("flight, MISSION_START to disarm + 2 s, s", sitl.get("flight_s"), sim.get("flight_s"), 0.15, rel=True)
+        planned = sitls[0]["holds"][name]["planned_s"]
+        near(f"hold {name} ({planned:g} s planned): still s", None, 0.5, get=lambda x, n=name: x["holds"][n]["still_s"])
+        near(f"hold {name}: yaw error to the pole, deg", None, 3.0, get=lambda x, n=name: x["holds"][n]["yaw_err_deg"])
+        near(f"hold {name}: first reached minus hold end, s", None, 0.5, get=lambda x, n=name: x["holds"][n].get("reached_minus_hold_end_s"))
+    near(f"leg 1 top speed ({SPEED_1:g} m/s planned)", "leg1_top_mps", 0.1, rel=True)
+    near("leg 1 acceleration out of the hold, m/s^2", "leg1_accel_mps2", 0.25, rel=True)
+    near("leg 1 duration (hold A end to B), s", "leg1_s", 0.2, rel=True)
+    near("fly-through B: closest, m", "pass_b_miss_m", 0.3)
+    near("fly-through B: speed there, m/s", "pass_b_speed_mps", 0.3)
+    near(f"leg 2 top speed ({SPEED_2:g} m/s planned)", "leg2_top_mps", 0.1, rel=True)
+    near("yaw rate (99th pct), deg/s", "max_yaw_rate_dps", 0.2, rel=True)
+    same("MISSION_ITEM_REACHED seqs", "reached_seqs", None)
+    near("reached repeats, period s", "reached_repeat_period_s", 0.1)
+    near("reached repeats of the LAND item", None, 1.0, get=lambda x: x["reached_counts"].get(str(max(map(int, x["reached_counts"])))) if x["reached_counts"] else None)
+    near("descent rate, m/s", "descent_rate_mps", 0.15, rel=True)
+    near("landed from the LAND point, m", "land_miss_m", 0.5)
+    near("disarm after touchdown, s", "disarm_after_touchdown_s", 1.0)
+    near("flight, MISSION_START to disarm + 2 s, s", "flight_s", 0.1, rel=True)
     return out
 
 
@@ -395,7 +413,7 @@ def probe_sim(speedup: float = 4.0, *, seed: int = 0, log=print) -> dict:
 
 
 def print_table(table: list[tuple[str, str, str, bool]]) -> None:
-    print("\n| item | PX4 1.16 SITL | sim vehicle --autopilot px4 | agree |\n| --- | --- | --- | --- |")
+    print("\n| item | PX4 1.16 SITL (each run) | sim vehicle --autopilot px4 | agree |\n| --- | --- | --- | --- |")
     for what, a, b, ok in table:
         print(f"| {what} | {a} | {b} | {'yes' if ok else 'NO'} |")
     print(f"\n{sum(ok for *_x, ok in table)}/{len(table)} rows agree")
@@ -403,13 +421,13 @@ def print_table(table: list[tuple[str, str, str, bool]]) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sitl-json", type=Path, help="save the SITL probe here (or read it with --reuse)")
+    parser.add_argument("--sitl-json", type=Path, action="append", default=[], help="save the SITL probe here (or read it with --reuse; repeatable: several runs)")
     parser.add_argument("--reuse", action="store_true", help="read the SITL probe from --sitl-json instead of running the SITL")
     parser.add_argument("--speedup", type=float, default=4.0)
     parser.add_argument("--sitl-only", action="store_true")
     args = parser.parse_args()
-    if args.reuse and args.sitl_json and args.sitl_json.is_file():
-        sitl = json.loads(args.sitl_json.read_text())
+    if args.reuse and args.sitl_json:
+        sitls = [json.loads(p.read_text()) for p in args.sitl_json]
     else:
         from px4_sitl import skip_reason
 
@@ -421,14 +439,15 @@ def main() -> int:
         sitl = probe_sitl()
         print(f"SITL probe: {time.monotonic() - t0:.0f} s")
         if args.sitl_json:
-            args.sitl_json.write_text(json.dumps(sitl, indent=1, default=str))
+            args.sitl_json[0].write_text(json.dumps(sitl, indent=1, default=str))
+        sitls = [sitl]
     if args.sitl_only:
-        print(json.dumps(sitl, indent=1, default=str))
+        print(json.dumps({k: v for k, v in sitls[0].items() if k != "track"}, indent=1, default=str))
         return 0
     t0 = time.monotonic()
     sim = probe_sim(args.speedup)
     print(f"sim probe: {time.monotonic() - t0:.0f} s")
-    print_table(rows(sitl, sim))
+    print_table(rows(sitls, sim))
     return 0
 
 
