@@ -315,3 +315,53 @@ def test_background_size_mismatch_is_an_input_error() -> None:
     cam = make_truth_camera(ORIGIN, 3.0, 0.0, 30.0, 500.0, 320, 240)
     with pytest.raises(InputError, match="background"):
         render_frame(cam, np.zeros((10, 10, 3), np.uint8), None, MarkerSpec(), 0.0, np.random.default_rng(0))
+
+
+# ---------------------------------------------------------------- the fast paths: adaptive tracing, the streaming frame buffer
+
+
+def test_adaptive_trace_is_tracing_every_pixel(pole_camera: Camera, clean_renderer: FrameRenderer) -> None:
+    from dronecal_field.sim.render import render_marker_layer
+
+    poses = list(grid_poses(pole_camera))
+    # Closer and more oblique than the grid: the body fills a large box, the board seen at 50 deg.
+    poses.append(VehiclePose(antenna_enu_m=np.array([0.3, 2.5, 2.2]), roll_rad=0.1, yaw_rad=yaw_towards(np.array([0.3, 2.5, 2.2]), pole_camera.pose.position_world) + 0.9))
+    marker = MarkerSpec(offset_frd_m=OFFSET)
+    mixed_share = []
+    for v in poses:
+        full = render_marker_layer(pole_camera, v, marker, clean_renderer.board, clean_renderer.rays, 3, adaptive=False)
+        fast = render_marker_layer(pole_camera, v, marker, clean_renderer.board, clean_renderer.rays, 3, adaptive=True)
+        assert full is not None and fast is not None and fast[0] == full[0]
+        # The same numbers, not close ones: uniform pixels' sums are exact and edge pixels are traced as before.
+        assert np.array_equal(fast[1], full[1]) and np.array_equal(fast[2], full[2])
+        edge = (full[2] > 0) & (full[2] < 1)
+        mixed_share.append(edge.mean())
+    # Most of each box is uniform (what makes the adaptive trace worth it): edge pixels are a small share.
+    assert np.median(mixed_share) < 0.2
+
+
+def test_render_in_place_draws_the_drone_over_a_frozen_background(pole_camera: Camera, clean_renderer: FrameRenderer) -> None:
+    poses = list(grid_poses(pole_camera))[:4]
+    # Without noise the stream's frames are exactly render()'s, also after an empty frame and a move.
+    for v in [poses[0], poses[1], None, poses[2], poses[3], poses[3]]:
+        assert np.array_equal(clean_renderer.render_in_place(v), clean_renderer.render(v))
+
+    noisy = FrameRenderer(pole_camera, MarkerSpec(offset_frd_m=OFFSET), noise_sigma_dn=2.0, seed=11, rays=clean_renderer.rays)
+    empty = noisy.render_in_place(None).copy()
+    assert (empty.astype(float) - noisy.background).std() == pytest.approx(2.0, rel=0.1)
+    a = noisy.render_in_place(poses[0]).copy()
+    b = noisy.render_in_place(poses[0]).copy()
+    changed = np.any(a != empty, axis=2)
+    rows, cols = np.nonzero(changed)
+    box_area = (np.ptp(rows) + 1) * (np.ptp(cols) + 1)
+    assert 0 < changed.sum() <= box_area < 0.1 * changed.size  # only the drone's box differs from the empty frame
+    assert not np.array_equal(a, b)  # fresh noise inside the box each frame
+    assert np.array_equal(noisy.render_in_place(None), empty)  # the box is put back
+    det = detector()
+    truth = true_corners(pole_camera, poses[0])
+    corners, ids, _ = det.detectMarkers(cv2.cvtColor(a, cv2.COLOR_BGR2GRAY))
+    assert ids is not None and ids.ravel().tolist() == [0]
+    assert np.abs(corners[0][0] - truth).max() < 1.0
+    # The same frame through render() (full-frame noise): the detected corners agree to well under a pixel.
+    ref, _, _ = det.detectMarkers(cv2.cvtColor(noisy.render(poses[0]), cv2.COLOR_BGR2GRAY))
+    assert np.abs(corners[0][0] - ref[0][0]).max() < 0.3

@@ -517,7 +517,7 @@ class SimCamera:
                 pose_time = tick - self.latency_ns
                 pose = self.vehicle_pose(pose_time)
                 hidden = self.mission_seq is not None and self.mission_seq in self.hide_marker_at
-                img = self.renderer.render(pose[0] if pose else None, show_marker=not hidden)
+                img = self.renderer.render_in_place(pose[0] if pose else None, show_marker=not hidden)  # sent or encoded before the next frame
                 self.frames_hidden += int(hidden)
                 if self._rtsp is not None:
                     self.frames_rendered += 1

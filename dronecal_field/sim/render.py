@@ -16,6 +16,13 @@ the marker's bounding box is traced, on top of a cached background, and the
 Gaussian noise comes from a pre-drawn field at a random offset, so a frame
 costs a few milliseconds plus the traced area.
 
+A streaming camera (``FrameRenderer.render_in_place``) goes further: the
+background is static, so it is made and noised once into a frame buffer, and
+each frame only puts back the previous frame's box and draws the new one
+(fresh noise inside it): a 4K frame costs its traced box, not 25 MB of
+copies and noise (40-60 ms a 4K frame here). The box's pixels are the same
+computation as ``render``'s; only the background's noise is frozen.
+
 Colours are OpenCV's BGR, 8 bit.
 """
 
@@ -227,6 +234,21 @@ def add_noise(image: np.ndarray, noise_sigma_dn: float, rng: np.random.Generator
     return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
 
 
+def add_patch_noise(patch: np.ndarray, noise_sigma_dn: float, rng: np.random.Generator, noise_field: NoiseField | None = None) -> np.ndarray:
+    """``patch`` (h, w, 3) uint8 plus Gaussian noise: a random window of ``noise_field`` when it fits, else fresh draws."""
+    import cv2
+
+    if noise_sigma_dn <= 0:
+        return patch
+    h, w = patch.shape[:2]
+    if noise_field is not None and noise_field.sigma_dn == noise_sigma_dn and noise_field.positive.shape[0] >= h and noise_field.positive.shape[1] >= w:
+        oy = int(rng.integers(0, noise_field.positive.shape[0] - h + 1))
+        ox = int(rng.integers(0, noise_field.positive.shape[1] - w + 1))
+        out = cv2.add(patch, noise_field.positive[oy : oy + h, ox : ox + w])
+        return cv2.subtract(out, noise_field.negative[oy : oy + h, ox : ox + w])
+    return add_noise(patch, noise_sigma_dn, rng)
+
+
 def subpixel_offsets(supersample: int) -> np.ndarray:
     """(S*S, 2) sample offsets (du, dv) in pixels, within (-0.5, 0.5), for S x S supersampling.
 
@@ -258,6 +280,105 @@ def _outline_world(vehicle: VehiclePose, marker: MarkerSpec, board_half_m: float
     return np.concatenate([board, body])
 
 
+@dataclass(frozen=True, eq=False)
+class _DronePlanes:
+    """The marker board and the body ellipse in the camera frame, for tracing rays (x, y, 1) against them."""
+
+    n: np.ndarray  # (3,) the planes' shared normal
+    r: np.ndarray  # (3,) board/body right axis
+    d: np.ndarray  # (3,) board/body down axis
+    n_dot_c: float  # board centre c, body centre b: dot products with the axes
+    r_dot_c: float
+    d_dot_c: float
+    n_dot_b: float
+    r_dot_b: float
+    d_dot_b: float
+    inv_2half: float  # 1 / board side, 1/m
+    n_cells: int
+
+
+# Labels of a traced sample besides a board cell's index (0..n_cells^2 - 1).
+_BODY, _MISS = -1, -2
+# The box is traced adaptively when the board's cells are at least this many pixels wide.
+ADAPTIVE_MIN_CELL_PX = 3.0
+
+
+def _trace_labels(xs: np.ndarray, ys: np.ndarray, p: _DronePlanes) -> np.ndarray:
+    """What each ray (xs, ys, 1) (any shape) hits first: a board cell's index, ``_BODY`` or ``_MISS`` (int32, same shape)."""
+    n, r, d = p.n, p.r, p.d
+    rx, ry = BODY_HALF_AXES_M
+    denom = xs * n[0] + ys * n[1] + n[2]
+    ok = np.abs(denom) > 1e-12
+    inv = np.where(ok, 1.0 / np.where(ok, denom, 1.0), 0.0)
+    ray_r = xs * r[0] + ys * r[1] + r[2]
+    ray_d = xs * d[0] + ys * d[1] + d[2]
+    s_m = p.n_dot_c * inv  # ray length (in z units) to the marker plane
+    a = (s_m * ray_r - p.r_dot_c) * p.inv_2half + 0.5
+    bb = (s_m * ray_d - p.d_dot_c) * p.inv_2half + 0.5
+    on_board = ok & (s_m > 0) & (a >= 0) & (a < 1) & (bb >= 0) & (bb < 1)
+    s_b = p.n_dot_b * inv
+    e1 = (s_b * ray_r - p.r_dot_b) / rx
+    e2 = (s_b * ray_d - p.d_dot_b) / ry
+    on_body = ok & (s_b > 0) & (e1 * e1 + e2 * e2 <= 1.0)
+    board_wins = on_board & (~on_body | (s_m <= s_b))
+    nc = p.n_cells
+    col = np.clip((a * nc).astype(np.int32), 0, nc - 1)
+    row = np.clip((bb * nc).astype(np.int32), 0, nc - 1)
+    return np.where(board_wins, row * nc + col, np.where(on_body, _BODY, _MISS)).astype(np.int32)
+
+
+def _supersample(x0: np.ndarray, y0: np.ndarray, jac: tuple[np.ndarray, ...], p: _DronePlanes, board_values: np.ndarray,
+                 supersample: int) -> tuple[np.ndarray, np.ndarray]:
+    """Summed grey level and hit count of S x S rays per pixel, each times 1/S^2: (value, coverage), float32, x0's shape."""
+    jxu, jxv, jyu, jyv = jac
+    value = np.zeros(x0.shape, np.float32)
+    coverage = np.zeros(x0.shape, np.float32)
+    for du, dv in subpixel_offsets(supersample):
+        label = _trace_labels(x0 + (jxu * du + jxv * dv), y0 + (jyu * du + jyv * dv), p)
+        sample = np.where(label >= 0, board_values[np.maximum(label, 0)], np.float32(BODY_DN))
+        hit = label != _MISS
+        value += np.where(hit, sample, np.float32(0.0))
+        coverage += hit
+    scale = np.float32(1.0 / supersample**2)
+    return value * scale, coverage * scale
+
+
+def _mixed_pixels(x0: np.ndarray, y0: np.ndarray, jac: tuple[np.ndarray, ...], p: _DronePlanes) -> tuple[np.ndarray, np.ndarray]:
+    """Which pixels of the box need supersampling, and the label of the others.
+
+    The rays through every pixel corner are traced once; a pixel whose four
+    corners hit the same thing (one board cell, the body, nothing) is that
+    thing throughout, unless an edge just grazes it or a region's vertex pokes
+    into it between its corners: any such edge goes on to split the corners
+    of a neighbouring pixel (cells and the body are >= 3 px wide here), so the
+    mixed pixels grown by one pixel cover those too.
+
+    Returns
+    -------
+    mixed : (h, w) bool; label : (h, w) int32, valid where not mixed.
+    """
+    import cv2
+
+    jxu, jxv, jyu, jyv = jac
+    h, w = x0.shape
+    # Corner (i, j) is the top-left corner of pixel (i, j); the last row and column come from the last pixels' far corners.
+    cx = np.empty((h + 1, w + 1))
+    cy = np.empty((h + 1, w + 1))
+    cx[:h, :w] = x0 - 0.5 * (jxu + jxv)
+    cy[:h, :w] = y0 - 0.5 * (jyu + jyv)
+    cx[h, :w] = x0[-1] + 0.5 * (jxv[-1] - jxu[-1])
+    cy[h, :w] = y0[-1] + 0.5 * (jyv[-1] - jyu[-1])
+    cx[:h, w] = x0[:, -1] + 0.5 * (jxu[:, -1] - jxv[:, -1])
+    cy[:h, w] = y0[:, -1] + 0.5 * (jyu[:, -1] - jyv[:, -1])
+    cx[h, w] = x0[-1, -1] + 0.5 * (jxu[-1, -1] + jxv[-1, -1])
+    cy[h, w] = y0[-1, -1] + 0.5 * (jyu[-1, -1] + jyv[-1, -1])
+    lab = _trace_labels(cx, cy, p)
+    tl = lab[:-1, :-1]
+    uniform = (tl == lab[1:, :-1]) & (tl == lab[:-1, 1:]) & (tl == lab[1:, 1:])
+    mixed = cv2.dilate((~uniform).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    return mixed, tl
+
+
 def render_marker_layer(
     camera: Camera,
     vehicle: VehiclePose,
@@ -265,6 +386,7 @@ def render_marker_layer(
     board: np.ndarray,
     rays: RayMap,
     supersample: int = 3,
+    adaptive: bool = True,
 ) -> tuple[tuple[int, int, int, int], np.ndarray, np.ndarray] | None:
     """Trace the drone body and the marker board through every pixel of their bounding box.
 
@@ -275,6 +397,10 @@ def render_marker_layer(
     marker : the marker spec; ``board`` its image from ``marker_board_image``.
     rays : the camera's RayMap.
     supersample : S; S x S rays per pixel.
+    adaptive : supersample only the pixels an edge crosses (``_mixed_pixels``)
+        when the board's cells are >= ``ADAPTIVE_MIN_CELL_PX`` wide; the others
+        take the one thing their corners all hit. Same values as tracing every
+        pixel (the uniform pixels' sums are exact), 5-10x faster on a near drone.
 
     Returns
     -------
@@ -294,6 +420,7 @@ def render_marker_layer(
     outline_cam = _outline_world(vehicle, marker, board_half_m) @ R.T + t
     if np.all(outline_cam[:, 2] <= 1e-3):
         return None
+    cell_px = 0.0  # narrowest board cell, pixels (0: unknown)
     if np.any(outline_cam[:, 2] <= 1e-3):
         u0, v0, u1, v1 = 0, 0, W, H  # partly behind the camera: trace everything
     else:
@@ -303,6 +430,9 @@ def render_marker_layer(
         v0 = max(0, int(np.floor(uv[:, 1].min())) - margin)
         u1 = min(W, int(np.ceil(uv[:, 0].max())) + margin + 1)
         v1 = min(H, int(np.ceil(uv[:, 1].max())) + margin + 1)
+        # The outline's first 4 x 17 points walk the board's four sides.
+        sides = uv[: 4 * 17].reshape(4, 17, 2)
+        cell_px = float(np.linalg.norm(np.diff(sides, axis=1), axis=-1).sum(axis=1).min()) / n_cells
     if u1 <= u0 or v1 <= v0:
         return None
 
@@ -311,46 +441,43 @@ def render_marker_layer(
     b = R @ np.asarray(vehicle.antenna_enu_m, float) + t  # body centre, camera frame
     r, d, n = R @ right_w, R @ down_w, R @ normal_w
     front = float(-n @ c) > 0.0  # the camera (origin) is on the printed side
-    n_dot_c, n_dot_b = float(n @ c), float(n @ b)
-    r_dot_c, d_dot_c = float(r @ c), float(d @ c)
-    r_dot_b, d_dot_b = float(r @ b), float(d @ b)
-    rx, ry = BODY_HALF_AXES_M
+    planes = _DronePlanes(n=n, r=r, d=d, n_dot_c=float(n @ c), r_dot_c=float(r @ c), d_dot_c=float(d @ c),
+                          n_dot_b=float(n @ b), r_dot_b=float(r @ b), d_dot_b=float(d @ b),
+                          inv_2half=1.0 / (2.0 * board_half_m), n_cells=n_cells)
     board_values = np.where(board.ravel() > 127, MARKER_WHITE_DN, MARKER_BLACK_DN).astype(np.float32)
     if not front:
         board_values[:] = BOARD_BACK_DN
 
     sl = (slice(v0, v1), slice(u0, u1))
     x0, y0 = rays.x[sl], rays.y[sl]
-    jxu, jxv, jyu, jyv = rays.dx_du[sl], rays.dx_dv[sl], rays.dy_du[sl], rays.dy_dv[sl]
-    value = np.zeros(x0.shape, np.float32)
-    coverage = np.zeros(x0.shape, np.float32)
-    inv_2half = 1.0 / (2.0 * board_half_m)
-    for du, dv in subpixel_offsets(supersample):
-        xs = x0 + (jxu * du + jxv * dv)
-        ys = y0 + (jyu * du + jyv * dv)
-        # Ray (xs, ys, 1): both planes share the normal n.
-        denom = xs * n[0] + ys * n[1] + n[2]
-        ok = np.abs(denom) > 1e-12
-        inv = np.where(ok, 1.0 / np.where(ok, denom, 1.0), 0.0)
-        ray_r = xs * r[0] + ys * r[1] + r[2]
-        ray_d = xs * d[0] + ys * d[1] + d[2]
-        s_m = n_dot_c * inv  # ray length (in z units) to the marker plane
-        a = (s_m * ray_r - r_dot_c) * inv_2half + 0.5
-        bb = (s_m * ray_d - d_dot_c) * inv_2half + 0.5
-        on_board = ok & (s_m > 0) & (a >= 0) & (a < 1) & (bb >= 0) & (bb < 1)
-        s_b = n_dot_b * inv
-        e1 = (s_b * ray_r - r_dot_b) / rx
-        e2 = (s_b * ray_d - d_dot_b) / ry
-        on_body = ok & (s_b > 0) & (e1 * e1 + e2 * e2 <= 1.0)
-        board_wins = on_board & (~on_body | (s_m <= s_b))
-        col = np.clip((a * n_cells).astype(np.int32), 0, n_cells - 1)
-        row = np.clip((bb * n_cells).astype(np.int32), 0, n_cells - 1)
-        sample = np.where(board_wins, board_values[row * n_cells + col], np.float32(BODY_DN))
-        hit = board_wins | on_body
-        value += np.where(hit, sample, np.float32(0.0))
-        coverage += hit
+    jac = (rays.dx_du[sl], rays.dx_dv[sl], rays.dy_du[sl], rays.dy_dv[sl])
+    if not (adaptive and cell_px >= ADAPTIVE_MIN_CELL_PX and supersample > 1):
+        value, coverage = _supersample(x0, y0, jac, planes, board_values, supersample)
+        return (u0, v0, u1, v1), value, coverage
+    mixed, label = _mixed_pixels(x0, y0, jac, planes)
+    # Uniform pixels: S^2 equal samples summed (exact in float32) times 1/S^2, as _supersample makes them.
+    s2 = np.float32(supersample**2)
     scale = np.float32(1.0 / supersample**2)
-    return (u0, v0, u1, v1), value * scale, coverage * scale
+    full_value = np.concatenate([board_values, [np.float32(BODY_DN), np.float32(0.0)]]) * s2 * scale
+    full_cover = np.float32(s2 * scale)
+    # _BODY and _MISS index the two values appended after the board's.
+    nb = board_values.size
+    value = full_value[np.where(label >= 0, label, np.where(label == _BODY, nb, nb + 1))].astype(np.float32)
+    coverage = np.where(label == _MISS, np.float32(0.0), full_cover).astype(np.float32)
+    iy, ix = np.nonzero(mixed)
+    if iy.size:
+        mv, mc = _supersample(x0[iy, ix], y0[iy, ix], tuple(j[iy, ix] for j in jac), planes, board_values, supersample)
+        value[iy, ix] = mv
+        coverage[iy, ix] = mc
+    return (u0, v0, u1, v1), value, coverage
+
+
+def composite_patch(background: np.ndarray, layer: tuple[tuple[int, int, int, int], np.ndarray, np.ndarray]) -> np.ndarray:
+    """The layer's box of ``background`` (H, W, 3) uint8 with the traced layer blended in by coverage: (h, w, 3) uint8."""
+    (u0, v0, u1, v1), value, coverage = layer
+    patch = background[v0:v1, u0:u1].astype(np.float32)
+    patch = patch * (1.0 - coverage)[..., None] + value[..., None]
+    return np.clip(np.rint(patch), 0, 255).astype(np.uint8)
 
 
 def composite(background: np.ndarray, layer: tuple[tuple[int, int, int, int], np.ndarray, np.ndarray] | None) -> np.ndarray:
@@ -358,10 +485,8 @@ def composite(background: np.ndarray, layer: tuple[tuple[int, int, int, int], np
     img = background.copy()
     if layer is None:
         return img
-    (u0, v0, u1, v1), value, coverage = layer
-    patch = img[v0:v1, u0:u1].astype(np.float32)
-    patch = patch * (1.0 - coverage)[..., None] + value[..., None]
-    img[v0:v1, u0:u1] = np.clip(np.rint(patch), 0, 255).astype(np.uint8)
+    u0, v0, u1, v1 = layer[0]
+    img[v0:v1, u0:u1] = composite_patch(background, layer)
     return img
 
 
@@ -435,6 +560,10 @@ class FrameRenderer:
         self.background = make_background(camera, seed, self.rays)
         self.noise_field = make_noise_field(camera.width, camera.height, noise_sigma_dn, seed + 1) if noise_sigma_dn > 0 else None
         self.rng = np.random.default_rng(seed + 2)
+        # The streaming path's frame buffer: the background noised once, and the box drawn into it last.
+        self._frame: np.ndarray | None = None
+        self._noised_background: np.ndarray | None = None
+        self._drawn_box: tuple[int, int, int, int] | None = None
 
     def render(self, vehicle: VehiclePose | None, show_marker: bool = True) -> np.ndarray:
         """(H, W, 3) uint8 BGR frame with the drone at ``vehicle`` (None: empty scene).
@@ -454,3 +583,30 @@ class FrameRenderer:
             noise_field=self.noise_field,
             supersample=self.supersample,
         )
+
+    def render_in_place(self, vehicle: VehiclePose | None, show_marker: bool = True) -> np.ndarray:
+        """Like ``render``, for a stream: the returned (H, W, 3) uint8 array is this renderer's own buffer, valid until the next call.
+
+        The background's noise is drawn once (frozen); each call restores the
+        previous frame's box from the noised background and draws the drone's
+        box with fresh noise, so a frame costs the box, not the whole image.
+        The box's pixels before noise are exactly ``render``'s.
+        """
+        if self._frame is None:
+            self._noised_background = add_noise(self.background, self.noise_sigma_dn, self.rng, self.noise_field)
+            self._frame = self._noised_background.copy()  # never the background itself (no noise: add_noise returns it)
+        frame = self._frame
+        if self._drawn_box is not None:
+            u0, v0, u1, v1 = self._drawn_box
+            frame[v0:v1, u0:u1] = self._noised_background[v0:v1, u0:u1]
+            self._drawn_box = None
+        if vehicle is None:
+            return frame
+        board = self.board if show_marker else self.covered_board
+        layer = render_marker_layer(self.camera, vehicle, self.marker, board, self.rays, self.supersample)
+        if layer is None:
+            return frame
+        u0, v0, u1, v1 = layer[0]
+        frame[v0:v1, u0:u1] = add_patch_noise(composite_patch(self.background, layer), self.noise_sigma_dn, self.rng, self.noise_field)
+        self._drawn_box = layer[0]
+        return frame
