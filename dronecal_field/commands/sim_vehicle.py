@@ -1,4 +1,4 @@
-"""``dronecal-field sim vehicle``: a SITL-style simulated ArduCopter speaking MAVLink 2.
+"""``dronecal-field sim vehicle``: a SITL-style simulated ArduCopter (or PX4, --autopilot px4) speaking MAVLink 2.
 
 It behaves like ArduCopter 4.7 SITL as recorded from a real SITL session
 (mission protocol, modes, arming rules, takeoff, holds, ROI yaw, RTL), with
@@ -30,6 +30,11 @@ def register(sims: argparse._SubParsersAction) -> None:
     parser.add_argument("--out", action="append", default=[], metavar="URL", help="also send everything to udp:HOST:PORT (e.g. the simulated camera); repeatable")
     parser.add_argument("--home", required=True, metavar="LAT,LON,H", help="home: degrees, degrees, metres above mean sea level (as SITL's --home)")
     parser.add_argument("--speedup", type=float, default=1.0, metavar="N", help="vehicle seconds per wall second (default 1)")
+    parser.add_argument("--autopilot", choices=("ardupilot", "px4"), default="ardupilot",
+                        help="whose firmware to behave as: ardupilot (ArduCopter 4.7 SITL, the default) or px4 (PX4 1.16 SITL with SIH: "
+                        "its modes, mission from seq 0, MISSION_START arms, 3D-fix GNSS with 0.2 m / 0.5 m noise; sim/vehicle_px4.py)")
+    parser.add_argument("--gnss", choices=("auto", "rtk"), default="auto",
+                        help="with --autopilot px4: auto = the SITL's 3D fix (h_acc 0.9 m, 0.2 m / 0.5 m noise), rtk = RTK fixed (7 mm / 15 mm)")
     parser.add_argument("--boot-s", type=float, default=41.8, metavar="S", help="vehicle seconds until ready to arm (EKF healthy); uploads before that get MISSION_ACK NO_SPACE (default 41.8, as ArduCopter 4.7 SITL)")
     parser.add_argument("--geoid-separation", dest="geoid_sep", type=float, default=0.0, metavar="M",
                         help="ellipsoidal minus AMSL height reported in GPS_RAW_INT.alt_ellipsoid, metres (default 0; the same flag as plan's)")
@@ -111,12 +116,23 @@ def run(args: argparse.Namespace) -> int:
         stream_params=tuple(stream_params),
         signing_key=signing_key_bytes(args.signing_key) if args.signing_key else None,
         params=CopterParams(wp_speed_mps=args.wp_speed, rtl_alt_m=args.rtl_alt),
+        autopilot=args.autopilot,
+        gnss=args.gnss,
     )
+    if args.autopilot == "px4":
+        from dataclasses import replace
+
+        from dronecal_field.sim.vehicle_px4 import PX4_BOOT_S, PX4_GPS_RATE_MS, px4_params
+
+        config = replace(config, params=replace(px4_params(args.wp_speed), rtl_alt_m=args.rtl_alt),
+                         boot_s=PX4_BOOT_S if args.boot_s == 41.8 else args.boot_s,
+                         gps_rate_ms=PX4_GPS_RATE_MS if args.gps_rate_ms == 200.0 else args.gps_rate_ms)
     sim = SimVehicle(config, listen=args.listen, out=args.out)
     print(f"sim vehicle: {', '.join(sim.addresses())}; home {lat:.7f},{lon:.7f},{alt:g} m AMSL; speedup {args.speedup:g}", flush=True)
     links = "; ".join(f"MAV{n}_* {address}" for n, address in enumerate(sim.addresses(), start=1))
     print(f"sim vehicle: links (stream-rate parameters): {links}; each streams only HEARTBEAT until its client asks; "
-          f"GPS {1000.0 / args.gps_rate_ms:g} fixes/s (GPS_RATE_MS {args.gps_rate_ms:g})", flush=True)
+          f"GPS {1000.0 / config.gps_rate_ms:.3g} fixes/s (GPS_RATE_MS {config.gps_rate_ms:g}); "
+          f"{'PX4 1.16 (SIH), GNSS ' + ('RTK fixed' if args.gnss == 'rtk' else '3D fix, h_acc 0.9 m') if args.autopilot == 'px4' else 'ArduCopter 4.7'}", flush=True)
     stop = threading.Event()
     if args.duration is not None:
         timer = threading.Timer(args.duration, stop.set)
