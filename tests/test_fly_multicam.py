@@ -47,8 +47,12 @@ def _raw(path):
     return meta[0], topics
 
 
+def _ns(ts) -> int:
+    return ts.seconds * 1_000_000_000 + ts.nanos
+
+
 def _stamp(msg) -> int:
-    return msg.timestamp.seconds * 1_000_000_000 + msg.timestamp.nanos
+    return _ns(msg.timestamp)
 
 
 def test_two_cameras_mjpeg_and_rtsp_record_into_one_run_each_on_its_own_topic_and_clock(tmp_path, capsys):
@@ -103,10 +107,14 @@ def test_two_cameras_mjpeg_and_rtsp_record_into_one_run_each_on_its_own_topic_an
         assert np.all(np.diff(stamps) > 0)
     # the RTSP camera is stamped at capture through RTCP: every step a whole number of its 1/15 s periods
     steps = np.diff([_stamp(m) for _t, m in units]) / (1e9 / FPS)
-    assert np.all(np.abs(steps - np.round(steps)) < 0.002) and np.mean(np.round(steps) == 1) > 0.8
-    # both cameras cover the same flight: their first and last frames within a second of each other
-    for end in (0, -1):
-        assert abs(_stamp(jpegs[end][1]) - _stamp(units[end][1])) < 1.5e9
+    assert np.all(np.abs(steps - np.round(steps)) < 0.002) and np.all(np.round(steps) >= 1)
+    # both on the run clock: every frame after the recording's start and before its end (the last MAVLink message)
+    start_ns = int(meta["recording.start_ns"])
+    with open(out, "rb") as f:
+        end_ns = make_reader(f).get_summary().statistics.message_end_time
+    for frames in (jpegs, units):
+        assert start_ns <= _stamp(frames[0][1]) and _stamp(frames[-1][1]) <= end_ns
+        assert (_stamp(frames[-1][1]) - _stamp(frames[0][1])) > 0.5 * (end_ns - start_ns)  # each camera recorded the flight
     # events: the holds are shared; every video event names its camera
     events = topics["/events"][1]
     kinds = [dict((kv.key, kv.value) for kv in m.metadata) for _t, m in events]
@@ -115,6 +123,12 @@ def test_two_cameras_mjpeg_and_rtsp_record_into_one_run_each_on_its_own_topic_an
     video = [k for k in kinds if k["type"].startswith("video_")]
     assert all(k.get("camera") in ("north", "south") for k in video), video  # a stream's incident always says whose
     assert not [k for k in video if k["type"] == "video_gap"]
+    # a frame the simulator did not make in time on a busy machine is a pts gap of south's, counted as lost: nothing unaccounted
+    first_unit_ns = _stamp(units[0][1])
+    lost = sum(int(k["frames"]) for k, (_t, m) in zip(kinds, events)
+               if k["type"] == "video_lost" and _ns(m.start_time) > first_unit_ns and k["camera"] == "south")
+    assert lost == int(np.sum(np.round(steps) - 1))
+    assert not [k for k in video if k["type"] == "video_lost" and k["camera"] == "north"]  # MJPEG has no pts to lose
 
     # the live check ran per camera: each camera's verdict, and the marker seen by both at every hold
     live = json.loads((tmp_path / "run.live.json").read_text())

@@ -27,9 +27,12 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
+
+# The probe and the pre-flight video judgement live with the recording; these names are fly's own too.
+from dronecal_field.recording.probe import judge_video as _judge_video  # noqa: F401
+from dronecal_field.recording.probe import probe_video as _probe_video  # noqa: F401
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -168,110 +171,6 @@ def _site_origin(plan_json: dict | None):
     return site_origin_from_plan_json(plan_json or {})
 
 
-def _probe_video(url: str, first_timeout_s: float = 5.0, probe_s: float = 1.0, rtsp_transport: str = "tcp", rtcp_wait_s: float = 6.0):
-    """Open the stream, read the first frame and count frames for ``probe_s``: (source, first, VideoStatus).
-
-    An H.264/H.265 stream (RTSP, files) is probed without decoding; over RTSP
-    the probe waits up to ``rtcp_wait_s`` for the camera's first RTCP sender
-    report, so that the recording is stamped at capture from its first frame.
-    """
-    from dronecal_field.errors import VideoError
-    from dronecal_field.mavlink.preflight import VideoStatus
-    from dronecal_field.video import open_video
-
-    try:
-        source = open_video(url, rtsp_transport=rtsp_transport)
-    except VideoError as exc:
-        return None, None, VideoStatus(url=url, error=str(exc))
-    first = source.read(timeout_s=first_timeout_s)
-    if first is None:
-        return source, None, VideoStatus(url=url, frames=0)
-    if first.format in ("h264", "h265"):
-        from dronecal_field.video.probe import probe_packet_stream
-
-        probe = probe_packet_stream(source, first, probe_s=probe_s, rtcp_wait_s=rtcp_wait_s)  # the stream's rate, a keyframe decoded
-        if source.b_frames or source.monitor.reordered:
-            return source, None, VideoStatus(
-                url=url, frames=probe.frames, error="the camera sends B-frames (frames out of order); set its encoder to no B-frames (IP frames only, e.g. H.264 baseline)"
-            )
-        return source, first, VideoStatus(url=url, frames=probe.frames, fps=probe.fps or 0.0, width=source.width, height=source.height,
-                                          warning=probe.warning)
-    import cv2
-    import numpy as np
-
-    image = cv2.imdecode(np.frombuffer(first.data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        return source, None, VideoStatus(url=url, frames=1, error="the first frame is not a decodable image")
-    height, width = image.shape[:2]
-    frames, t0 = 1, time.monotonic()
-    while time.monotonic() - t0 < probe_s:
-        if source.read(timeout_s=probe_s) is not None:
-            frames += 1
-    fps = (frames - 1) / max(time.monotonic() - t0, 1e-6)
-    return source, first, VideoStatus(url=url, frames=frames, fps=fps, width=width, height=height)
-
-
-def _judge_video(status, plan_json: dict | None, args: argparse.Namespace):
-    """Fail the video check for a still image or a stalled stream, or a size other than the plan's camera."""
-    from dataclasses import replace
-
-    if status.error or not status.frames:
-        return status
-    if status.frames < 2 or status.fps < 1.0:
-        return replace(status, error=f"{status.url} sent {status.frames} frame(s) in the probe ({status.fps:.1f} fps): "
-                                     "a still image or a stalled stream; give the camera's live stream")
-    guess = (plan_json or {}).get("camera_guess") or {}
-    w, h = guess.get("width"), guess.get("height")
-    if args.camera_width is None and args.camera_height is None and w and h and (w, h) != (status.width, status.height):
-        return replace(status, error=f"{status.url} sends {status.width}x{status.height} but the plan's camera is {w}x{h} (plan.json): "
-                                     f"re-plan with --image-size {status.width}x{status.height} or set the camera's resolution")
-    return status
-
-
-@dataclass
-class _Camera:
-    """One --video as probed: its spec (name, url), open source, first frame and pre-flight status."""
-
-    spec: Any
-    source: Any
-    first: Any
-    status: Any
-
-
-def _probe_cameras(args: argparse.Namespace, plan_json: dict | None) -> list[_Camera]:
-    """Every --video probed at once (one thread each: four RTSP cameras wait for their RTCP reports together), judged."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from dronecal_field.live.site import camera_plan
-
-    specs = args.videos
-    with ThreadPoolExecutor(max_workers=len(specs)) as pool:
-        probed = list(pool.map(lambda spec: _probe_video(spec.url, rtsp_transport=args.rtsp_transport), specs))
-    cams = []
-    for spec, (source, first, status) in zip(specs, probed):
-        plan = plan_json if spec.name is None else camera_plan(plan_json, spec.name)
-        cams.append(_Camera(spec, source, first, _judge_video(status, plan, args)))
-    return cams
-
-
-def _camera_checks(results: list, cams: list[_Camera]) -> list:
-    """The checklist with one ``video NAME`` line per camera in place of the single ``video`` line."""
-    from dronecal_field.mavlink.preflight import CheckResult
-
-    out = [r for r in results if r.name != "video"]
-    for cam in cams:
-        v, name = cam.status, f"video {cam.spec.name}"
-        if v.error:
-            out.append(CheckResult(name, False, v.error if v.url in v.error else f"{v.url}: {v.error}"))
-        elif v.frames == 0:
-            out.append(CheckResult(name, False, f"{v.url} opened but sent no frame; check the camera stream"))
-        elif v.warning:
-            out.append(CheckResult(name, True, f"WARNING: {v.width}x{v.height}, {v.fps:.1f} fps, but {v.warning}", warning=True))
-        else:
-            out.append(CheckResult(name, True, f"{v.width}x{v.height}, {v.fps:.1f} fps"))
-    return out
-
-
 def _wait_for_gnss_rate(meter, timeout_s: float) -> None:
     """Give the GNSS stream up to ``timeout_s`` to show its rate (a second of fixes at the asked rate)."""
     deadline = time.monotonic() + timeout_s
@@ -359,7 +258,7 @@ def run(args: argparse.Namespace) -> int:
             clock.update(stamp_ns, int(msg.time_boot_ms))
 
     link.add_listener(before_recording)
-    cams: list[_Camera] = []
+    cams: list = []  # recording.probe.ProbedCamera, one per --video
     recorder = None
     live = None
     watch = None
@@ -374,7 +273,9 @@ def run(args: argparse.Namespace) -> int:
         link.add_listener(keeper.feed)
         gnss_meter = GnssRateMeter()
         link.add_listener(lambda direction, _stamp_ns, msg: gnss_meter.feed(msg) if direction == "in" else None)
-        cams = _probe_cameras(args, plan_json)
+        from dronecal_field.recording.probe import camera_checks, probe_cameras
+
+        cams = probe_cameras(args, plan_json)
         _wait_for_gnss_rate(gnss_meter, timeout_s=3.0)
         video_status = cams[0].status
         if cams[0].first is not None:
@@ -393,14 +294,15 @@ def run(args: argparse.Namespace) -> int:
             gnss_meter=gnss_meter,
         )
         if several:
-            results = _camera_checks(results, cams)
+            results = camera_checks(results, cams)
         print("pre-flight:\n" + format_checklist(results), flush=True)
         require_preflight(results)
         if args.dry_run:
             print("dry run: nothing uploaded, nothing recorded")
             return 0
         if not args.no_live and several:  # before the upload: a --live-port that cannot be served stops fly with nothing uploaded
-            from dronecal_field.live.site import SiteCamera, camera_plan, start_live_site
+            from dronecal_field.live.site import SiteCamera, start_live_site
+            from dronecal_field.recording.cameras import camera_plan
 
             live = start_live_site(mission, marker, [SiteCamera(c.spec.name, c.status.width, c.status.height, camera_plan(plan_json, c.spec.name))
                                                      for c in cams], _site_origin(plan_json), args.min_fix, args.camera_latency,
@@ -484,6 +386,7 @@ def _start_recorder(args, link, cams, mission, mission_path, marker, plan_json, 
     from dronecal_field.mavlink.missionfile import to_qgc_plan
     from dronecal_field.recording.feed import CameraFeed
     from dronecal_field.recording.marker_check import MarkerCheck
+    from dronecal_field.recording.probe import run_camera, video_metadata
     from dronecal_field.recording.recorder import Recorder
     from dronecal_field.runfile.records import FORMAT_VERSION, RunMetadata
     from dronecal_field.runfile.tlog import TlogWriter
@@ -518,7 +421,7 @@ def _start_recorder(args, link, cams, mission, mission_path, marker, plan_json, 
         },
     )
     if several:
-        run_cameras = [_run_camera(cam, args) for cam in cams]
+        run_cameras = [run_camera(cam, args) for cam in cams]
         writer = RunWriter(out, metadata, cameras=run_cameras)
         feeds = [CameraFeed(cam.spec.name, cam.source, cam.first, observer=None if observer is None else observer.camera(cam.spec.name))
                  for cam in cams]
@@ -528,7 +431,7 @@ def _start_recorder(args, link, cams, mission, mission_path, marker, plan_json, 
         metadata = replace(metadata, extra=extra)
         passthrough = cam.first is not None and cam.first.format in ("h264", "h265")
         if passthrough:
-            metadata = _video_metadata(metadata, cam.source, args)
+            metadata = video_metadata(metadata, cam.source, args)
         writer = RunWriter(out, metadata, camera="video" if passthrough else "image")
         feeds = None
     data = mission_path.read_bytes() if mission.source_format == "plan" else to_qgc_plan(mission).encode("utf-8")
@@ -552,45 +455,6 @@ def _start_recorder(args, link, cams, mission, mission_path, marker, plan_json, 
         observer=observer,
         feeds=feeds,
     ).start()
-
-
-def _run_camera(cam, args):
-    """The RunCamera of one named camera: its topic, size, and how its frames are stamped (``camera.<name>.clock``)."""
-    from dronecal_field.runfile.writer import RunCamera
-
-    extra = {"url": cam.spec.url}
-    if cam.first is not None and cam.first.format in ("h264", "h265"):
-        clock = cam.source.lock_clock()  # one clock for the whole run, per camera
-        extra["timestamps"] = _CLOCK_TIMESTAMPS[clock]
-        extra["rtsp_transport"] = args.rtsp_transport
-        if cam.source.rtcp_delay_ns is not None:
-            extra["rtcp_to_arrival_s"] = repr(cam.source.rtcp_delay_ns / 1e9)
-        latency = 0.0 if clock == "rtcp" else args.camera_latency
-        return RunCamera(name=cam.spec.name, topic="video", width=int(cam.status.width), height=int(cam.status.height),
-                         latency_s=latency, clock=clock, extra=extra)
-    extra["timestamps"] = "host UTC at frame arrival"
-    return RunCamera(name=cam.spec.name, topic="image", width=int(cam.status.width), height=int(cam.status.height),
-                     latency_s=args.camera_latency, clock="arrival", extra=extra)
-
-
-_CLOCK_TIMESTAMPS = {
-    "rtcp": "capture time: RTP presentation time through the camera's RTCP sender reports (its wall clock)",
-    "arrival": "host UTC at arrival through the stream's own pacing (smallest network delay); no RTCP sender report",
-    "file": "recording start + presentation time in the file",
-}
-
-
-def _video_metadata(metadata, source, args):
-    """The run metadata of a /camera/video recording: how its frames are stamped (``camera.clock``)."""
-    clock = source.lock_clock()  # one clock for the whole run
-    extra = dict(metadata.extra)
-    extra["camera.clock"] = clock
-    extra["camera.timestamps"] = _CLOCK_TIMESTAMPS[clock]
-    extra["video.rtsp_transport"] = args.rtsp_transport
-    if source.rtcp_delay_ns is not None:
-        extra["camera.rtcp_to_arrival_s"] = repr(source.rtcp_delay_ns / 1e9)  # network + camera clock offset, measured
-    latency = 0.0 if clock == "rtcp" else args.camera_latency
-    return replace(metadata, camera_latency_s=latency, extra=extra)
 
 
 class _StatusBlock:

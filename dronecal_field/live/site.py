@@ -44,17 +44,6 @@ class SiteCamera:
     plan: dict | None = None
 
 
-def camera_plan(plan_json: dict | None, name: str) -> dict | None:
-    """plan.json's entry for camera ``name``: ``cameras`` as a mapping by name or a list of objects with ``name``."""
-    cams = (plan_json or {}).get("cameras") if isinstance(plan_json, dict) else None
-    sub = None
-    if isinstance(cams, dict):
-        sub = cams.get(name)
-    elif isinstance(cams, list):
-        sub = next((c for c in cams if isinstance(c, dict) and c.get("name") == name), None)
-    return sub if isinstance(sub, dict) else None
-
-
 def site_options(min_fix: str, n_cameras: int) -> LiveOptions:
     """The live work per camera of ``n_cameras`` (see the module docstring)."""
     base = LiveOptions(min_fix=min_fix)

@@ -71,3 +71,14 @@ def _one(value: str) -> VideoSpec:
     if not url:
         raise InputError(f"--video {value!r} names camera {name!r} but gives no stream: write --video {name}=rtsp://... or {name}=http://.../stream.mjpg")
     return VideoSpec(name, url)
+
+
+def camera_plan(plan_json: dict | None, name: str) -> dict | None:
+    """plan.json's entry for camera ``name``: ``cameras`` as a mapping by name or a list of objects with ``name``."""
+    cams = (plan_json or {}).get("cameras") if isinstance(plan_json, dict) else None
+    sub = None
+    if isinstance(cams, dict):
+        sub = cams.get(name)
+    elif isinstance(cams, list):
+        sub = next((c for c in cams if isinstance(c, dict) and c.get("name") == name), None)
+    return sub if isinstance(sub, dict) else None
