@@ -8,7 +8,7 @@ perturbation follow docs/conventions.md.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -44,6 +44,10 @@ class CalibrationModel:
     distortion: str = "k1k2p1p2"
     fix_aspect_ratio: bool = False
     fix_principal_point: bool = False
+    # Set on the model of a calibration's result (``calibrate``): the model was fitted to data,
+    # so its uncertainty figures carry the model term (``core.uncertainty.linearised``). Not part
+    # of the name or of equality: the same parameters are free.
+    fitted: bool = field(default=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.distortion not in DISTORTION_MODELS:
@@ -81,6 +85,20 @@ class CalibrationModel:
             if name == "fx" and self.fix_aspect_ratio:
                 A[PARAM_NAMES.index("fy"), j] = aspect
         return A
+
+
+# Next richer model in the family ``auto`` climbs; k3 last (it needs the corners).
+_RICHER = {"none": "k1", "k1": "k1k2", "k1k2": "k1k2p1p2", "k1k2p1p2": "full"}
+
+
+def richer_model(model: CalibrationModel) -> CalibrationModel | None:
+    """The next model up from ``model`` (k1 -> k1k2 -> k1k2p1p2 -> full -> free aspect), None at the top."""
+    nxt = _RICHER.get(model.distortion)
+    if nxt is not None:
+        return replace(model, distortion=nxt)
+    if model.fix_aspect_ratio:
+        return replace(model, fix_aspect_ratio=False)
+    return None
 
 
 def resolve_model(model: "str | CalibrationModel", n_points: int) -> CalibrationModel:
@@ -448,7 +466,7 @@ def _result_from_state(state, X, uv, width, height, mdl, A, iters, loss, loss_sc
     camera = Camera.from_arrays(state.intrinsics[0], state.distortion[0], state.R[0], state.t[0], width, height, enu_origin=enu_origin, covariance=cov)
     return CalibrationResult(
         camera=camera,
-        model=mdl,
+        model=replace(mdl, fitted=True),
         rms_px=float(np.sqrt(np.mean(sq))),
         residuals_px=res,
         outliers=outliers,

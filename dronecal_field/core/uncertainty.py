@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dronecal_field.core.calibrate import BatchState, CalibrationModel, _free_columns, resolve_model
+from dronecal_field.core.calibrate import BatchState, CalibrationModel, _free_columns, resolve_model, richer_model
 from dronecal_field.core.camera import (
     PARAM_NAMES,
     Camera,
@@ -103,6 +103,7 @@ class UncertaintyResult:
     rms: np.ndarray | None = field(default=None, repr=False)
     failed_trials: int = 0
     covariance: np.ndarray | None = field(default=None, repr=False)  # (15, 15), linearised only
+    model_term: str | None = None  # the richer model whose excess covariance the derived figures include (None: noise only)
 
     def to_dict(self) -> dict:
         d = {
@@ -123,6 +124,7 @@ class UncertaintyResult:
             "speed_error_15m_kmh": self.speed_error_15m_kmh,
             "speed_error_15m_kmh_p95": self.speed_error_15m_kmh_p95,
             "failed_trials": self.failed_trials,
+            "model_term": self.model_term,
         }
         return d
 
@@ -259,6 +261,8 @@ def monte_carlo(
     max_iterations: int = 30,
     mc_tolerance: float = 1e-6,
     observed_pixels: np.ndarray | None = None,
+    model_term: bool | None = None,
+    fitted_pixels: np.ndarray | None = None,
 ) -> UncertaintyResult:
     """The paper's Monte-Carlo estimate of calibration uncertainty, all trials batched.
 
@@ -277,6 +281,9 @@ def monte_carlo(
     mc_tolerance : a trial stops when its cost drops by less than this fraction in an
         iteration; 1e-6 leaves the RMS within about 1e-6 of the converged value (the
         large-residual problem converges linearly, so tighter costs iterations)
+    model_term, fitted_pixels : the model term of :func:`linearised` (default: for a model
+        fitted to data), added root-sum-square to every derived figure; the trials
+        themselves re-estimate the chosen model only
 
     Returns
     -------
@@ -318,6 +325,20 @@ def monte_carlo(
     rms = np.concatenate(rms_all)
     metrics = {key: np.concatenate([m[key] for m in metrics_all]) for key in metrics_all[0]}
     params = {key: np.concatenate([p[key] for p in params_all]) for key in params_all[0]}
+    rms_of = lambda v: np.sqrt(np.mean(v**2))  # noqa: E731
+    out = dict(
+        param_std={key: _nan_stat(lambda v: np.std(v, ddof=1), val) for key, val in params.items()},
+        projection_error_px=_nan_stat(rms_of, metrics["projection"]),
+        ground_projection_error_px=_nan_stat(rms_of, metrics["ground_projection"]),
+        ground_error_15m_cm=_nan_stat(rms_of, metrics["pos15"]),
+        speed_error_15m_kmh=_nan_stat(rms_of, metrics["speed15"]),
+    )
+    pct = {p: float(v) for p, v in zip(PERCENTILES, _nan_percentiles(rms, PERCENTILES))}
+    out["ground_error_15m_cm_p95"] = float(_nan_percentiles(metrics["pos15"], (95,))[0])
+    out["speed_error_15m_kmh_p95"] = float(_nan_percentiles(metrics["speed15"], (95,))[0])
+    richer = _model_term_model(mdl, P.shape[0], model_term)
+    if richer is not None:
+        out = _add_model_term(out, camera, P, s3, s2, mdl, richer, probes, ground_z, fitted_pixels)
     return UncertaintyResult(
         method="monte-carlo",
         trials=trials,
@@ -325,18 +346,45 @@ def monte_carlo(
         rms_mean=_nan_stat(np.mean, rms),
         rms_max=_nan_stat(np.max, rms),
         rms_var=_nan_stat(lambda v: np.var(v, ddof=1), rms),
-        rms_percentiles={p: _nan_stat(lambda v, p=p: np.percentile(v, p), rms) for p in PERCENTILES},
-        param_std={key: _nan_stat(lambda v: np.std(v, ddof=1), val) for key, val in params.items()},
-        projection_error_px=_nan_stat(lambda v: np.sqrt(np.mean(v**2)), metrics["projection"]),
-        ground_projection_error_px=_nan_stat(lambda v: np.sqrt(np.mean(v**2)), metrics["ground_projection"]),
-        ground_error_15m_cm=_nan_stat(lambda v: np.sqrt(np.mean(v**2)), metrics["pos15"]),
-        ground_error_15m_cm_p95=_nan_stat(lambda v: np.percentile(v, 95), metrics["pos15"]),
-        speed_error_15m_kmh=_nan_stat(lambda v: np.sqrt(np.mean(v**2)), metrics["speed15"]),
-        speed_error_15m_kmh_p95=_nan_stat(lambda v: np.percentile(v, 95), metrics["speed15"]),
+        rms_percentiles=pct,
         n_points=P.shape[0],
         rms=rms,
         failed_trials=failed,
+        model_term=None if richer is None else richer.name,
+        **out,
     )
+
+
+def _nan_percentiles(values: np.ndarray, q) -> np.ndarray:
+    """Percentiles ``q`` of the finite values, one sort for all (NaN when none is finite)."""
+    values = values[np.isfinite(values)]
+    return np.percentile(values, list(q)) if values.size else np.full(len(q), np.nan)
+
+
+def _add_model_term(out: dict, camera: Camera, P: np.ndarray, s3: np.ndarray, s2: np.ndarray, mdl: CalibrationModel,
+                    richer: CalibrationModel, probes: "_Probes", ground_z: float, fitted_pixels: np.ndarray | None) -> dict:
+    """The Monte-Carlo's derived figures with the model term of :func:`linearised` added root-sum-square."""
+    from scipy import stats
+
+    A = mdl.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx)
+    Jm, blocks = _jacobian_and_noise(camera, P, s3, s2, A)
+    chosen = _derived_variances(camera, probes, _sandwich(Jm, blocks, np.linalg.pinv(Jm.T @ Jm)), A, ground_z)
+    rich = model_variances(camera, P, s3, s2, richer, ground_z, probes)
+    extra = {key: _psd_excess(np.nan_to_num(rich[key], nan=0.0), np.nan_to_num(v, nan=0.0)) for key, v in chosen.items()}
+    if fitted_pixels is not None:
+        extra = _with_bias(extra, model_bias(camera, P, fitted_pixels, richer, ground_z, probes))
+    rss = lambda a, b: float(np.sqrt(a**2 + max(b, 0.0)))  # noqa: E731
+    out = dict(out)
+    out["param_std"] = {key: rss(v, extra[f"param:{key}"][0, 0]) for key, v in out["param_std"].items()}
+    out["projection_error_px"] = rss(out["projection_error_px"], float(np.sum(extra["points"])) / max(len(P), 1))
+    if len(probes.ground_world):
+        out["ground_projection_error_px"] = rss(out["ground_projection_error_px"], float(np.sum(extra["ground"])) / len(probes.ground_world))
+    pos = extra["pos15"]
+    out["ground_error_15m_cm"] = rss(out["ground_error_15m_cm"], 1e4 * float(np.trace(pos)))
+    out["ground_error_15m_cm_p95"] = rss(out["ground_error_15m_cm_p95"], 1e4 * stats.chi2.ppf(0.95, 2) * float(np.max(np.linalg.eigvalsh(pos))))
+    out["speed_error_15m_kmh"] = rss(out["speed_error_15m_kmh"], float(extra["speed15"][0, 0]))
+    out["speed_error_15m_kmh_p95"] = rss(out["speed_error_15m_kmh_p95"], 1.96**2 * float(extra["speed15"][0, 0]))
+    return out
 
 
 def convergence_curve(rms: np.ndarray) -> np.ndarray:
@@ -352,6 +400,8 @@ def linearised(
     sigma_2d=DEFAULT_SIGMA_2D,
     model: "str | CalibrationModel" = "default",
     ground_z: float = 0.0,
+    model_term: bool | None = None,
+    fitted_pixels: np.ndarray | None = None,
 ) -> UncertaintyResult:
     """First-order propagation of the same noise: the Monte-Carlo's figures in milliseconds.
 
@@ -363,6 +413,20 @@ def linearised(
     hat matrix; the RMS statistics follow from a scaled chi-square fit.
     Derived quantities (projection errors, ground errors) are propagated with
     their Jacobians by central differences over the free parameters.
+
+    ``model_term`` (default: when the model was fitted to data,
+    ``CalibrationModel.fitted``) adds the *model term* to every derived figure
+    (parameter std, projection errors, ground and speed errors 15 m out): what
+    the next richer model's covariance (``core.calibrate.richer_model``) holds
+    beyond the chosen one's. A lean model's covariance only spans the
+    directions it can move in, so a k1 fit to points in the image's middle
+    claims a focal length to 0.6 px when an unmodelled k2 moves it by 2 px;
+    the RMS statistics (what the paper's Monte-Carlo measures) are unchanged.
+    With ``fitted_pixels`` (N, 2), the pixels ``camera`` was fitted to, the
+    richer model is also fitted to them and its departure from ``camera``
+    (squared) joins the term: the spread between two models that fit the
+    points about equally, which is what an unmodelled lens term does to the
+    focal length and to the ground beyond the points.
     """
     from scipy import stats
 
@@ -370,18 +434,12 @@ def linearised(
     n = P.shape[0]
     s3, s2 = _sigmas(P, sigma_3d, sigma_2d)
     mdl = resolve_model(model, n)
-    A = mdl.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx)
-    m = A.shape[1]
+    aspect = camera.intrinsics.fy / camera.intrinsics.fx
+    A = mdl.parameter_map(aspect)
     Jm, blocks = _jacobian_and_noise(camera, P, s3, s2, A)
-    Sigma = np.zeros((2 * n, 2 * n))
-    for i in range(n):
-        Sigma[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = blocks[i]
     JtJ_inv = np.linalg.pinv(Jm.T @ Jm)
     cov = _sandwich(Jm, blocks, JtJ_inv)
-    H = Jm @ JtJ_inv @ Jm.T
-    M = (np.eye(2 * n) - H) @ Sigma
-    ssr_mean = float(np.trace(M))
-    ssr_var = float(2.0 * np.trace(M @ M))
+    ssr_mean, ssr_var = _ssr_moments(Jm, blocks, JtJ_inv)
     # SSR ~ a * chi2(nu): match mean and variance
     a = ssr_var / (2.0 * ssr_mean)
     nu = 2.0 * ssr_mean**2 / ssr_var
@@ -391,28 +449,20 @@ def linearised(
     rms_var = max(rms_sq_mean - rms_mean**2, 0.0)
     percentiles = {p: float(np.sqrt(dist.ppf(p / 100.0) / n)) for p in PERCENTILES}
 
-    # Derived quantities: central differences over the free parameters, all at once.
     probes = _make_probes(camera, P, ground_z)
-    std_free = np.sqrt(np.maximum(np.diag(cov), 1e-30))
-    h = 1e-3 * std_free
-    steps = np.concatenate([np.diag(h), -np.diag(h)]) @ A.T  # (2m, 15)
-    state = BatchState.from_camera(camera, 2 * m).stepped(steps)
-    vals = _derived_vectors(state, probes, camera, ground_z)
-    param_std: dict[str, float] = {}
-    out: dict[str, float] = {}
-    for key, v in vals.items():
-        D = (v[:m] - v[m:]) / (2.0 * h[:, None])  # (m, dims)
-        C = D.T @ cov @ D
-        if key.startswith("param:"):
-            param_std[key[6:]] = float(np.sqrt(max(C[0, 0], 0.0)))
-        else:
-            out[key] = C
+    var = _derived_variances(camera, probes, cov, A, ground_z)
+    richer = _model_term_model(mdl, n, model_term)
+    if richer is not None:
+        var = _with_model_term(var, model_variances(camera, P, s3, s2, richer, ground_z, probes))
+        if fitted_pixels is not None:
+            var = _with_bias(var, model_bias(camera, P, fitted_pixels, richer, ground_z, probes))
+    param_std = {key[6:]: float(np.sqrt(max(v[0, 0], 0.0))) for key, v in var.items() if key.startswith("param:")}
     # Projection error RMS over points: sqrt(mean_i tr(C_i)).
-    proj = float(np.sqrt(np.trace(out["points"]) / max(len(P), 1)))
-    gproj = float(np.sqrt(np.trace(out["ground"]) / max(len(probes.ground_world), 1))) if len(probes.ground_world) else float("nan")
-    pos_cov = out["pos15"]
+    proj = float(np.sqrt(np.sum(var["points"]) / max(len(P), 1)))
+    gproj = float(np.sqrt(np.sum(var["ground"]) / max(len(probes.ground_world), 1))) if len(probes.ground_world) else float("nan")
+    pos_cov = var["pos15"]
     pos_rms = float(100.0 * np.sqrt(np.trace(pos_cov)))
-    speed_sd = float(np.sqrt(max(out["speed15"][0, 0], 0.0)))
+    speed_sd = float(np.sqrt(max(var["speed15"][0, 0], 0.0)))
     return UncertaintyResult(
         method="linearised",
         trials=0,
@@ -430,7 +480,135 @@ def linearised(
         speed_error_15m_kmh_p95=float(1.96 * speed_sd),
         n_points=n,
         covariance=A @ cov @ A.T,
+        model_term=None if richer is None else richer.name,
     )
+
+
+def _ssr_moments(Jm: np.ndarray, blocks: np.ndarray, JtJ_inv: np.ndarray) -> tuple[float, float]:
+    """Mean tr((I - H) Sigma) and variance 2 tr(((I - H) Sigma)^2) of the residual sum of squares.
+
+    Sigma is block diagonal (N blocks of 2 x 2) and H = J G J^T (G = (J^T J)^-1),
+    so both traces reduce to m x m products, O(N m^2) instead of the (2N, 2N)
+    matrices (4K leg runs: 6600 x 6600): with B = J^T Sigma J and
+    C = J^T Sigma^2 J, tr(M) = tr(Sigma) - tr(G B) and
+    tr(M^2) = tr(Sigma^2) - 2 tr(G C) + tr((G B)^2).
+    """
+    n, m = blocks.shape[0], Jm.shape[1]
+    Jb = Jm.reshape(n, 2, m)
+    blocks2 = blocks @ blocks
+    B = np.einsum("nia,nij,njb->ab", Jb, blocks, Jb)
+    C = np.einsum("nia,nij,njb->ab", Jb, blocks2, Jb)
+    GB = JtJ_inv @ B
+    tr_sigma = float(np.trace(blocks, axis1=1, axis2=2).sum())
+    tr_sigma2 = float(np.trace(blocks2, axis1=1, axis2=2).sum())
+    mean = tr_sigma - float(np.trace(GB))
+    var = 2.0 * (tr_sigma2 - 2.0 * float(np.sum(JtJ_inv * C)) + float(np.sum(GB * GB.T)))
+    return mean, var
+
+
+def _derived_variances(camera: Camera, probes: "_Probes", cov: np.ndarray, A: np.ndarray, ground_z: float) -> dict[str, np.ndarray]:
+    """First-order covariance of every derived quantity under the free-parameter covariance ``cov`` (m, m).
+
+    Central differences over the free parameters (steps of 1e-3 std), all
+    cameras in one batch. ``points`` and ``ground`` hold only each
+    coordinate's variance (2M,) (their RMS figures need no more); the rest
+    their (d, d) covariance.
+    """
+    m = A.shape[1]
+    std_free = np.sqrt(np.maximum(np.diag(cov), 1e-30))
+    h = 1e-3 * std_free
+    steps = np.concatenate([np.diag(h), -np.diag(h)]) @ A.T  # (2m, 15)
+    state = BatchState.from_camera(camera, 2 * m).stepped(steps)
+    vals = _derived_vectors(state, probes, camera, ground_z)
+    out: dict[str, np.ndarray] = {}
+    for key, v in vals.items():
+        D = (v[:m] - v[m:]) / (2.0 * h[:, None])  # (m, dims)
+        out[key] = np.einsum("ai,ab,bi->i", D, cov, D) if key in ("points", "ground") else D.T @ cov @ D
+    return out
+
+
+def _model_term_model(mdl: CalibrationModel, n_points: int, model_term: bool | None) -> CalibrationModel | None:
+    """The richer model whose covariance the model term takes, or None (no term, or no richer model the points support)."""
+    if model_term is None:
+        model_term = bool(getattr(mdl, "fitted", False))
+    if not model_term:
+        return None
+    richer = richer_model(mdl)
+    if richer is None or 2 * n_points <= richer.n_free:
+        return None
+    return richer
+
+
+def model_variances(
+    camera: Camera, points_world: np.ndarray, sigma_3d, sigma_2d, richer: CalibrationModel, ground_z: float = 0.0,
+    probes: "_Probes | None" = None,
+) -> dict[str, np.ndarray]:
+    """The derived quantities' first-order variances under ``richer`` (see :func:`linearised`), at ``camera``.
+
+    ``camera`` stands in for the richer model's fit: its extra terms at 0
+    are a point of the richer family, and to first order the covariance
+    there is the fit's.
+    """
+    P = np.asarray(points_world, float)
+    s3, s2 = _sigmas(P, sigma_3d, sigma_2d)
+    A = richer.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx)
+    Jm, blocks = _jacobian_and_noise(camera, P, s3, s2, A)
+    cov = _sandwich(Jm, blocks, np.linalg.pinv(Jm.T @ Jm))
+    return _derived_variances(camera, probes if probes is not None else _make_probes(camera, P, ground_z), cov, A, ground_z)
+
+
+def model_bias(
+    camera: Camera, points_world: np.ndarray, pixels: np.ndarray, richer: CalibrationModel, ground_z: float = 0.0,
+    probes: "_Probes | None" = None, loss_scale_px: float = 2.0,
+) -> dict[str, np.ndarray] | None:
+    """How far ``richer``, fitted to the same points and pixels from ``camera``, moves every derived quantity.
+
+    (dims,) differences richer - camera per key of :func:`_derived_vectors`;
+    None when the richer fit fails (then only its covariance counts). The
+    fit uses the Huber loss at ``loss_scale_px`` like calibrate's, so an
+    outlier the chosen fit shrugged off does not become a model term.
+    """
+    from dronecal_field.core.calibrate import calibrate
+    from dronecal_field.errors import DronecalError
+
+    P = np.asarray(points_world, float)
+    try:
+        fit = calibrate(P, np.asarray(pixels, float), camera.width, camera.height, model=richer, loss="huber",
+                        loss_scale_px=loss_scale_px, initial=camera)
+    except DronecalError:
+        return None
+    r = fit.camera
+    state = BatchState(
+        np.vstack([camera.batch_arrays()[0], r.batch_arrays()[0]]), np.vstack([camera.batch_arrays()[1], r.batch_arrays()[1]]),
+        np.concatenate([camera.batch_arrays()[2], r.batch_arrays()[2]]), np.vstack([camera.batch_arrays()[3], r.batch_arrays()[3]]),
+    )
+    vals = _derived_vectors(state, probes if probes is not None else _make_probes(camera, P, ground_z), camera, ground_z)
+    return {key: v[1] - v[0] for key, v in vals.items()}
+
+
+def _with_bias(var: dict[str, np.ndarray], bias: dict[str, np.ndarray] | None) -> dict[str, np.ndarray]:
+    """Variances with each quantity's model bias added (squared; outer product for the (d, d) ones)."""
+    if bias is None:
+        return var
+    out = {}
+    for key, v in var.items():
+        b = np.nan_to_num(bias[key], nan=0.0)
+        out[key] = v + (b * b if v.ndim == 1 else np.outer(b, b))
+    return out
+
+
+def _psd_excess(richer: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+    """The part of ``richer`` beyond ``chosen``: elementwise for variances (k,), the positive part of the difference for (d, d)."""
+    d = richer - chosen
+    if d.ndim == 1:
+        return np.maximum(d, 0.0)
+    w, V = np.linalg.eigh(0.5 * (d + d.T))
+    return (V * np.maximum(w, 0.0)) @ V.T
+
+
+def _with_model_term(chosen: dict[str, np.ndarray], richer: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Each derived quantity's variance with the model term added (the richer model's excess over the chosen one)."""
+    return {key: v + _psd_excess(np.nan_to_num(richer[key], nan=0.0), np.nan_to_num(v, nan=0.0)) for key, v in chosen.items()}
 
 
 def _jacobian_and_noise(camera: Camera, P: np.ndarray, s3: np.ndarray, s2: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -25,11 +25,11 @@ pixel conventions: docs/conventions.md (world = ENU at the pole's foot).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from dronecal_field.core.calibrate import BatchState, CalibrationModel, CalibrationResult
+from dronecal_field.core.calibrate import BatchState, CalibrationResult, richer_model  # noqa: F401 - richer_model is part of this module's API
 from dronecal_field.core.camera import Camera, intersect_plane_z, pixel_rays_batch, project_batch
 from dronecal_field.errors import DronecalError
 from dronecal_field.sampling.lattice import fold_radius
@@ -57,10 +57,6 @@ GROUND_STEP_M = 0.25
 MIN_GROUND_FRACTION = 0.95  # below this share of the visible ground (or ROI) inside the region: a warning
 DIRECTIONS = 96
 RADIAL_STEPS = 48
-
-# Next richer model in the family used by ``auto``; k3 last (it needs the corners).
-_RICHER = {"none": "k1", "k1": "k1k2", "k1k2": "k1k2p1p2", "k1k2p1p2": "full"}
-
 
 # --------------------------------------------------------------------------
 # The predicted error at pixels
@@ -103,16 +99,6 @@ class PixelErrors:
     @property
     def on_ground(self) -> np.ndarray:
         return np.all(np.isfinite(self.ground_enu_m), axis=1)
-
-
-def richer_model(model: CalibrationModel) -> CalibrationModel | None:
-    """The next model up from ``model`` (k1 -> k1k2 -> k1k2p1p2 -> full -> free aspect), None at the top."""
-    nxt = _RICHER.get(model.distortion)
-    if nxt is not None:
-        return replace(model, distortion=nxt)
-    if model.fix_aspect_ratio:
-        return replace(model, fix_aspect_ratio=False)
-    return None
 
 
 def fit_richer(result: CalibrationResult, loss_scale_px: float = 2.0) -> CalibrationResult | None:
@@ -516,6 +502,9 @@ class ValidityRegion:
     warnings: tuple[str, ...]
     richer: CalibrationResult | None = field(default=None, repr=False)
     richer_covariance: np.ndarray | None = field(default=None, repr=False)
+    # Whether the ground point 15 m out on the heading (the report's "at 15 m" figures,
+    # core.uncertainty.ground_probe) lies inside the region: outside, those figures are not supported.
+    probe_15m_inside: bool | None = None
 
     @property
     def richer_camera(self) -> Camera | None:
@@ -543,6 +532,7 @@ class ValidityRegion:
             },
             "chosen_model": self.chosen_model,
             "richer_model": self.richer_model,
+            "at_15m_inside": self.probe_15m_inside,
             "geometry": self.geometry.to_dict(),
             "warnings": list(self.warnings),
         }
@@ -787,6 +777,12 @@ def assess_validity(
 
     geometry = diagnose_geometry(camera, covariance, result.points_world, result.pixels)
     warnings = _warnings(stats, roi_fraction, None if roi is None else roi.text, geometry, threshold_px)
+    probe_inside = _probe_15m_inside(camera, polygon, ground_z)
+    if probe_inside is False:
+        warnings.append(
+            "the ground 15 m out on the camera's heading lies outside the region of validity: the report's figures at 15 m "
+            "(ground and speed error) are not supported by the points; fly points that reach that part of the image"
+        )
     return ValidityRegion(
         polygon_px=polygon,
         hull_px=hull,
@@ -810,7 +806,21 @@ def assess_validity(
         warnings=tuple(warnings),
         richer=richer,
         richer_covariance=richer_cov,
+        probe_15m_inside=probe_inside,
     )
+
+
+def _probe_15m_inside(camera: Camera, polygon_px: np.ndarray, ground_z: float) -> bool | None:
+    """Whether the report's ground probe 15 m out projects inside the region (None when the camera does not see it)."""
+    from dronecal_field.core.uncertainty import ground_probe
+
+    point = ground_probe(camera, ground_z).point
+    if camera.depth(point[None])[0] <= 0:
+        return None
+    uv = camera.project(point[None])
+    if not (np.all(np.isfinite(uv)) and 0 <= uv[0, 0] <= camera.width - 1 and 0 <= uv[0, 1] <= camera.height - 1):
+        return None
+    return bool(points_in_polygon(uv, polygon_px)[0])
 
 
 def _fill(polygon: np.ndarray, n: int) -> np.ndarray:

@@ -1,0 +1,202 @@
+"""Issue 20: does the reported 1-sigma cover the true error? Ratios true / reported over the perturbation suite.
+
+    .venv/bin/python benchmarks/bench_uncertainty_cover.py --workdir /tmp/cover_runs            # write (or reuse), calibrate, score
+    .venv/bin/python benchmarks/bench_uncertainty_cover.py --workdir /tmp/cover_runs --rescore  # reuse the cached fits
+
+Runs come from the independent contract writer (tests/contract_writer.py),
+as in benchmarks/bench_perturbation.py (same cameras, plans and
+perturbations; the wide and Table 1 cameras rendered at ``--scale``, the 4K
+at ``--scale4k``). Each run is calibrated once with ``pipeline.run.calibrate_run``
+(``--trials 0``); the fit (camera, model, points and the sigmas the
+uncertainty stage used, after ``run.sigma_scale``) is cached beside the run
+as ``<run>.fit.pkl``, so ``--rescore`` re-runs only the uncertainty
+(``core.uncertainty.linearised``, what the uncertainty stage calls, and
+``validity.assess_validity``) after a change there.
+
+For every run, |true error| / reported 1-sigma for:
+
+* focal length (px; mean of fx and fy), principal point (px, both axes),
+  camera position (cm, 3D);
+* ground position 15 m out along the camera's heading (``ground@15``: the
+  figure the report prints, ``UncertaintyResult.ground_error_15m_cm``; true
+  error: the truth camera's probe point, seen at pixel uv by the truth, against
+  where the calibrated camera's ray of uv meets the ground);
+* ground RMS over the ring 15 m from the pole (``ring@15``: ``sim.compare``'s
+  figure, against the RMS over the same ring of the region-of-validity
+  predicted 1-sigma, ``validity.pixel_errors`` std and extrapolation terms, with
+  the points the region calls unsupported counted apart).
+
+Printed: one line per run, then the median and maximum ratio per figure
+(target: median 0.5-1.5, no case far above).
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_perturbation import LOOK, make_case  # noqa: E402
+from contract_writer import write_run  # noqa: E402
+
+MODEL_TERM = True  # --noise-only: False (the figures before the model term)
+DEFAULT_ONLY = "base,speed2,hold1,gnss5,rtk_tau10,shutter"
+
+
+def fit_case(name: str, perturbation: str, scale4k: float, scale: float, seed: int, workdir: Path) -> dict | None:
+    """The cached fit of one run (writing and calibrating it when not cached); None when calibrate refused."""
+    from dronecal_field.errors import DronecalError
+
+    truth, flight, spec, _ = make_case(name, perturbation, scale4k, seed, scale)
+    path = workdir / f"{name}-{perturbation}-{seed}-{truth.width}.mcap"
+    cache = path.with_suffix(".fit.pkl")
+    if cache.exists():
+        return pickle.loads(cache.read_bytes())
+    if not path.exists():
+        write_run(path, truth, flight, LOOK, spec)
+    from dronecal_field.pipeline.run import CalibrateOptions, calibrate_run
+
+    t = time.perf_counter()
+    try:
+        report = calibrate_run(path, CalibrateOptions(trials=0))
+    except DronecalError as exc:
+        fit = {"refused": str(exc).splitlines()[0]}
+    else:
+        used = report.used_points
+        scale_s = float(report.sigma_scale)
+        fit = {
+            "refused": None, "truth": truth, "result": report.result,
+            "X": np.array([p.marker_enu_m for p in used]),
+            "s3": scale_s * np.array([p.sigma_enu_m for p in used]),
+            "s2": scale_s * np.array([p.sigma_px for p in used]),
+            "calibrate_s": time.perf_counter() - t,
+        }
+    cache.write_bytes(pickle.dumps(fit))
+    return fit
+
+
+def probe_error_cm(truth, est) -> float:
+    """|true error| 15 m out along the truth's heading: where est's ray of the truth's pixel of that point meets the ground."""
+    from dronecal_field.core.camera import intersect_plane_z
+    from dronecal_field.core.uncertainty import ground_probe
+
+    P = ground_probe(truth).point
+    uv = truth.project(P[None])
+    hit = intersect_plane_z(*est.batch_arrays(), uv[None], 0.0)[0, 0]
+    return float(100.0 * np.linalg.norm(hit[:2] - P[:2])) if np.all(np.isfinite(hit)) else float("inf")
+
+
+def ring_figures(truth, est, region, covariance) -> tuple[float, float, float]:
+    """(true RMS cm, predicted 1-sigma RMS cm, share of the ring inside the region of validity) over the ring 15 m out.
+
+    Both RMS are over the part of the ring the region of validity supports:
+    beyond it the report claims no figure (the region's warning names it).
+    """
+    from dronecal_field.pipeline.validity import BOUND_FACTOR, pixel_errors, points_in_polygon
+    from dronecal_field.sim.compare import ground_error_m, visible_ground_grid
+
+    ground, ranges = visible_ground_grid(truth, (3.0, 30.0), 0.25)
+    ring = ground[np.abs(ranges - 15.0) <= 0.5]
+    if not len(ring):
+        return float("nan"), float("nan"), float("nan")
+    err = ground_error_m(truth, est, ring)
+    uv = truth.project(ring)
+    inside = points_in_polygon(uv, region.polygon_px)
+    e = pixel_errors(est, covariance, uv, region.richer_camera, region.richer_covariance)
+    # pixel_errors' extrapolation term is bound-like (twice the models' gap): as a 1-sigma, std and gap / 1.645 root-sum-square
+    one_sigma = np.hypot(e.std_cm, e.extrapolation_cm / BOUND_FACTOR)
+    ok = inside & np.isfinite(err) & np.isfinite(one_sigma)
+    if not ok.any():
+        return float("nan"), float("nan"), float(np.mean(inside))
+    true_rms = float(100.0 * np.sqrt(np.mean(err[ok] ** 2)))
+    pred = float(np.sqrt(np.mean(one_sigma[ok] ** 2)))
+    return true_rms, pred, float(np.mean(inside))
+
+
+def score(fit: dict) -> dict:
+    from dronecal_field.core.uncertainty import linearised, parameter_covariance
+    from dronecal_field.pipeline.validity import assess_validity
+
+    truth, result, X, s3, s2 = fit["truth"], fit["result"], fit["X"], fit["s3"], fit["s2"]
+    est = result.camera
+    t = time.perf_counter()
+    lin = linearised(est, X, sigma_3d=s3, sigma_2d=s2, model=result.model, model_term=MODEL_TERM,
+                     fitted_pixels=result.pixels if MODEL_TERM else None)
+    t_lin = time.perf_counter() - t
+    cov = parameter_covariance(est, X, s3, s2, result.model)
+    region = assess_validity(result, cov, s3, s2)
+    ps = lin.param_std
+    ti, ei = truth.intrinsics, est.intrinsics
+    ring_true, ring_pred, ring_inside = ring_figures(truth, est, region, cov)
+    row = {
+        "model": result.model.name, "points": len(X),
+        "focal": (abs(0.5 * (ei.fx + ei.fy - ti.fx - ti.fy)), 0.5 * (ps["fx"] + ps["fy"])),
+        "pp": (float(np.hypot(ei.cx - ti.cx, ei.cy - ti.cy)), float(np.hypot(ps["cx"], ps["cy"]))),
+        "position": (100.0 * float(np.linalg.norm(est.pose.position_world - truth.pose.position_world)),
+                     100.0 * float(np.sqrt(ps["pos_x"] ** 2 + ps["pos_y"] ** 2 + ps["pos_z"] ** 2))),
+        "ground@15": (probe_error_cm(truth, est), float(lin.ground_error_15m_cm)),
+        "ring@15": (ring_true, ring_pred),
+        "ring_inside": ring_inside,
+        "supported@15": region.probe_15m_inside,
+        "linearised_s": t_lin,
+    }
+    return row
+
+
+FIGURES = ("focal", "pp", "position", "ground@15", "ring@15")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cameras", default="wide,table1,4k")
+    parser.add_argument("--only", default=DEFAULT_ONLY, help=f"perturbations (default {DEFAULT_ONLY})")
+    parser.add_argument("--seeds", type=int, default=1)
+    parser.add_argument("--scale", type=float, default=0.5, help="wide and Table 1 render scale (default 0.5)")
+    parser.add_argument("--scale4k", type=float, default=0.25, help="4K render scale (default 0.25: 960x540)")
+    parser.add_argument("--workdir", type=Path, required=True, help="runs and cached fits (kept)")
+    parser.add_argument("--rescore", action="store_true", help="score cached fits only (skip runs not yet fitted)")
+    args = parser.parse_args()
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name in args.cameras.split(","):
+        for seed in range(args.seeds):
+            for p in args.only.split(","):
+                if args.rescore:
+                    truth = make_case(name, p, args.scale4k, seed, args.scale)[0]
+                    cache = args.workdir / f"{name}-{p}-{seed}-{truth.width}.fit.pkl"
+                    if not cache.exists():
+                        continue
+                fit = fit_case(name, p, args.scale4k, args.scale, seed, args.workdir)
+                if fit.get("refused"):
+                    print(f"{name:6s} {p:13s} refused: {fit['refused']}")
+                    continue
+                row = score(fit)
+                row.update(camera=name, perturbation=p, seed=seed)
+                rows.append(row)
+                parts = "  ".join(f"{k} {row[k][0]:.3g}/{row[k][1]:.3g}={row[k][0] / max(row[k][1], 1e-12):.2f}" for k in FIGURES)
+                print(f"{name:6s} {p:10s} {row['model']:22s} {parts}  ring inside region {row['ring_inside']:.0%}"
+                      f"  15 m supported {row['supported@15']}  [linearised {row['linearised_s']:.2f} s]", flush=True)
+    if not rows:
+        return
+    print("\n| figure | median true/reported | max | wide | 4k | table1 | runs above 2 |")
+    print("|---|---|---|---|---|---|---|")
+    for k in FIGURES:
+        r = np.array([row[k][0] / max(row[k][1], 1e-12) for row in rows])
+        ok = np.isfinite(r)
+        by = {c: np.median([row[k][0] / max(row[k][1], 1e-12) for row in rows if row["camera"] == c] or [np.nan]) for c in ("wide", "4k", "table1")}
+        worst = rows[int(np.nanargmax(np.where(ok, r, -1)))]
+        print(f"| {k} | {np.median(r[ok]):.2f} | {np.max(r[ok]):.2f} ({worst['camera']} {worst['perturbation']}) | "
+              f"{by['wide']:.2f} | {by['4k']:.2f} | {by['table1']:.2f} | {int(np.sum(r[ok] > 2))} of {int(ok.sum())} |")
+
+
+if __name__ == "__main__":
+    main()
