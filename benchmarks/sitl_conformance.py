@@ -89,7 +89,7 @@ class Observation:
     base_modes: list[int] = field(default_factory=list)  # HEARTBEAT.base_mode transitions
     acks: list[tuple[int, int]] = field(default_factory=list)  # (command, result) of COMMAND_ACKs after the start
     start_s: float = math.nan  # MISSION_START accepted
-    disarm_s: float = math.nan  # first disarmed HEARTBEAT after the flight
+    disarm_s: float = math.nan  # "Disarming motors" after the flight (its STATUSTEXT: HEARTBEAT's 1 Hz would blur it by up to 1 s)
     ready_s: float = math.nan  # SYS_STATUS first says ready to arm
     ekf_healthy_s: float = math.nan  # EKF_STATUS_REPORT first healthy (fly's pre-flight flags)
     first_3d_fix_s: float = math.nan
@@ -105,6 +105,7 @@ class Observation:
     second_unasked: dict[str, int] = field(default_factory=dict)  # second link, first UNASKED_WINDOW_S
     second_rates_hz: dict[str, float] = field(default_factory=dict)  # second link, after asking
     still_s: dict[int, float] = field(default_factory=dict)  # seq -> vehicle s the vehicle stood still before reaching it
+    track: list[tuple[float, float, float, float, float]] = field(default_factory=list)  # (vehicle s, rel. alt m, vx, vy, vz m/s)
 
     def hold_cycle_s(self, mission: list[MissionItem]) -> dict[int, float]:
         """Seq -> vehicle s from the previous NAV item's reached to this waypoint's (leg + hold)."""
@@ -223,8 +224,8 @@ def _measure(obs: Observation, rec: _Recorder, rec2: _Recorder, mission: list[Mi
             if mode is None or state[0] != mode[0] or (mode[1] and not state[1]):
                 obs.modes.append(state)
             mode = state
-            if not state[1] and t > obs.start_s and math.isnan(obs.disarm_s) and any(a for _m, a in obs.modes):
-                obs.disarm_s = t
+    disarms = [t for t, _w, m in rec.messages("STATUSTEXT", obs.start_s + 5.0) if str(m.text).startswith("Disarming motors")]
+    obs.disarm_s = disarms[0] if disarms else math.nan
     obs.acks = [(int(m.command), int(m.result)) for _t, _w, m in rec.messages("COMMAND_ACK") if int(m.command) != ap.CMD_SET_MESSAGE_INTERVAL]
     for t, _w, m in rec.messages("SYS_STATUS"):
         if m.onboard_control_sensors_health & ap.MAV_SYS_STATUS_PREARM_CHECK:
@@ -250,6 +251,7 @@ def _measure(obs: Observation, rec: _Recorder, rec2: _Recorder, mission: list[Mi
     if len(new) > 2:
         obs.fix_interval_ms = statistics.median(np.diff(new) / 1000.0)
     pos = rec.messages("GLOBAL_POSITION_INT")
+    obs.track = [(t, m.relative_alt / 1000.0, m.vx / 100.0, m.vy / 100.0, m.vz / 100.0) for t, _w, m in pos]
     lags, seen = [], set()
     for t, _w, m in gps:
         # each fix when it first goes out (a faster stream repeats it, older each time), against the vehicle

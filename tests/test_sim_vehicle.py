@@ -265,9 +265,10 @@ def test_reached_for_a_waypoint_with_a_hold_comes_when_the_hold_ends(flight):
         reached_s = next(tt for tt, m in rec.of("MISSION_ITEM_REACHED") if m.seq == seq)
         at_point = (np.linalg.norm(enu - np.array(target), axis=1) < 0.1) & still & (t > reached_s - 10)
         arrived_s = t[np.argmax(at_point)]
-        # the hold timer starts as the S-curve target reaches the point, the vehicle settling for wp_settle_s before
-        # (the recorded 1 m leg + 3 s hold cycle of ArduCopter 4.7: 6.9-7.2 s, test_sim_flight_timing)
-        assert reached_s - arrived_s == pytest.approx(HOLD_S + FAST_PARAMS.wp_settle_s, abs=0.15)
+        # the hold timer starts as the S-curve target reaches the point; the vehicle comes to rest on it within
+        # half a second of that (ArduCopter 4.7 SITL: at rest 0.5 s before, its S-curve's tail is that slow;
+        # the simulator's follower 0.3 s after), so the hold ends HOLD_S +- 0.5 s after it stands still
+        assert reached_s - arrived_s == pytest.approx(HOLD_S + FAST_PARAMS.wp_settle_s, abs=0.5)
 
 
 def test_do_set_roi_points_the_nose_within_1_degree_during_holds(flight):

@@ -4,23 +4,23 @@ Order: level by level from the lowest (one climb per level), back and forth
 along Y within a level, rows along X; each level starts where the previous
 one ended (the replayed SITL mission, shared/replays/arducopter-sitl).
 
-Flight time is fitted to that real ArduCopter flight: WPNAV's jerk-limited
-S-curve makes a 1 m leg peak at 0.57 m/s and take ~4 s, so a 3 s hold cycle
-takes 6.9-7.2 s; lift-off comes 3.4 s after arming; NAV_LAND descends at
-LAND_SPEED 0.5 m/s below 10 m.
-
-Pass-through points (hold 0: NAV_WAYPOINT param 1 = 0 followed by another
-waypoint) are timed as ArduCopter flies them (SCurve, Copter 4.1+): each leg
-is planned rest to rest, and the next leg starts while this one brakes, so a
-straight run of pass-through points is flown at constant cruise and a turn
-of angle theta is rounded at cruise x cos(theta / 2), its apex at most
-WPNAV_RADIUS from the point (the overlap shrinks until it is). Only the
-points where the drone holds cost an acceleration and a braking. The
-simulated vehicle (``sim.vehicle_flight.Leg``) flies the same profiles.
+Flight time is ArduCopter 4.7's own waypoint navigation, flown by
+``dronecal_field.motion`` (the module the simulated vehicle flies with, so
+planned and simulated times agree by construction): every leg a jerk-limited
+S-curve (WPNAV_JERK 1 m/s^3, WPNAV_ACCEL, the DO_CHANGE_SPEED speed), its clock
+slowed while the vehicle lags its target, as AC_WPNav does; a 1 m leg takes
+4.0 s, so a 3 s hold cycle takes 7.0 s (recorded 6.9-7.2 s); a pass-through
+point (hold 0: NAV_WAYPOINT param 1 = 0 followed by another waypoint) starts
+the next leg while this one brakes, once the turn's apex lies within
+WPNAV_RADIUS and the corner needs less than WPNAV_ACCEL_C, so a straight run
+of pass-through points is flown at constant cruise and only the points where
+the drone holds cost an acceleration and a braking. Lift-off comes 3.4 s
+after arming; NAV_LAND descends at LAND_SPEED 0.5 m/s below 10 m.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dronecal_field.errors import PlanError
+from dronecal_field.motion import WpnavParams, path_timing
 from dronecal_field.sampling.design import through_speed_m_s  # noqa: F401  (the leg speed rule lives with the design)
 
 if TYPE_CHECKING:  # strategies imports this module
@@ -36,14 +37,17 @@ if TYPE_CHECKING:  # strategies imports this module
 
 @dataclass(frozen=True)
 class FlightModel:
-    """ArduCopter timing (defaults fitted to the SITL replay; speeds m/s, times s)."""
+    """ArduCopter timing: its parameters (defaults = ArduCopter 4.7's) and what the SITL replay measured; speeds m/s, times s."""
 
     speed_m_s: float = 1.5  # DO_CHANGE_SPEED
-    accel_m_s2: float = 0.33  # effective S-curve acceleration: 1 m leg peaks at sqrt(0.33) = 0.57 m/s
-    leg_overhead_s: float = 0.5  # settle before the hold timer starts
+    accel_m_s2: float = 2.5  # WPNAV_ACCEL (short legs never reach it: the jerk binds)
+    jerk_m_s3: float = 1.0  # WPNAV_JERK
+    input_tc_s: float = 0.15  # ATC_INPUT_TC: the S-curve's snap and the vehicle's lag behind its target
+    accel_z_m_s2: float = 1.0  # WPNAV_ACCEL_Z
+    leg_overhead_s: float = 0.0  # extra time per stop before the hold timer starts (the firmware has none)
     hover_s: float = 3.0  # hold at every grid point (whole seconds)
     spool_up_s: float = 3.4  # arming (MISSION_START) to lift-off
-    takeoff_climb_m_s: float = 1.0
+    takeoff_climb_m_s: float = 0.8  # the firmware's shaped climb: 2 m in 2.7 s from lift-off (peak 1.2 m/s)
     land_speed_m_s: float = 0.5  # LAND_SPEED below LAND_ALT_LOW
     land_high_speed_m_s: float = 1.5  # WPNAV_SPEED_DN above LAND_ALT_LOW (10 m)
     land_detect_s: float = 2.0  # touchdown to disarm
@@ -55,26 +59,48 @@ class FlightModel:
     climb_m_s: float = 2.5  # WPNAV_SPEED_UP on sloping legs
     descent_m_s: float = 1.5  # WPNAV_SPEED_DN on sloping legs
 
+    @property
+    def wpnav(self) -> WpnavParams:
+        """The navigation parameters ``dronecal_field.motion`` flies with."""
+        return WpnavParams(speed_mps=self.speed_m_s, speed_up_mps=self.climb_m_s, speed_down_mps=self.descent_m_s,
+                           accel_mps2=self.accel_m_s2, accel_z_mps2=self.accel_z_m_s2, accel_c_mps2=self.corner_accel_m_s2 or 0.0,
+                           jerk_mps3=self.jerk_m_s3, input_tc_s=self.input_tc_s, radius_m=self.wp_radius_m)  # fmt: skip
+
+
+@functools.lru_cache(maxsize=4096)
+def _rest_to_rest_s(length_m: float, climb_m: float, speed_m_s: float, wpnav: WpnavParams) -> float:
+    h = math.sqrt(max(length_m * length_m - climb_m * climb_m, 0.0))
+    _reached, total = path_timing(np.array([[0.0, 0.0, 0.0], [h, 0.0, climb_m]]), np.array([True, True]), np.array([speed_m_s]), wpnav)
+    return total
+
 
 def leg_time_s(distance_m: np.ndarray | float, flight: FlightModel) -> np.ndarray:
-    """Time (s) of straight legs (m) under a trapezoidal fit of ArduCopter's S-curve; 0 for 0 m."""
+    """Time (s) of level rest-to-rest legs (m) as ArduCopter flies them (``motion.WaypointTracker``), ``leg_overhead_s`` added; 0 for 0 m."""
     d = np.asarray(distance_m, float)
-    a, v = flight.accel_m_s2, flight.speed_m_s
-    d_ramp = v * v / a  # accelerate + brake distance
-    t = np.where(d < d_ramp, 2.0 * np.sqrt(np.maximum(d, 0.0) / a), d / v + v / a)
+    wp = flight.wpnav
+    t = np.vectorize(lambda x: _rest_to_rest_s(round(float(x), 4), 0.0, float(flight.speed_m_s), wp) if x > 1e-6 else 0.0, otypes=[float])(d)
     return np.where(d > 1e-6, t + flight.leg_overhead_s, 0.0)
 
 
-def _leg_cruise_m_s(unit: np.ndarray, speed_m_s: float, flight: FlightModel) -> float:
-    """Cruise along a leg of direction ``unit`` (3,): the horizontal speed or the climb/descent limit."""
-    h = float(np.hypot(unit[0], unit[1]))
-    limits = [speed_m_s / h] if h > 1e-9 else []
-    if abs(unit[2]) > 1e-9:
-        limits.append((flight.climb_m_s if unit[2] > 0 else flight.descent_m_s) / abs(unit[2]))
-    return min(limits) if limits else speed_m_s
+def path_reached_s(path: np.ndarray, stop: np.ndarray, speeds_m_s: np.ndarray, flight: FlightModel, hold_s: np.ndarray | None = None) -> np.ndarray:
+    """When the drone reaches each point of a polyline flown from rest (M,), s; at a stop, when its hold timer starts.
+
+    ``hold_s`` (M,) are the holds at the stops; ``flight.leg_overhead_s`` is
+    added before every stop's hold timer. Flown by ``motion.path_timing``.
+    """
+    P = np.asarray(path, float)
+    if len(P) < 2:
+        return np.zeros(len(P))
+    stops = np.asarray(stop, bool).copy()
+    stops[-1] = True
+    at_stop = stops & (np.arange(len(P)) > 0)
+    holds = np.zeros(len(P)) if hold_s is None else np.where(stops, np.asarray(hold_s, float), 0.0)
+    overhead = flight.leg_overhead_s * at_stop
+    reached, _total = path_timing(P, stops, np.asarray(speeds_m_s, float), flight.wpnav, holds + overhead)
+    return reached + overhead
 
 
-def path_time_s(path: np.ndarray, stop: np.ndarray, speeds_m_s: np.ndarray, flight: FlightModel) -> float:
+def path_time_s(path: np.ndarray, stop: np.ndarray, speeds_m_s: np.ndarray, flight: FlightModel, hold_s: np.ndarray | None = None) -> float:
     """Time (s) to fly a polyline from rest, stopping only where ``stop`` says (holds excluded).
 
     Parameters
@@ -82,49 +108,21 @@ def path_time_s(path: np.ndarray, stop: np.ndarray, speeds_m_s: np.ndarray, flig
     path : (M, 3) positions, m; the drone is at rest at ``path[0]``
     stop : (M,) bool; True where the drone stops (``stop[-1]`` is always taken as True)
     speeds_m_s : (M-1,) horizontal cruise commanded on each leg, m/s
-    flight : timing model (``accel_m_s2``, ``leg_overhead_s`` per stop, ``wp_radius_m``, ``corner_accel_m_s2``)
+    flight : timing model
+    hold_s : (M,) holds at the stops, s, or None: they are not counted, but
+        they let the S-curve clock recover between legs as it does in flight
 
-    Each leg is a rest-to-rest trapezoid (``leg_time_s``); at a point flown
-    through, the next leg starts when this one starts braking (ArduCopter's
-    SCurve blend), which saves the overlap ``tau = min(ramp_in, ramp_out)``,
-    shortened so the turn's apex stays within ``wp_radius_m`` (apex offset
-    ``accel * tau^2 / 8 * |u_out - u_in|``); a turn needing more than the
-    corner acceleration (a reversal) stops instead.
+    Flown by ``dronecal_field.motion`` (ArduCopter's AC_WPNav + SCurve), the
+    same code as the simulated vehicle's legs.
     """
     P = np.asarray(path, float)
     if len(P) < 2:
         return 0.0
-    a = flight.accel_m_s2
-    corner = flight.corner_accel_m_s2 if flight.corner_accel_m_s2 is not None else 2.0 * a
-    d = np.diff(P, axis=0)
-    lengths = np.linalg.norm(d, axis=1)
-    units = np.where(lengths[:, None] > 1e-9, d / np.maximum(lengths, 1e-12)[:, None], 0.0)
-    cruise = np.array([_leg_cruise_m_s(u, float(v), flight) for u, v in zip(units, np.asarray(speeds_m_s, float))])
-    peak = np.minimum(cruise, np.sqrt(a * lengths))
-    ramp = peak / a
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ends = np.where(lengths > 1e-6, 2.0 * ramp + (lengths - peak * peak / a) / np.maximum(peak, 1e-12), 0.0)
-    total = float(ends.sum())
     stops = np.asarray(stop, bool).copy()
     stops[-1] = True
-    for j in range(1, len(P) - 1):
-        through = not stops[j] and lengths[j - 1] > 1e-9 and lengths[j] > 0.01
-        if through:
-            du = units[j] - units[j - 1]
-            if a * float(np.hypot(du[0], du[1])) >= corner or abs(a * du[2]) > a * (1 + 1e-6):
-                through = False
-        if not through:
-            if lengths[j - 1] > 1e-6:
-                total += flight.leg_overhead_s
-            continue
-        tau = min(ramp[j - 1], ramp[j])
-        n = float(np.linalg.norm(du))
-        if n > 1e-9:
-            tau = min(tau, math.sqrt(8.0 * flight.wp_radius_m / (a * n)))
-        total -= tau
-    if lengths[-1] > 1e-6:
-        total += flight.leg_overhead_s
-    return total
+    reached = path_reached_s(P, stops, speeds_m_s, flight, hold_s)
+    holds = 0.0 if hold_s is None else float(np.where(stops, np.asarray(hold_s, float), 0.0)[:-1].sum())
+    return float(reached[-1]) - holds
 
 
 def takeoff_time_s(alt_m: float, flight: FlightModel) -> float:
@@ -214,7 +212,8 @@ class Route:
     grid points (-1 for others); ``hold_s`` (K,) the holds in whole seconds
     (0 = flown through when another waypoint follows); ``speed_m_s`` (K,) the
     horizontal cruise commanded on the leg that arrives at each point;
-    ``through`` (K,) True where the drone passes without stopping.
+    ``through`` (K,) True where the drone passes without stopping;
+    ``reached_s`` (K,) when the drone gets to each point, s after arming.
     """
 
     takeoff_site: np.ndarray  # (3,) on the ground
@@ -228,6 +227,7 @@ class Route:
     path_length_m: float
     speed_m_s: np.ndarray | None = None  # (K,)
     through: np.ndarray | None = None  # (K,) bool
+    reached_s: np.ndarray | None = None  # (K,) s after arming the drone reaches each point (a hold's timer starts then)
 
     @property
     def grid_order(self) -> np.ndarray:
@@ -378,7 +378,9 @@ def plan_route(
         arrive = in_run | np.concatenate([[False], in_run[:-1]])
         speeds[arrive] = float(leg_speed_m_s)
     stop = np.concatenate([[True], ~through])
-    t = takeoff_time_s(takeoff_alt_m, flight) + path_time_s(path, stop, speeds, flight) + float(H.sum())
+    t_takeoff = takeoff_time_s(takeoff_alt_m, flight)
+    reached = t_takeoff + path_reached_s(path, stop, speeds, flight, np.concatenate([[0.0], H]))[1:]
+    t = float(reached[-1]) + float(H[-1])
     if end == "land":
         t += descent_time_s(float(P[-1, 2] - takeoff[2]), flight)
     else:
@@ -398,6 +400,7 @@ def plan_route(
         path_length_m=float(legs.sum()),
         speed_m_s=speeds,
         through=through,
+        reached_s=reached,
     )
 
 

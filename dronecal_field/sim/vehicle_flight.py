@@ -9,9 +9,10 @@ from north (MAVLink's convention).
 The behaviours copied from ArduCopter 4.7 SITL (shared/replays/arducopter-sitl
 README, "Quirks seen") are marked ``# ArduCopter:`` where they happen.
 
-AUTO waypoints are flown on leg profiles (:class:`Leg`): a NAV_WAYPOINT with
-hold 0 followed by another waypoint is flown through as ArduCopter's SCurve
-blends two legs (docs/simulators.md, "Fly-through waypoints").
+AUTO waypoints are flown by :class:`dronecal_field.motion.WaypointTracker`,
+ArduCopter's AC_WPNav + SCurve (jerk-limited legs, fly-through blending,
+the S-curve clock slowed while the vehicle lags its target): the same code
+``plan.route`` times flights with (docs/simulators.md, "Legs and holds").
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import numpy as np
 
 from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink import missionfile as mf
+from dronecal_field.motion import WaypointTracker, WpnavParams
 from dronecal_field.mavlink.missionfile import MissionItem
 
 GRAVITY_MPS2 = 9.80665
@@ -38,25 +40,28 @@ class CopterParams:
     wp_speed_mps : float
         Horizontal waypoint speed [WPNAV_SPEED]; DO_CHANGE_SPEED overrides it.
     wp_accel_mps2 : float
-        Effective acceleration and braking on legs. ArduCopter's S-curve is
-        jerk-limited [WPNAV_JERK 1 m/s^3, WPNAV_ACCEL 2.5 m/s^2], so short legs
-        never reach WPNAV_ACCEL: fitted to the recorded ArduCopter 4.7 flight
-        (shared/replays/arducopter-sitl: a 1 m leg peaks at 0.57 m/s, a 5 m leg
-        at 1.36 m/s), the same value as ``plan.route.FlightModel.accel_m_s2``.
+        Horizontal acceleration limit of the S-curve legs [WPNAV_ACCEL 2.5 m/s^2];
+        the jerk (below) keeps short legs far under it.
+    wp_jerk_mps3 : float
+        Jerk of the S-curve legs [WPNAV_JERK 1 m/s^3].
+    input_tc_s : float
+        Attitude input time constant [ATC_INPUT_TC 0.15 s]: the S-curve's snap.
+    accel_z_mps2 : float
+        Vertical acceleration limit on legs [WPNAV_ACCEL_Z 1 m/s^2].
     wp_settle_s : float
-        Time from the leg's end to the start of the hold timer (the vehicle
-        lags the S-curve target; 0.5 s makes a 1 m leg + 3 s hold cycle 7.0 s,
-        recorded 6.9-7.2 s).
+        Extra wait before the hold timer starts, s (0: ArduCopter starts it as
+        the S-curve ends, the vehicle within WPNAV_RADIUS).
     wp_radius_m : float
-        Largest distance of a rounded corner's apex from a pass-through
-        waypoint [WPNAV_RADIUS, 4.7: WP_RADIUS_M].
+        Waypoint radius: a corner's apex at most this far from a fly-through
+        waypoint [WPNAV_RADIUS].
     corner_accel_mps2 : float or None
-        Largest acceleration through a rounded corner [WPNAV_ACCEL_C]; None
+        Largest horizontal acceleration through a corner [WPNAV_ACCEL_C]; None
         = 2 x ``wp_accel_mps2`` (ArduCopter's default for WPNAV_ACCEL_C 0).
     descent_mps : float
         Descent rate on sloping legs [WPNAV_SPEED_DN].
     takeoff_climb_mps : float
-        Climb rate during NAV_TAKEOFF (about 1 m/s in the recording).
+        Mean climb rate during NAV_TAKEOFF (ArduCopter 4.7 SITL: 2 m in 2.7 s
+        from lift-off, peaking at 1.2 m/s; complete 6.2 s after MISSION_START).
     climb_mps : float
         Climb rate for RTL and climbing legs [WPNAV_SPEED_UP].
     land_speed_mps, land_speed_high_mps : float
@@ -65,6 +70,9 @@ class CopterParams:
         Height where the final descent rate starts [LAND_ALT_LOW].
     rtl_alt_m, rtl_alt_min_m, rtl_cone_slope, rtl_loiter_s : float
         RTL climb target, its floor, cone slope and loiter above home [RTL_*].
+    takeoff_approach_s : float
+        Time constant of the take-off's slow-down into its altitude (recorded:
+        1.9 m at +5.3 s, complete at +5.6 s after arming).
     spool_up_s : float
         Motor spool-up before the climb; with the 1 m/s climb the copter passes
         0.1 m 3.4 s after MISSION_START, as recorded.
@@ -73,7 +81,7 @@ class CopterParams:
     landed_disarm_s : float
         Touchdown to "Disarming motors" (2 s in the recording).
     yaw_rate_dps : float
-        Yaw rate limit, degrees/second.
+        Yaw rate limit in AUTO, degrees/second [ATC_SLEW_YAW 6000 cdeg/s].
     hover_drift_m : float
         Standard deviation of the wind-free hover wander per horizontal axis, metres.
     drift_tau_s : float
@@ -81,12 +89,15 @@ class CopterParams:
     """
 
     wp_speed_mps: float = 5.0
-    wp_accel_mps2: float = 0.33
-    wp_settle_s: float = 0.5
+    wp_accel_mps2: float = 2.5
+    wp_jerk_mps3: float = 1.0
+    input_tc_s: float = 0.15
+    accel_z_mps2: float = 1.0
+    wp_settle_s: float = 0.0
     wp_radius_m: float = 2.0
     corner_accel_mps2: float | None = None
     descent_mps: float = 1.5
-    takeoff_climb_mps: float = 1.0
+    takeoff_climb_mps: float = 0.8
     climb_mps: float = 2.5
     land_speed_mps: float = 0.5
     land_speed_high_mps: float = 1.5
@@ -95,12 +106,21 @@ class CopterParams:
     rtl_alt_min_m: float = 2.0
     rtl_cone_slope: float = 3.0
     rtl_loiter_s: float = 5.0
+    takeoff_approach_s: float = 0.15
     spool_up_s: float = 3.3
     disarm_delay_s: float = 10.0
     landed_disarm_s: float = 2.0
-    yaw_rate_dps: float = 90.0
+    yaw_rate_dps: float = 60.0
     hover_drift_m: float = 0.007
     drift_tau_s: float = 2.0
+
+    @property
+    def wpnav(self) -> WpnavParams:
+        """The waypoint-navigation parameters the legs are flown with (``dronecal_field.motion``)."""
+        return WpnavParams(speed_mps=self.wp_speed_mps, speed_up_mps=self.climb_mps, speed_down_mps=self.descent_mps,
+                           accel_mps2=self.wp_accel_mps2, accel_z_mps2=self.accel_z_mps2,
+                           accel_c_mps2=self.corner_accel_mps2 or 0.0, jerk_mps3=self.wp_jerk_mps3,
+                           input_tc_s=self.input_tc_s, radius_m=self.wp_radius_m)  # fmt: skip
 
 
 def _wrap_deg(a: float) -> float:
@@ -115,132 +135,6 @@ def bearing_deg(from_en: np.ndarray, to_en: np.ndarray) -> float:
 
 
 @dataclass
-class Leg:
-    """One straight mission leg flown on a time-symmetric speed profile.
-
-    ArduCopter (AC_WPNav + SCurve, Copter 4.1+) plans every leg from rest to
-    rest; a pass-through ("fast") waypoint is flown by starting the next leg's
-    profile while this one brakes, the target being the sum of the two: on a
-    straight continuation the braking and the accelerating halves add up to
-    constant speed, at a turn of angle theta the apex speed is cruise x
-    cos(theta / 2) and the corner is cut by at most WPNAV_RADIUS. The jerk-limited
-    S-curve is modelled as a trapezoid (acceleration ``accel_mps2``).
-
-    Attributes
-    ----------
-    origin, dest : (3,) ENU metres
-    speed_mps : float
-        Cruise along the track (m/s): the horizontal speed, or the climb /
-        descent limit on steep legs, whichever binds.
-    accel_mps2 : float
-        Acceleration and braking along the track, m/s^2.
-    t_s : float
-        Time since the leg started, s (0 = not started).
-    """
-
-    origin: np.ndarray
-    dest: np.ndarray
-    speed_mps: float
-    accel_mps2: float
-    t_s: float = 0.0
-
-    @classmethod
-    def plan(cls, origin: np.ndarray, dest: np.ndarray, speed_h_mps: float, accel_mps2: float, climb_mps: float, descent_mps: float) -> "Leg":
-        """A leg from ``origin`` to ``dest`` (ENU m) with ArduCopter's horizontal and vertical speed limits."""
-        origin = np.asarray(origin, float).copy()
-        dest = np.asarray(dest, float).copy()
-        delta = dest - origin
-        length = float(np.linalg.norm(delta))
-        speed = speed_h_mps
-        if length > 1e-9:
-            u = delta / length
-            h = float(np.hypot(u[0], u[1]))
-            limits = [speed_h_mps / h] if h > 1e-9 else []
-            vz = climb_mps if u[2] > 0 else descent_mps
-            if abs(u[2]) > 1e-9:
-                limits.append(vz / abs(u[2]))
-            speed = min(limits)
-        return cls(origin=origin, dest=dest, speed_mps=float(speed), accel_mps2=float(accel_mps2))
-
-    @property
-    def length_m(self) -> float:
-        return float(np.linalg.norm(self.dest - self.origin))
-
-    @property
-    def unit(self) -> np.ndarray:
-        L = self.length_m
-        return (self.dest - self.origin) / L if L > 1e-9 else np.zeros(3)
-
-    @property
-    def peak_mps(self) -> float:
-        """Speed reached: cruise, or less on a leg too short to reach it."""
-        return min(self.speed_mps, math.sqrt(self.accel_mps2 * self.length_m))
-
-    @property
-    def ramp_s(self) -> float:
-        """Duration of the acceleration (= the braking), s."""
-        return self.peak_mps / self.accel_mps2
-
-    @property
-    def end_s(self) -> float:
-        v = self.peak_mps
-        if v <= 0.0:
-            return 0.0
-        return 2.0 * self.ramp_s + (self.length_m - v * v / self.accel_mps2) / v
-
-    @property
-    def decel_start_s(self) -> float:
-        return self.end_s - self.ramp_s
-
-    @property
-    def remaining_s(self) -> float:
-        return max(0.0, self.end_s - self.t_s)
-
-    @property
-    def finished(self) -> bool:
-        return self.t_s >= self.end_s - 1e-9
-
-    def state_at(self, t_s: float) -> tuple[float, float, float]:
-        """(distance m, speed m/s, acceleration m/s^2) along the track at leg time ``t_s``."""
-        a, v, L = self.accel_mps2, self.peak_mps, self.length_m
-        tr, te = self.ramp_s, self.end_s
-        if v <= 0.0 or t_s >= te:
-            return L, 0.0, 0.0
-        if t_s <= 0.0:
-            return 0.0, 0.0, 0.0
-        if t_s < tr:
-            return 0.5 * a * t_s * t_s, a * t_s, a
-        if t_s <= te - tr:
-            return 0.5 * v * tr + v * (t_s - tr), v, 0.0
-        tau = te - t_s
-        return L - 0.5 * a * tau * tau, a * tau, -a
-
-
-def corner_ok(this: Leg, nxt: Leg, wp_radius_m: float, corner_accel_mps2: float, accel_z_mps2: float) -> bool:
-    """ArduCopter's test for starting the next leg now (SCurve::advance_target_along_track).
-
-    The turn's mid point, if the next leg started now, must lie within
-    ``wp_radius_m`` of the waypoint, be no faster than the slower leg's cruise
-    and need no more than the corner acceleration (horizontal) and the
-    vertical acceleration limit.
-    """
-    half = 0.5 * this.remaining_s
-    s1, v1, a1 = this.state_at(this.t_s + half)
-    s2, v2, a2 = nxt.state_at(half)
-    u1, u2 = this.unit, nxt.unit
-    pos = (s1 - this.length_m) * u1 + s2 * u2
-    vel = v1 * u1 + v2 * u2
-    acc = a1 * u1 + a2 * u2
-    speed_min = min(this.speed_mps, nxt.speed_mps)
-    return (
-        float(np.linalg.norm(pos)) < wp_radius_m
-        and float(np.linalg.norm(vel)) <= speed_min * (1.0 + 1e-6)
-        and float(np.hypot(acc[0], acc[1])) < corner_accel_mps2
-        and abs(float(acc[2])) < accel_z_mps2 * (1.0 + 1e-6)
-    )
-
-
-@dataclass
 class _Nav:
     """The active navigation task."""
 
@@ -250,10 +144,7 @@ class _Nav:
     hold_s: float = 0.0
     seq: int | None = None  # mission seq this task belongs to (AUTO), else None
     kind: str = ""  # takeoff | waypoint | rtl | land | guided
-    # phase "leg" (AUTO waypoints): the leg being finished after a pass-through, this one, the next one
-    prev_leg: Leg | None = None
-    leg: Leg | None = None
-    next_leg: Leg | None = None  # set when this waypoint is a pass-through ("fast") one
+    fast: bool = False  # phase "leg": a fly-through waypoint (the tracker has the next leg)
 
 
 class CopterModel:
@@ -295,6 +186,7 @@ class CopterModel:
         self._jumps_done: dict[int, int] = {}
         self._armed_ground_s = 0.0
         self.nav = _Nav()
+        self.tracker: WaypointTracker | None = None  # AUTO waypoint legs (AC_WPNav), while flying them
         self.texts: list[tuple[int, str]] = []  # (severity, text) waiting to go out
         self.reached: list[int] = []  # MISSION_ITEM_REACHED seqs waiting to go out
         self._deferred_texts: list[tuple[int, str]] = []
@@ -495,27 +387,26 @@ class CopterModel:
             self.nav = _Nav(phase="hover", target=self.pos.copy(), seq=index, kind="waypoint")
             self._nav_complete()
 
-    def _plan_leg(self, origin: np.ndarray, dest: np.ndarray) -> Leg:
-        p = self.p
-        return Leg.plan(origin, dest, self.speed_mps, p.wp_accel_mps2, p.climb_mps, p.descent_mps)
-
     def _waypoint_nav(self, index: int, target: np.ndarray, hold_s: float) -> _Nav:
-        """The leg task for a NAV_WAYPOINT: carries on a pass-through already under way, plans the next leg if this one is one."""
+        """The leg task for a NAV_WAYPOINT (AC_WPNav::set_wp_destination, and _next for a fly-through one).
+
+        A waypoint that follows another waypoint keeps the tracker (the leg
+        before may still be braking, a fly-through's next leg is already
+        under way); after a take-off, hover or RTL the controller starts
+        afresh where the vehicle is (wp_and_spline_init).
+        """
         old = self.nav
-        if old.phase == "leg" and old.next_leg is not None and old.next_leg.t_s > 0.0 and bool(np.allclose(old.next_leg.dest, target, atol=1e-6)):
-            # ArduCopter: past the apex of a pass-through the next leg becomes this leg, the old one finishes its braking
-            prev, leg = old.leg, old.next_leg
-        else:
-            prev, leg = None, self._plan_leg(self.pos, target)
-        nxt = None
+        if self.tracker is None or old.kind != "waypoint" or old.phase not in ("leg", "hold"):
+            self.tracker = WaypointTracker(self.p.wpnav, self.pos)
+        self.tracker.start_leg(target, self.speed_mps)
+        fast = False
         if hold_s <= 0.0:
             # ArduCopter (ModeAuto::do_nav_wp): no delay and a next NAV item with a position -> "fast" waypoint
             after = self._next_fast_target(index)
             if after is not None:
-                candidate = self._plan_leg(target, after)
-                if candidate.length_m > 0.01:
-                    nxt = candidate
-        return _Nav(phase="leg", target=np.asarray(target, float).copy(), hold_s=hold_s, seq=index, kind="waypoint", prev_leg=prev, leg=leg, next_leg=nxt)
+                self.tracker.set_next(after, self.speed_mps)
+                fast = self.tracker.next is not None
+        return _Nav(phase="leg", target=np.asarray(target, float).copy(), hold_s=hold_s, seq=index, kind="waypoint", fast=fast)
 
     def _next_fast_target(self, index: int) -> np.ndarray | None:
         """Position of the next NAV item if ArduCopter would fly through item ``index`` into it, else None.
@@ -538,14 +429,9 @@ class CopterModel:
         return None
 
     def _replan_unstarted_legs(self) -> None:
-        """A new speed (DO_CHANGE_SPEED) for the legs not yet under way (ArduCopter re-plans the current one too)."""
-        nav = self.nav
-        if nav.phase != "leg":
-            return
-        if nav.leg is not None and nav.leg.t_s == 0.0 and nav.prev_leg is None:
-            nav.leg = self._plan_leg(nav.leg.origin, nav.leg.dest)
-        if nav.next_leg is not None and nav.next_leg.t_s == 0.0:
-            nav.next_leg = self._plan_leg(nav.next_leg.origin, nav.next_leg.dest)
+        """A new speed (DO_CHANGE_SPEED) for the legs not yet under way."""
+        if self.nav.phase == "leg" and self.tracker is not None:
+            self.tracker.set_speed(self.speed_mps)
 
     def _item_alt(self, item: MissionItem) -> float:
         target = self.to_enu(item)
@@ -591,9 +477,11 @@ class CopterModel:
 
     # ----- navigation tasks -----
     def _hover_here(self) -> None:
+        self.tracker = None
         self.nav = _Nav(phase="hover", target=self.pos.copy(), kind="guided")
 
     def _start_takeoff(self, alt_m: float, seq: int | None) -> None:
+        self.tracker = None
         target = np.array([self.pos[0], self.pos[1], alt_m])
         if self.landed:
             self.nav = _Nav(phase="spool", target=target, seq=seq, kind="takeoff")
@@ -603,6 +491,7 @@ class CopterModel:
             self.nav = _Nav(phase="climb", target=target, seq=seq, kind="takeoff")
 
     def _start_rtl(self, seq: int | None) -> None:
+        self.tracker = None
         if self.landed:
             self.nav = _Nav(phase="touchdown", target=self.pos.copy(), seq=seq, kind="rtl")
             return
@@ -614,6 +503,7 @@ class CopterModel:
         self.nav = _Nav(phase="rtl_climb", target=np.array([self.pos[0], self.pos[1], alt]), seq=seq, kind="rtl")
 
     def _start_land(self, target_en: np.ndarray | None, seq: int | None) -> None:
+        self.tracker = None
         if target_en is not None and float(np.hypot(*(np.asarray(target_en) - self.pos[:2]))) > 0.05:
             self.nav = _Nav(phase="goto", target=np.array([target_en[0], target_en[1], self.pos[2]]), seq=seq, kind="land")
         else:
@@ -660,83 +550,46 @@ class CopterModel:
         elif self.roi is not None and self.nav.kind != "rtl":
             if float(np.hypot(*(self.roi[:2] - here[:2]))) > 0.3:
                 desired = bearing_deg(here, self.roi)
-        elif self.nav.phase in ("goto", "leg") and float(np.hypot(*(self.nav.target[:2] - self.pos[:2]))) > 1.0:
-            desired = bearing_deg(self.pos, self.nav.target)  # WP_YAW_BEHAVIOR 2: face the next waypoint
+        elif self.nav.phase in ("goto", "leg"):
+            # WP_YAW_BEHAVIOR 2 (face the next waypoint, RTL aside): AC_PosControl points the nose along the
+            # target velocity once it exceeds 5 % of the speed limit (calculate_yaw_and_rate_yaw)
+            v = self.tracker.target_vel if (self.nav.phase == "leg" and self.tracker is not None) else self.vel
+            if float(np.hypot(v[0], v[1])) > 0.05 * self.speed_mps:
+                desired = math.degrees(math.atan2(v[0], v[1])) % 360.0
         if desired is None:
             return
         err = _wrap_deg(desired - self.heading_deg)
         limit = self.p.yaw_rate_dps * dt
         self.heading_deg = (self.heading_deg + max(-limit, min(limit, err))) % 360.0
 
-    def _move_towards(self, target: np.ndarray, speed: float, accel: float, dt: float) -> bool:
-        """Straight-line move with accel/brake limits; True on arrival."""
-        delta = target - self.pos
-        dist = float(np.linalg.norm(delta))
-        if dist < 1e-3:
-            self.pos = target.copy()
-            self.vel[:] = 0.0
-            return True
-        direction = delta / dist
-        v_now = float(np.dot(self.vel, direction))
-        v = min(speed, math.sqrt(2.0 * accel * dist), max(0.0, v_now) + accel * dt)
-        step = v * dt
-        if step >= dist:
-            self.pos = target.copy()
-            self.vel[:] = 0.0
-            return True
-        self.pos = self.pos + direction * step
-        self.vel = direction * v
-        return False
+    def _fly_to(self, target: np.ndarray, speed: float, dt: float) -> bool:
+        """One S-curve leg to ``target`` from where the vehicle is (GUIDED goto, RTL's return, LAND's reposition); True on arrival."""
+        tr = self.tracker
+        if tr is None or not bool(np.allclose(tr.dest, target, atol=1e-6)):
+            tr = self.tracker = WaypointTracker(self.p.wpnav, self.pos)
+            tr.start_leg(target, speed)
+        arrived = tr.step(dt)
+        self.pos = tr.pos.copy()
+        self.vel = tr.vel.copy()
+        if arrived:
+            self.tracker = None
+        return arrived
 
     def _step_legs(self, dt: float) -> None:
-        """Advance the leg profiles of an AUTO waypoint; the target is the sum of the legs under way."""
+        """Fly the AUTO waypoint legs: the tracker moves the target and the vehicle follows it."""
         nav = self.nav
-        p = self.p
-        leg = nav.leg
-        assert leg is not None
-        prev, nxt = nav.prev_leg, nav.next_leg
-        if prev is not None:
-            prev.t_s += dt
-            if prev.finished:
-                nav.prev_leg = prev = None
-        leg.t_s = min(leg.t_s + dt, leg.end_s)
-        done = leg.finished
-        if nxt is not None:
-            if nxt.t_s > 0.0:
-                nxt.t_s += dt
-            elif not done and leg.t_s >= leg.decel_start_s - 1e-9 and leg.remaining_s <= nxt.ramp_s + 1e-9:
-                corner = p.corner_accel_mps2 if p.corner_accel_mps2 is not None else 2.0 * p.wp_accel_mps2
-                if corner_ok(leg, nxt, p.wp_radius_m, corner, p.wp_accel_mps2):
-                    # start it when the condition first held inside this step (ArduCopter checks at 400 Hz, we step at 20 Hz)
-                    first_s = max(leg.decel_start_s, leg.end_s - nxt.ramp_s)
-                    nxt.t_s = max(1e-9, min(dt, leg.t_s - first_s))
-            if nxt.t_s > 0.0 and nxt.t_s >= leg.remaining_s:
-                done = True  # ArduCopter: a fast waypoint is reached half way through the turn (SCurve)
-        s1, v1, _ = leg.state_at(leg.t_s)
-        u1 = leg.unit
-        pos = leg.origin + s1 * u1
-        vel = v1 * u1
-        if prev is not None:
-            s0, v0, _ = prev.state_at(prev.t_s)
-            pos = pos - (prev.length_m - s0) * prev.unit
-            vel = vel + v0 * prev.unit
-        if nxt is not None and nxt.t_s > 0.0:
-            s2, v2, _ = nxt.state_at(nxt.t_s)
-            pos = pos + s2 * nxt.unit
-            vel = vel + v2 * nxt.unit
-        self.pos = pos
-        self.vel = vel
-        if not done:
+        tr = self.tracker
+        assert tr is not None
+        reached = tr.step(dt)
+        self.pos = tr.pos.copy()
+        self.vel = tr.vel.copy()
+        if nav.phase == "hold" or not reached:
             return
-        if nxt is not None and nxt.t_s > 0.0:
+        if nav.fast:
             self._nav_complete()  # MISSION_ITEM_REACHED without stopping; the next waypoint takes the legs over
             return
-        if prev is not None:
-            return  # a short leg can end before the braking of the one before it: wait for it
-        self.pos = leg.dest.copy()
-        self.vel[:] = 0.0
-        nav.phase = "hold"  # ArduCopter: the hold timer starts when the target reaches the point, the vehicle settling behind it
-        nav.timer_s = -p.wp_settle_s if leg.length_m > 1e-6 else 0.0
+        nav.phase = "hold"  # ArduCopter: the hold timer starts as the S-curve ends, the vehicle within WPNAV_RADIUS
+        nav.timer_s = -self.p.wp_settle_s
 
     def _vertical(self, target_alt: float, rate: float, dt: float) -> bool:
         dz = target_alt - self.pos[2]
@@ -759,22 +612,29 @@ class CopterModel:
             self.vel[:] = 0.0
             if nav.timer_s >= p.spool_up_s:
                 nav.phase = "climb"
+                nav.timer_s = 0.0
                 self.landed = False
             return
         if nav.phase == "climb":
             self.landed = False
-            if self._vertical(float(nav.target[2]), p.takeoff_climb_mps, dt):
+            # ArduCopter's take-off slows into its altitude (recorded: 1.9 m at +5.3 s, complete at +5.6 s after arming)
+            dz = float(nav.target[2]) - float(self.pos[2])
+            rate = min(p.takeoff_climb_mps, max(0.05, abs(dz) / p.takeoff_approach_s))
+            if abs(dz) < 0.01 or self._vertical(float(nav.target[2]), rate, dt):
+                self.pos[2] = float(nav.target[2])
+                self.vel[:] = 0.0
                 self._nav_complete()
             return
         if nav.phase == "goto":
             speed = self.speed_mps if nav.kind != "guided" else p.wp_speed_mps
-            if self._move_towards(nav.target, speed, p.wp_accel_mps2, dt):
+            if self._fly_to(nav.target, speed, dt):
                 if nav.kind == "land":
                     nav.phase = "descend"
                     nav.target = np.array([self.pos[0], self.pos[1], 0.0])
                 elif nav.kind == "waypoint":
                     nav.phase = "hold"  # ArduCopter: the hold timer starts when the target reaches the point
                     nav.timer_s = -p.wp_settle_s
+                    self.tracker = None
                 else:
                     self._hover_here()
             return
@@ -782,7 +642,10 @@ class CopterModel:
             self._step_legs(dt)
             return
         if nav.phase == "hold":
-            self.vel[:] = 0.0
+            if self.tracker is not None and nav.kind == "waypoint" and bool(np.allclose(self.tracker.dest, nav.target, atol=1e-6)):
+                self._step_legs(dt)  # the vehicle settles on the point as the timer runs
+            else:
+                self.vel[:] = 0.0
             nav.timer_s += dt
             if nav.timer_s >= nav.hold_s - 1e-9:
                 self._nav_complete()  # ArduCopter: MISSION_ITEM_REACHED when the hold ENDS
@@ -796,7 +659,7 @@ class CopterModel:
                 nav.target = np.array([0.0, 0.0, self.pos[2]])
             return
         if nav.phase == "rtl_return":
-            if self._move_towards(nav.target, p.wp_speed_mps, p.wp_accel_mps2, dt):
+            if self._fly_to(nav.target, p.wp_speed_mps, dt):
                 nav.phase = "rtl_loiter"
                 nav.timer_s = 0.0
             return
@@ -809,6 +672,8 @@ class CopterModel:
             return
         if nav.phase == "descend":
             rate = p.land_speed_high_mps if self.pos[2] > p.land_alt_low_m else p.land_speed_mps
+            # the descent speeds up at WPNAV_ACCEL_Z (0.25 s to LAND_SPEED from a hover, as the replayed landings show)
+            rate = min(rate, max(0.0, -float(self.vel[2])) + p.accel_z_mps2 * dt)
             if self._vertical(0.0, rate, dt):
                 self.landed = True
                 self.drift[:] = 0.0
