@@ -7,10 +7,12 @@ server runs as a child process of Debian's Python (this same file run as a
 script: it imports only the standard library and ``gi``) and
 :class:`RtspOut` feeds it raw frames over a pipe:
 
-``8-byte little-endian frame time (UTC ns) + width * height * 3 bytes (BGR)``
+``8-byte little-endian frame time (UTC ns) + width * height * 3 / 2 bytes (I420)``
 
-One encoder for every client (a shared media, as a camera has): appsrc ->
-videoconvert -> x264enc / x265enc (no B-frames, a keyframe every ``gop``
+The frames cross the pipe as I420, converted on the venv side by OpenCV
+(7 ms of CPU a 4K frame here, against 33 ms in GStreamer's videoconvert, and
+half the bytes through the pipe). One encoder for every client (a shared
+media, as a camera has): appsrc -> x264enc / x265enc (no B-frames, a keyframe every ``gop``
 frames, the parameter sets in front of each) -> rtph264pay / rtph265pay.
 The pipeline runs on the realtime (UTC) clock and each buffer's timestamp
 is its frame time, so the sender reports map RTP time to the instant the
@@ -65,7 +67,9 @@ class RtspOut:
         self.width, self.height, self.fps, self.codec = int(width), int(height), float(fps), codec
         self.gop = int(gop) if gop else max(1, int(round(2 * fps)))
         self.bitrate_kbps = int(bitrate_kbps) if bitrate_kbps else max(500, int(0.1 * width * height * fps / 1000))
-        self._frame_bytes = self.width * self.height * 3
+        if self.width % 2 or self.height % 2:
+            raise InputError(f"{self.width}x{self.height}: RTSP serving needs an even width and height (4:2:0 video)")
+        self._frame_bytes = self.width * self.height * 3 // 2
         self._lock = threading.Lock()
         self.frames_sent = 0
         self.proc = subprocess.Popen(
@@ -82,9 +86,11 @@ class RtspOut:
 
     def send(self, frame_time_ns: int, bgr) -> bool:
         """One rendered frame ((H, W, 3) uint8 BGR) shown at ``frame_time_ns`` (UTC); False once the server is gone."""
-        data = memoryview(bgr).cast("B") if bgr.flags["C_CONTIGUOUS"] else memoryview(bgr.copy()).cast("B")
-        if len(data) != self._frame_bytes:
-            raise ValueError(f"frame of {len(data)} bytes, expected {self.width}x{self.height}x3")
+        import cv2
+
+        if bgr.shape != (self.height, self.width, 3):
+            raise ValueError(f"frame of shape {bgr.shape}, expected ({self.height}, {self.width}, 3)")
+        data = memoryview(cv2.cvtColor(bgr, cv2.COLOR_BGR2YUV_I420)).cast("B")
         with self._lock:
             try:
                 self.proc.stdin.write(_HEADER.pack(int(frame_time_ns)))
@@ -128,8 +134,8 @@ def _serve(host: str, port: int, path: str, width: int, height: int, fps: str, c
     else:
         enc = (f"x265enc tune=zerolatency speed-preset=ultrafast key-int-max={gop} bitrate={bitrate_kbps} "
                'option-string="bframes=0:repeat-headers=1:aud=0" ! video/x-h265,profile=main ! rtph265pay name=pay0 pt=96 config-interval=-1')
-    caps = f"video/x-raw,format=BGR,width={width},height={height},framerate={rate.numerator}/{rate.denominator}"
-    launch = f"( appsrc name=src is-live=true format=time do-timestamp=false caps={caps} ! queue max-size-buffers=4 leaky=downstream ! videoconvert ! video/x-raw,format=I420 ! {enc} )"
+    caps = f"video/x-raw,format=I420,width={width},height={height},framerate={rate.numerator}/{rate.denominator}"
+    launch = f"( appsrc name=src is-live=true format=time do-timestamp=false caps={caps} ! queue max-size-buffers=4 leaky=downstream ! {enc} )"
     state: dict = {"src": None, "pipeline": None}
     lock = threading.Lock()
 
@@ -163,7 +169,7 @@ def _serve(host: str, port: int, path: str, width: int, height: int, fps: str, c
         print(f"cannot listen on {host}:{port}", file=sys.stderr, flush=True)
         return 1
     loop = GLib.MainLoop()
-    frame_bytes = width * height * 3
+    frame_bytes = width * height * 3 // 2
 
     def feed() -> None:
         stdin = sys.stdin.buffer
