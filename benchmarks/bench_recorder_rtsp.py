@@ -95,7 +95,7 @@ def _split(pipeline: str) -> list[str]:
     return shlex.split(pipeline)
 
 
-def record(url: str, seconds: float, out: str) -> None:
+def record(url: str, seconds: float, out: str, args_budget: float | None = 0.03) -> None:
     """The recorder process: fly's video path for ``seconds``; prints one JSON line."""
     import threading
 
@@ -111,7 +111,8 @@ def record(url: str, seconds: float, out: str) -> None:
     source.lock_clock()
     md = RunMetadata(format_version=FORMAT_VERSION, width=source.width, height=source.height,
                      marker=MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=0, size_m=0.5))
-    check = MarkerCheck("DICT_4X4_50", 0)
+    check = MarkerCheck("DICT_4X4_50", 0) if args_budget is None else MarkerCheck("DICT_4X4_50", 0, cpu_budget=args_budget)
+    probe_state = {"last": 0.0, "n": 0}
     frames = []
     latest = {"key": None}
     t_start = time.monotonic()
@@ -120,10 +121,16 @@ def record(url: str, seconds: float, out: str) -> None:
         writer.write_fix(GnssFix(timestamp_ns=time.time_ns(), lat_deg=0.0, lon_deg=0.0, alt_m=0.0))
         stop = threading.Event()
 
-        def probe() -> None:  # the recorder's monitor thread: one keyframe a second
-            while not stop.wait(1.0):
-                if latest["key"] is not None:
-                    check.seen(latest["key"].data, latest["key"].format)
+        def probe() -> None:  # the recorder's monitor thread: its marker probe, within MarkerCheck's CPU budget
+            while not stop.wait(0.5):
+                if latest["key"] is not None and (args_budget is None or check.due(time.monotonic() + 0.05)):
+                    if args_budget is None:  # as before issue 24: a keyframe decoded every second, the same one again too
+                        if time.monotonic() - probe_state["last"] >= 1.0:
+                            probe_state["last"] = time.monotonic()
+                            check.seen(latest["key"].data, latest["key"].format)
+                            probe_state["n"] += 1
+                    else:
+                        check.probe(latest["key"], now=time.monotonic() + 0.05)
 
         thread = threading.Thread(target=probe, daemon=True)
         thread.start()
@@ -146,6 +153,7 @@ def record(url: str, seconds: float, out: str) -> None:
         "frames": len(frames), "lost": source.monitor.frames_lost, "corrupt": source.monitor.corrupt,
         "dropped": source.frames_dropped, "lag_events": source.monitor.lag_events, "max_lag_ms": source.monitor.max_lag_ns / 1e6,
         "clock": source.clock, "wall_s": wall, "cpu_s": cpu, "bytes": os.path.getsize(out),
+        "probes": check.probes + probe_state["n"], "probe_cpu_s": check.cpu_s,
         "rss_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
         "recorded": [(p, t, payload_bytes(d, h265)) for p, t, d in frames],
     }))
@@ -169,7 +177,7 @@ def errors_ms(sent, recorded, at: str) -> list[float]:
     return [(t - wall_of[p + offset]) / 1e6 for p, t, _ in recorded if p + offset in wall_of]
 
 
-def run_stream(name: str, spec: dict, seconds: float, workdir: Path) -> dict:
+def run_stream(name: str, spec: dict, seconds: float, workdir: Path, probe: str = "budget") -> dict:
     clip = workdir / f"{name}.mkv"
     t0 = time.monotonic()
     encode_clip(clip, spec["codec"], spec["width"], spec["height"], spec["fps"], spec["kbps"], seconds + 8.0)
@@ -181,8 +189,9 @@ def run_stream(name: str, spec: dict, seconds: float, workdir: Path) -> dict:
     )
     try:
         url = server.stdout.readline().split()[1]
-        out = workdir / f"{name}.mcap"
-        child = subprocess.Popen([sys.executable, __file__, "--record", url, "--seconds", str(seconds), "--out", str(out)], stdout=subprocess.PIPE, text=True)
+        out = workdir / f"{name}-{probe}.mcap"
+        child = subprocess.Popen([sys.executable, __file__, "--record", url, "--seconds", str(seconds), "--out", str(out), "--probe", probe],
+                                 stdout=subprocess.PIPE, text=True)
         stdout = child.communicate()[0]
         result = json.loads(stdout.strip().splitlines()[-1])
     finally:
@@ -201,7 +210,8 @@ def run_stream(name: str, spec: dict, seconds: float, workdir: Path) -> dict:
 
     span_frames = round((rec[-1][0] - rec[0][0]) * spec["fps"] / 1e9) + 1 if rec else 0
     return {
-        "stream": name, "clip_encode_s": round(encode_s, 1),
+        "stream": name, "probe": probe, "probes": result["probes"], "probe_cpu_s": round(result["probe_cpu_s"], 2),
+        "clip_encode_s": round(encode_s, 1),
         "frames_sent_in_span": span_frames, "frames_recorded": result["frames"], "lost": result["lost"], "dropped": result["dropped"],
         "corrupt": result["corrupt"], "lag_events": result["lag_events"], "max_lag_ms": round(result["max_lag_ms"], 1), "clock": result["clock"],
         "cpu_pct_core": round(100 * result["cpu_s"] / result["wall_s"], 1), "rss_mb": round(result["rss_kb"] / 1024, 1),
@@ -220,14 +230,24 @@ def main() -> int:
     p.add_argument("--workdir", default=None, help="keep clips here between runs (default: a temporary folder)")
     p.add_argument("--record", help=argparse.SUPPRESS)
     p.add_argument("--out", help=argparse.SUPPRESS)
+    p.add_argument("--probe", choices=("budget", "every-second", "both"), default="both",
+                   help="the marker probe: budget (MarkerCheck.probe, as the recorder since issue 24), every-second (a keyframe "
+                        "decoded each second, as before), both (each stream twice, the ratio printed; default)")
     args = p.parse_args()
     if args.record:
-        record(args.record, args.seconds, args.out)
+        record(args.record, args.seconds, args.out, None if args.probe == "every-second" else 0.03)
         return 0
     workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="bench-rtsp-"))
     workdir.mkdir(parents=True, exist_ok=True)
     for name in args.only or list(STREAMS):
-        print(json.dumps(run_stream(name, STREAMS[name], args.seconds, workdir)), flush=True)
+        cpu = {}
+        for probe in (("every-second", "budget") if args.probe == "both" else (args.probe,)):
+            result = run_stream(name, STREAMS[name], args.seconds, workdir, probe)
+            cpu[probe] = result["cpu_pct_core"]
+            print(json.dumps(result), flush=True)
+        if len(cpu) == 2:
+            print(f"{name}: recorder CPU {cpu['budget']:.1f} % of one core with the budgeted probe, {cpu['every-second']:.1f} % "
+                  f"probing every second: {cpu['budget'] / max(cpu['every-second'], 1e-9):.2f}x", flush=True)
     return 0
 
 

@@ -634,10 +634,11 @@ class Recorder:
 
     # ----- monitor thread -----
     def _monitor_loop(self) -> None:
-        # The marker probe decodes one frame: once a second for one camera; with several, one camera each
-        # half second in turn (four cameras: each every 2 s), so the probe's CPU does not grow with the cameras.
-        last_marker = 0.0
+        # The marker probe decodes one frame, within MarkerCheck's CPU budget (one probe a second at most, fewer
+        # when a probe is dear: a 4K H.265 keyframe); with several cameras one camera a probe, in turn.
         probe_every_s = 1.0 if len(self.feeds) == 1 else 0.5
+        if self.marker_check is not None:
+            self.marker_check.min_period_s = min(self.marker_check.min_period_s, probe_every_s)
         turn = 0
         while not self._stop.wait(0.5):
             silent_s = self.link.seconds_since_receive()
@@ -651,18 +652,22 @@ class Recorder:
                 self._event(RunEvent(lost, now_ns - lost, "link_lost", meta))
                 self._event(RunEvent(now_ns, 0, "link_restored", meta))
                 self.link_losses += 1
-            now = time.monotonic()
-            if self.marker_check is not None and now - last_marker >= probe_every_s - 0.05:
-                feed = self.feeds[turn % len(self.feeds)]
-                turn += 1
-                frame = feed.latest_keyframe
-                if frame is None:
-                    continue
-                last_marker = now
-                try:
-                    feed.marker_seen = self.marker_check.seen(frame.data, frame.format)
-                except Exception:  # noqa: BLE001 - the probe is cosmetic; never stop recording for it
-                    feed.marker_seen = None
+            now = time.monotonic() + 0.05  # the tick's own jitter
+            if self.marker_check is None or not self.marker_check.due(now):
+                continue
+            feed = self.feeds[turn % len(self.feeds)]
+            turn += 1
+            frame = feed.latest_keyframe
+            if frame is None:
+                continue
+            try:
+                seen = self.marker_check.probe(frame, key=id(feed), now=now)
+            except Exception:  # noqa: BLE001 - the probe is cosmetic; never stop recording for it
+                feed.marker_seen = None
+                self.marker_check.next_due = now + 1.0
+                continue
+            if seen is not None:
+                feed.marker_seen = seen
 
     # ----- status -----
     @property

@@ -1,0 +1,218 @@
+"""Issue 24, fly's side: one simulated vehicle, four simulated pole cameras (one on RTSP), one ``fly`` recording all four.
+
+Run by hand (``make rtsp-deps`` first)::
+
+    .venv/bin/python benchmarks/bench_site_fly.py                       # the site plan if plan --site makes one, else a demo plan
+    .venv/bin/python benchmarks/bench_site_fly.py --mission missions/security-4k/mission.plan --speedup 4 --scale 0.5 --fps 10
+    .venv/bin/python benchmarks/bench_site_fly.py --live --no-baseline  # with the live check per camera
+
+The four cameras are missions/site-two-poles.toml's (two poles, a wide 1080p
+and a 4K on pole a, the paper's Table 1 camera and a wide 1080p on pole b),
+scaled by ``--scale`` (the simulator's Python renderer makes 3-4 frames a
+second at 4K on this machine: four full-size cameras cannot run at real time
+beside the recorder on 2 cores). The 4K camera (``a-4k``) serves H.264 over
+RTSP with RTCP sender reports, the others MJPEG. Each ``sim camera`` is its
+own process on its own MAVLink link (``sim vehicle --out`` once per camera).
+
+The mission is ``plan --site missions/site-two-poles.toml``'s when that command
+makes one (it is being written for issue 24), else ``--mission`` (default: the
+4K security-camera demo plan, missions/security-4k/mission.plan): the four
+cameras then look at the same flight from the site's poles, each seeing part of it.
+
+Measured (each a real process; fly's CPU from os.wait4, user + system):
+
+- the recorder's CPU for the four streams: ``fly --no-live`` (default) over
+  its whole life, % of one core; and the same flight recorded from the first
+  camera alone (the baseline, same run of this script; ``--no-baseline`` skips
+  it): the ratio is what three more cameras cost;
+- per camera: frames recorded (raw mcap reader), frames the recorder dropped,
+  frames lost in the stream (pts gaps, RTSP), video gaps, and the frames its
+  simulator made (``sim camera: N frames``);
+- the flight time: the recording's wall time, and in vehicle seconds (x ``--speedup``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import socket
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+SITE_TOML = ROOT / "missions" / "site-two-poles.toml"
+RTSP_CAMERA = "a-4k"
+
+
+def site_cameras(scale: float):
+    """(name, truth Camera, marker dict) of the site file's cameras, images scaled by ``scale``."""
+    from dronecal_field.core.camera import Distortion
+    from dronecal_field.geodesy import EnuOrigin
+    from dronecal_field.plan.site import DISTORTION_LEVELS
+    from dronecal_field.sim.scene import make_truth_camera
+
+    site = tomllib.loads(SITE_TOML.read_text())
+    poles = {p["name"]: p for p in site["pole"]}
+    out = []
+    for cam in site["camera"]:
+        pole = poles[cam["pole"]]
+        w, h = (int(v) for v in cam["image_size"].split("x"))
+        w, h = int(round(w * scale / 16) * 16), int(round(h * scale / 16) * 16)
+        dist = cam.get("distortion", "none")
+        d = DISTORTION_LEVELS[dist] if isinstance(dist, str) else Distortion(*[float(v) for v in dist])
+        origin = EnuOrigin(pole["lat"], pole["lon"], pole["ground_amsl"])
+        focal = float(cam["focal_px"]) * w / int(cam["image_size"].split("x")[0])
+        truth = make_truth_camera(origin, cam["mount_height"], cam["azimuth"], cam["tilt"], focal, w, h, distortion=d)
+        out.append((cam["name"], truth))
+    return out, site["marker"]
+
+
+def site_plan(work: Path, logs: Path) -> Path | None:
+    """The mission of ``plan --site`` for the site file, or None when that command does not make one (yet)."""
+    from dronecal_field.demo import cli_argv, run_step
+    from dronecal_field.errors import DronecalError
+
+    try:
+        run_step("plan --site", cli_argv("plan", "--site", SITE_TOML, "--out", work / "site-plan"), logs / "plan.log", timeout_s=1800)
+    except DronecalError as exc:
+        print(f"plan --site: no plan ({exc}); flying --mission instead", flush=True)
+        return None
+    for name in ("mission.plan", "mission-1.plan"):
+        if (work / "site-plan" / name).exists():
+            return work / "site-plan" / name
+    return None
+
+
+def fly_once(mission: Path, cameras, marker: dict, args, work: Path, logs: Path, tag: str, only_first: bool = False) -> dict:
+    """Start the simulators, fly the mission recording the cameras, stop them; what was measured."""
+    from dronecal_field.camerafile import write_camera
+    from dronecal_field.demo import _free_port, _start, _stop, _wait_for_tcp, cli_argv
+
+    plan = json.loads(mission.read_text())
+    home = plan["mission"]["plannedHomePosition"]
+    marker_args = ["--marker-dictionary", marker.get("aruco_dict", "DICT_4X4_50"), "--marker-id", marker.get("marker_id", 0),
+                   "--marker-size", (marker.get("marker_sizes") or [marker.get("marker_size", 0.3)])[-1],
+                   "--marker-offset", ",".join(str(v) for v in marker.get("marker_offset", (0, 0, 0)))]
+    sims, videos, links = [], [], []
+    used = cameras[:1] if only_first else cameras
+    try:
+        for name, truth in used:
+            truth_path = work / f"truth-{name}.yaml"
+            write_camera(truth_path, truth, comment=f"bench_site_fly: simulator truth of {name}")
+            link = _free_port()
+            port = _free_port(socket.SOCK_STREAM)
+            url = f"rtsp://127.0.0.1:{port}/cam" if name == RTSP_CAMERA else f"http://127.0.0.1:{port}/stream.mjpg"
+            log = logs / f"{tag}-sim-camera-{name}.log"
+            proc = _start(cli_argv("sim", "camera", "--connect", f"udpin:127.0.0.1:{link}", "--camera", truth_path, "--serve", url,
+                                   "--fps", args.fps, *marker_args, "--seed", len(sims)),
+                          log.open("w"))
+            sims.append((name, proc, log, port))
+            videos.append(f"{name}={url}" if not only_first else url)
+            links.append(link)
+        for name, proc, log, port in sims:
+            _wait_for_tcp(port, proc, log, timeout_s=900)  # each builds its ray map first
+        vehicle_port = _free_port()
+        vehicle = _start(cli_argv("sim", "vehicle", "--listen", f"udp:127.0.0.1:{vehicle_port}",
+                                  *[a for link in links for a in ("--out", f"udp:127.0.0.1:{link}")],
+                                  "--home", ",".join(str(v) for v in home), "--speedup", args.speedup, "--gps-rate-ms", 100),
+                         (logs / f"{tag}-sim-vehicle.log").open("w"))
+        run_path = work / f"{tag}.mcap"
+        fly_log = logs / f"{tag}-fly.log"
+        t0 = time.monotonic()
+        fly = _start(cli_argv("fly", "--connect", f"udp:127.0.0.1:{vehicle_port}", "--mission", mission,
+                              *[a for v in videos for a in ("--video", v)], "--out", run_path, *marker_args,
+                              "--start", "--timeout-s", 7200, *([] if args.live else ["--no-live"])), fly_log.open("w"))
+        _pid, status, usage = os.wait4(fly.pid, 0)
+        fly.returncode = os.waitstatus_to_exitcode(status)
+        wall = time.monotonic() - t0
+        _stop(vehicle)
+    finally:
+        for _name, proc, _log, _port in sims:
+            _stop(proc)
+    text = fly_log.read_text(errors="replace")
+    made = {}
+    for name, _proc, log, _port in sims:
+        m = re.search(r"sim camera: (\d+) frames", log.read_text(errors="replace"))
+        made[name] = int(m.group(1)) if m else None
+    rec = re.search(r"in ([0-9.]+) s", text.split("recorded ", 1)[-1]) if "recorded " in text else None
+    return {"rc": fly.returncode, "wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime, "recorded_s": float(rec.group(1)) if rec else None,
+            "run": run_path, "log": fly_log, "made": made, "text": text, "cameras": [n for n, _ in used]}
+
+
+def per_camera(run_path: Path, names: list[str]) -> dict:
+    """Frames per camera topic and the video events naming each camera, through mcap's own reader."""
+    from foxglove_schemas_protobuf.Event_pb2 import Event
+    from mcap.reader import make_reader
+
+    counts: dict[str, int] = {}
+    events: dict[str, dict[str, int]] = {n: {} for n in names}
+    with open(run_path, "rb") as f:
+        reader = make_reader(f)
+        for _schema, channel, message in reader.iter_messages(log_time_order=False):
+            topic = channel.topic
+            if topic.startswith("/camera"):
+                counts[topic] = counts.get(topic, 0) + 1
+            elif topic == "/events":
+                meta = {kv.key: kv.value for kv in Event.FromString(message.data).metadata}
+                cam = meta.get("camera", names[0] if len(names) == 1 else None)
+                if cam in events and meta["type"].startswith("video_"):
+                    n = int(meta.get("frames", "1")) if meta["type"] == "video_lost" else 1
+                    events[cam][meta["type"]] = events[cam].get(meta["type"], 0) + n
+    return {"frames": counts, "events": events}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--mission", default=None, help="mission.plan to fly if plan --site makes none (default missions/security-4k/mission.plan)")
+    p.add_argument("--no-site-plan", action="store_true", help="do not try plan --site; fly --mission")
+    p.add_argument("--speedup", type=float, default=4.0, help="sim vehicle speed-up (default %(default)s)")
+    p.add_argument("--fps", type=float, default=10.0, help="each simulated camera's frame rate (default %(default)s)")
+    p.add_argument("--scale", type=float, default=0.5, help="the site cameras' image sizes times this (default %(default)s)")
+    p.add_argument("--live", action="store_true", help="with the live check per camera (default: --no-live, the recorder alone)")
+    p.add_argument("--no-baseline", action="store_true", help="skip the single-camera flight")
+    p.add_argument("--out", default=None, help="work folder (default: a temporary one)")
+    args = p.parse_args()
+    work = Path(args.out) if args.out else Path(os.environ.get("TMPDIR", "/tmp")) / f"bench-site-fly-{int(time.time())}"
+    logs = work / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    cameras, marker = site_cameras(args.scale)
+    mission = None if args.no_site_plan else site_plan(work, logs)
+    mission = mission or Path(args.mission or ROOT / "missions" / "security-4k" / "mission.plan")
+    print(f"mission {mission}; cameras " + ", ".join(f"{n} {c.intrinsics.width}x{c.intrinsics.height}{' RTSP' if n == RTSP_CAMERA else ''}"
+                                                   for n, c in cameras) + f" at {args.fps:g} fps; vehicle x{args.speedup:g}", flush=True)
+    runs = [("site", False)] + ([] if args.no_baseline else [("one", True)])
+    results = {}
+    for tag, only_first in runs:
+        r = fly_once(mission, cameras, marker, args, work, logs, tag, only_first)
+        results[tag] = r
+        pc = per_camera(r["run"], r["cameras"])
+        core = 100 * r["cpu_s"] / r["wall_s"]
+        print(f"\n[{tag}] fly exit {r['rc']}: {len(r['cameras'])} camera(s), {r['wall_s']:.0f} s wall, recording {r['recorded_s'] or float('nan'):.0f} s "
+              f"= {(r['recorded_s'] or 0) * args.speedup / 60:.1f} min of vehicle time; fly CPU {r['cpu_s']:.1f} s = {core:.1f} % of one core"
+              f"{' (live check on)' if args.live else ' (recorder alone, --no-live)'}", flush=True)
+        for name in r["cameras"]:
+            topic = next((t for t in pc["frames"] if t.startswith(f"/cameras/{name}/")), None) if len(r["cameras"]) > 1 else \
+                next(iter(pc["frames"]), None)
+            ev = pc["events"][name]
+            print(f"  {name:9s} {pc['frames'].get(topic, 0):6d} frames recorded of {r['made'][name]} made; "
+                  f"lost in stream {ev.get('video_lost', 0)}, lag spans {ev.get('video_lag', 0)}, gaps {ev.get('video_gap', 0)}", flush=True)
+        for line in r["text"].splitlines():
+            if line.startswith("recorded ") or line.startswith("verdict"):
+                print("  fly:", line.strip()[:400])
+    if "one" in results:
+        site, one = results["site"], results["one"]
+        ratio = (site["cpu_s"] / site["wall_s"]) / max(one["cpu_s"] / one["wall_s"], 1e-9)
+        print(f"\nfour cameras / one camera, fly CPU per wall second: {ratio:.2f}x "
+              f"({100 * site['cpu_s'] / site['wall_s']:.1f} % vs {100 * one['cpu_s'] / one['wall_s']:.1f} % of one core)")
+    print(f"work folder: {work}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
