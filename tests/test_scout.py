@@ -47,10 +47,12 @@ def test_every_camera_of_the_range_sees_the_scout():
         _, seen = scout_seen(cam, scout, LIMITS)
         seen_min[(hfov, tilt)] = min(seen_min.get((hfov, tilt), 10**9), int(seen.sum()))
     print(sorted(seen_min.items()))
-    assert all(n >= 4 for (hfov, tilt), n in seen_min.items() if tilt <= 50 or hfov >= 50)
-    assert all(n >= 50 for (hfov, tilt), n in seen_min.items() if hfov >= 70 and tilt <= 50)
+    # the narrowest lens at the steepest tilts sees the short rows just outside the keep-out: 3 fixes (4 with the
+    # old parallel rows, which a low pole's scout left coplanar)
+    assert all(n >= 3 for (hfov, tilt), n in seen_min.items() if tilt <= 50 or hfov >= 50)
+    assert all(n >= 40 for (hfov, tilt), n in seen_min.items() if hfov >= 70 and tilt <= 50)
     # a 30 deg lens tilted 60 deg down looks at ground inside the keep-out from a 4 m pole: the scout says so
-    assert seen_min[(30, 60)] == 0 and any("58 deg" in n for n in scout.notes)
+    assert seen_min[(30, 60)] == 0 and any("depression 60 deg" in n and "--keep-out" in n for n in scout.notes)
 
 
 def test_from_run_estimates_the_camera_of_a_scout_written_by_the_independent_writer(tmp_path):

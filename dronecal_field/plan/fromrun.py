@@ -22,6 +22,20 @@ from dronecal_field.errors import InputError
 # tilt 1.3 deg off at 0.4 deg (legs at 3.3 px RMS; benchmarks/bench_scout.py): the band never goes below these
 FLOORS = dict(focal_pct=3.0, tilt_deg=1.0, azimuth_deg=1.0, distortion_share=0.20)
 K_SIGMA = 3.0
+# a principal point the scout cannot place is taken at the image centre; pole cameras keep it within this share of the
+# image size of the centre (the band takes it as 3 sigma)
+PP_CENTRE_SHARE = 0.05
+
+
+def _principal_point_known(camera: Camera) -> bool:
+    """The principal point inside the middle half of the image and known to PP_CENTRE_SHARE of its size (3 sigma)."""
+    i, C = camera.intrinsics, camera.covariance
+    if C is None:
+        return False
+    s_cx = math.sqrt(max(float(C[PARAM_NAMES.index("cx"), PARAM_NAMES.index("cx")]), 0.0))
+    s_cy = math.sqrt(max(float(C[PARAM_NAMES.index("cy"), PARAM_NAMES.index("cy")]), 0.0))
+    inside = abs(i.cx - i.width / 2.0) < i.width / 4.0 and abs(i.cy - i.height / 2.0) < i.height / 4.0
+    return inside and K_SIGMA * s_cx < PP_CENTRE_SHARE * i.width and K_SIGMA * s_cy < PP_CENTRE_SHARE * i.height
 
 
 def axis_angles_deg(R_cam_from_enu: np.ndarray) -> tuple[float, float]:
@@ -92,16 +106,29 @@ def estimate_from_run(path: str | Path, trials: int = 0) -> CameraEstimate:
     if not path.is_file():
         raise InputError(f"--from-run {path} does not exist: give the scout's run file (fly wrote RUN.mcap)")
     report = calibrate_run(path, CalibrateOptions(trials=trials))
+    centred = not _principal_point_known(report.camera)
+    if centred:
+        # the scout's rows left the principal point and the view's direction trading off (a 2 m pole's scout: (-157, -147)
+        # px +- 70 for a 1280x960 camera centred at (640, 480)): solve again with it at the image centre, where pole cameras
+        # put it within a few % of the image, and let the band carry that (PP_CENTRE_SHARE)
+        from dronecal_field.core.calibrate import CalibrationModel
+
+        n = len(report.used_points)
+        model = CalibrationModel(distortion="k1" if n >= 30 else "none", fix_principal_point=True)
+        report = calibrate_run(path, CalibrateOptions(trials=trials, model=model))
     cam = report.camera
     C = cam.covariance
     sd = {n: (math.sqrt(max(float(C[i, i]), 0.0)) if C is not None else math.nan) for i, n in enumerate(PARAM_NAMES)}
+    if centred:  # the centre's own uncertainty, as a sigma
+        sd["cx"] = max(sd["cx"], PP_CENTRE_SHARE * cam.width / K_SIGMA)
+        sd["cy"] = max(sd["cy"], PP_CENTRE_SHARE * cam.height / K_SIGMA)
     s_az, s_tilt = _angle_sigmas(cam)
     az, tilt = axis_angles_deg(cam.pose.R_cam_from_world)
     o = report.origin
     return CameraEstimate(
         camera=cam, origin=(o.lat_deg, o.lon_deg, o.h_m), azimuth_deg=az, tilt_deg=tilt,
         sigma={"focal_px": sd["fx"], "cx_px": sd["cx"], "cy_px": sd["cy"], "azimuth_deg": s_az, "tilt_deg": s_tilt, "k1": sd["k1"]},
-        points=len(report.used_points), rms_px=float(report.result.rms_px), model=str(getattr(report.result.model, "distortion", report.result.model)))
+        points=len(report.used_points), rms_px=float(report.result.rms_px), model=str(getattr(report.result.model, "distortion", report.result.model)) + (", principal point at the image centre" if centred else ""))
 
 
 def request_from_estimate(est: CameraEstimate, opts: dict):

@@ -34,6 +34,7 @@ from dronecal_field.plan.site import CameraSite
 from dronecal_field.sampling.lattice import Limits
 
 LEVEL_STEP_DEG = 8.0  # depression step between rows: 2 rows inside the narrowest 17 deg vertical field of view
+SCOUT_STEPS_DEG = (4.0, 5.0, 6.0, 7.0, LEVEL_STEP_DEG)  # finest first: the finest that fits MAX_SCOUT_S is flown
 MAX_SCOUT_S = 120.0  # the scout's budget: two minutes of flight
 SCOUT_FILES = ("mission.plan", "mission.waypoints", "mission.geojson", "plan.json")
 
@@ -63,8 +64,10 @@ class ScoutSpec:
 
 @dataclass(frozen=True)
 class ScoutRow:
-    """One row: marker at ``x_m`` from the pole (site X), height ``z_m``, from ``y_from_m`` to ``y_to_m`` (site Y);
-    ``depression_deg`` of its middle seen from the camera. A ring (no azimuth) has ``ring`` True: ``x_m`` is its radius."""
+    """One row, a straight line at one ``depression_deg`` below the camera's horizon: the marker from (``x_m``, ``y_from_m``,
+    ``z_m``) to (``x_to_m``, ``y_to_m``, ``z_to_m``), site frame (X along the azimuth). A row runs from far to near (or near to
+    far), so its markers lie at several depths along the same image row. A ring (no azimuth) has ``ring`` True: ``x_m`` is
+    its radius and ``z_m`` its height."""
 
     x_m: float
     z_m: float
@@ -72,40 +75,69 @@ class ScoutRow:
     y_to_m: float
     depression_deg: float
     ring: bool = False
+    x_to_m: float | None = None
+    z_to_m: float | None = None
+
+    @property
+    def start(self) -> np.ndarray:
+        return np.array([self.x_m, self.y_from_m, self.z_m])
+
+    @property
+    def end(self) -> np.ndarray:
+        return np.array([self.x_m if self.x_to_m is None else self.x_to_m, self.y_to_m, self.z_m if self.z_to_m is None else self.z_to_m])
 
 
-def scout_rows(mount_height_m: float, spec: ScoutSpec, limits: Limits, azimuth_known: bool = True) -> tuple[tuple[ScoutRow, ...], list[str]]:
-    """The rows (or rings) of the scout, near the horizon first, and what it cannot reach (in words)."""
-    H = mount_height_m
+def scout_levels(spec: ScoutSpec, step_deg: float) -> np.ndarray:
+    """Depressions (deg) of the rows, near the horizon first: from just above what the least tilted narrowest lens sees at
+    the top of its image to just below what the most tilted one sees at the bottom, every ``step_deg``."""
     half_v = spec.min_vfov_deg / 2.0
     lo = spec.tilt_deg[0] - half_v + 3.0
     hi = spec.tilt_deg[1] + half_v - 1.0
-    step = LEVEL_STEP_DEG if azimuth_known else 2.0 * LEVEL_STEP_DEG
-    levels = np.arange(lo, hi + 1e-9, step)
+    return np.arange(lo, hi + 1e-9, step_deg)
+
+
+def scout_rows(mount_height_m: float, spec: ScoutSpec, limits: Limits, azimuth_known: bool = True,
+               step_deg: float = LEVEL_STEP_DEG) -> tuple[tuple[ScoutRow, ...], list[str]]:
+    """The rows (or rings) of the scout, near the horizon first, and what it cannot reach (in words).
+
+    Each row keeps its depression from its far end (at most ``spec.far_m``, above ``--min-agl``) to its near end (just
+    outside the keep-out), spanning the azimuth +- (tolerance + half the narrowest HFOV). Rows alternate which side is
+    far, so two rows a camera sees are never in one plane (parallel rows at one depth were: a 2 m pole's scout was
+    refused by calibrate as coplanar) and every row gives depth along one image row.
+    """
+    H = mount_height_m
+    levels = scout_levels(spec, step_deg if azimuth_known else 2.0 * step_deg)
     z_top = (limits.max_agl_m if limits.max_agl_m is not None else H + 2.0)
     z_low = limits.min_agl_m + max(0.0, limits.marker_offset_frd_m[2])
-    half_angle = math.radians(min(80.0, spec.azimuth_tolerance_deg + spec.hfov_deg[0] / 2.0 + 2.0))
+    T = math.tan(math.radians(min(80.0, spec.azimuth_tolerance_deg + spec.hfov_deg[0] / 2.0 + 2.0)))
+    # nearest the drone may carry the marker: the keep-out, the marker's offset from the drone and a margin
+    r_near = limits.keep_out_m + 0.3 + math.hypot(*limits.marker_offset_frd_m[:2])
     rows, notes = [], []
     for k, d in enumerate(levels):
-        r = spec.near_m if k % 2 else spec.far_m
         t = math.tan(math.radians(d))
-        z = H - r * t
-        if z < z_low:
-            z = z_low
-            r = (H - z) / t
-        if z > z_top:
-            z = z_top
-            r = (H - z) / t if t < 0 else r
-        if r < limits.keep_out_m + 0.1:
-            notes.append(f"depression {d:.0f} deg (tilts near {d:.0f} deg with the narrowest lens) needs the marker {r:.1f} m from the pole, "
-                         f"inside --keep-out {limits.keep_out_m:g} m")
+        # the distances at which depression d keeps the marker between the lowest and the highest allowed height
+        r_hi = spec.far_m if t <= 0 else min(spec.far_m, (H - z_low) / t)
+        if t < 0:
+            r_hi = min(r_hi, (z_top - H) / -t)
+        r_lo = r_near if t <= 0 or H <= z_top else max(r_near, (H - z_top) / t)
+        if r_hi < r_lo:
+            notes.append(f"depression {d:.0f} deg (tilts near {d:.0f} deg with the narrowest lens) needs the marker "
+                         f"{max(r_hi, 0.0):.1f} m from the pole, inside --keep-out {limits.keep_out_m:g} m")
             continue
-        if azimuth_known:
-            y = r * math.tan(half_angle)
-            y0, y1 = (-y, y) if k % 2 == 0 else (y, -y)
-            rows.append(ScoutRow(x_m=round(r, 3), z_m=round(z, 3), y_from_m=round(y0, 3), y_to_m=round(y1, 3), depression_deg=float(d)))
-        else:
-            rows.append(ScoutRow(x_m=round(r, 3), z_m=round(z, 3), y_from_m=0.0, y_to_m=0.0, depression_deg=float(d), ring=True))
+        if not azimuth_known:
+            r = r_hi if k % 2 == 0 else max(r_lo, min(r_hi, spec.near_m))
+            rows.append(ScoutRow(x_m=round(r, 3), z_m=round(H - r * t, 3), y_from_m=0.0, y_to_m=0.0, depression_deg=float(d), ring=True))
+            continue
+        # far end on -Y for even rows, on +Y for odd ones; flown -Y -> +Y, then back, so the pass stays continuous
+        far = np.array([r_hi, -r_hi * T, H - r_hi * t])
+        near = np.array([r_lo, r_lo * T, H - r_lo * t])
+        if k % 2:
+            far[1], near[1] = -far[1], -near[1]
+        a, b = (far, near) if far[1] < near[1] else (near, far)
+        if len(rows) % 2:
+            a, b = b, a
+        rows.append(ScoutRow(x_m=round(float(a[0]), 3), z_m=round(float(a[2]), 3), y_from_m=round(float(a[1]), 3), y_to_m=round(float(b[1]), 3),
+                             depression_deg=float(d), x_to_m=round(float(b[0]), 3), z_to_m=round(float(b[2]), 3)))
     if not rows:
         raise PlanError(f"no scout row is reachable from a {H:g} m camera with --min-agl {limits.min_agl_m:g} and --keep-out {limits.keep_out_m:g}")
     return tuple(rows), notes
@@ -120,9 +152,8 @@ def row_points(row: ScoutRow, ring_sides: int = 8) -> tuple[np.ndarray, np.ndarr
         hold = np.zeros(len(ang))
         hold[0] = hold[-1] = 1.0
         return pts, hold
-    ys = np.array([row.y_from_m, 0.5 * (row.y_from_m + row.y_to_m), row.y_to_m])
-    pts = np.column_stack([np.full(3, row.x_m), ys, np.full(3, row.z_m)])
-    return pts, np.array([1.0, 0.0, 1.0])
+    a, b = row.start, row.end
+    return np.vstack([a, 0.5 * (a + b), b]), np.array([1.0, 0.0, 1.0])
 
 
 @dataclass(frozen=True, eq=False)
@@ -140,12 +171,12 @@ class Scout:
     summary: dict
 
 
-def make_scout(site: CameraSite, spec: ScoutSpec, limits: Limits, flight: FlightModel, azimuth_known: bool = True,
-               takeoff_site: np.ndarray | None = None) -> Scout:
-    """The scout for a camera at ``site`` (its azimuth only orients the rows when ``azimuth_known``)."""
+def _scout_route(site: CameraSite, spec: ScoutSpec, limits: Limits, flight: FlightModel, azimuth_known: bool,
+                 takeoff_site: np.ndarray | None, step_deg: float):
+    """The rows at ``step_deg`` and their route: (rows, notes, marker (N, 3), hold (N,), leg (N,), vehicle (N, 3), route)."""
     from dronecal_field.sampling.lattice import _facing_vehicle
 
-    rows, notes = scout_rows(site.mount_height_m, spec, limits, azimuth_known)
+    rows, notes = scout_rows(site.mount_height_m, spec, limits, azimuth_known, step_deg)
     pts, holds, legs = [], [], []
     for k, row in enumerate(rows):
         p, h = row_points(row)
@@ -161,6 +192,23 @@ def make_scout(site: CameraSite, spec: ScoutSpec, limits: Limits, flight: Flight
     lim = replace(limits, marker_size_m=spec.marker_size_m)
     route = plan_route(vehicle, marker, lim, replace(flight, speed_m_s=max(flight.speed_m_s, spec.speed_m_s)), takeoff_site=takeoff_site,
                        hold_s=hold, ordered=True, leg_speed_m_s=spec.speed_m_s, takeoff_alt_m=float(max(2.0, vehicle[0, 2])))
+    return rows, list(notes), marker, hold, leg, vehicle, route
+
+
+def make_scout(site: CameraSite, spec: ScoutSpec, limits: Limits, flight: FlightModel, azimuth_known: bool = True,
+               takeoff_site: np.ndarray | None = None) -> Scout:
+    """The scout for a camera at ``site`` (its azimuth only orients the rows when ``azimuth_known``)."""
+    from dronecal_field.sampling.lattice import _facing_vehicle
+
+    # the finest depression step whose scout still fits the two minutes: a low pole reaches few levels (the rest of the
+    # view is ground inside the keep-out), so it gets more rows across the part it can reach; a tall pole's rows come
+    # nearer (shorter) until the coarsest step fits
+    tries = [(step, spec.far_m) for step in SCOUT_STEPS_DEG] + [(SCOUT_STEPS_DEG[-1], f) for f in (5.0, 4.5, 4.0) if f < spec.far_m]
+    for step, far in tries:
+        rows, notes, marker, hold, leg, vehicle, route = _scout_route(site, replace(spec, far_m=far), limits, flight, azimuth_known,
+                                                                      takeoff_site, step)
+        if route.flight_time_s <= MAX_SCOUT_S:
+            break
     if route.flight_time_s > MAX_SCOUT_S * 1.25:
         notes.append(f"the scout takes {route.flight_time_s:.0f} s, more than the {MAX_SCOUT_S:.0f} s aimed at: give --azimuth (rows instead of rings)")
     mission = msn.build_mission(route, site.R_enu_from_site, site.origin, site.mount_height_m, spec.speed_m_s,
@@ -192,8 +240,8 @@ def _summary(site, spec, rows, marker, vehicle, hold, leg, route, mission, notes
                                                                       if azimuth_known else ", any azimuth (rings round the pole)")),
             "hfov_deg": list(spec.hfov_deg), "tilt_deg": list(spec.tilt_deg), "azimuth_deg": site.azimuth_deg if azimuth_known else None,
             "azimuth_tolerance_deg": spec.azimuth_tolerance_deg if azimuth_known else 180.0, "marker_size_m": spec.marker_size_m,
-            "rows": [{"x_m": r.x_m, "z_m": r.z_m, "y_from_m": r.y_from_m, "y_to_m": r.y_to_m, "depression_deg": round(r.depression_deg, 1),
-                      "ring": r.ring} for r in rows],
+            "rows": [{"x_m": r.x_m, "z_m": r.z_m, "y_from_m": r.y_from_m, "y_to_m": r.y_to_m, "x_to_m": r.x_to_m, "z_to_m": r.z_to_m,
+                      "depression_deg": round(r.depression_deg, 1), "ring": r.ring} for r in rows],
             "not_reached": list(notes), "then": "fly it, then: dronecal-field plan --from-run RUN.mcap --out DIR",
         },
         "altitude_frame": mission.alt_frame, "altitude_frame_text": mission.alt_frame_text,

@@ -40,7 +40,7 @@ from dronecal_field.plan.strategies import (
     score_image_candidates,
     screen_grid,
 )
-from dronecal_field.sampling.band import GuessBand, band_report, corner_cameras, quiet_zone_fraction, scaled_distortion
+from dronecal_field.sampling.band import GuessBand, band_cost, band_report, quiet_zone_fraction, scaled_distortion, screen_cameras
 from dronecal_field.sampling.design import SAMPLINGS, LegTiming
 from dronecal_field.sampling.predict import NoiseModel, lens_draws, normalised_radius
 from dronecal_field.sampling.roi import Roi, RoiSpec, build_roi
@@ -599,8 +599,8 @@ def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
         cam_site = cam_enu.with_(pose=type(cam_enu.pose).from_position(R_site, req.site.R_enu_from_site.T @ cam_enu.pose.position_world),
                                  enu_origin=None)
     _check_sees_ground(req, cam_site)
-    # every point the plan keeps is screened through the band's corner cameras as well as the guess
-    req = replace(req, limits=replace(req.limits, band=corner_cameras(cam_site, req.band, narrow_only=True)))
+    # every point the plan keeps is screened through the guess and each factor of the band at its full tolerance alone
+    req = replace(req, limits=replace(req.limits, band=screen_cameras(cam_site, req.band)))
     warnings = list(req.notes)
     roi = build_roi(cam_site, req.roi)
     from dronecal_field.sampling.roi import evaluation_points
@@ -614,6 +614,9 @@ def make_plan(req: PlanRequest, client: Any = None) -> PlanResult:
     else:
         chosen, candidates, rows = _choose_paper(req, cam_site, client, warnings)
     prediction = predict_points_on_roi(cam_site, chosen.samples_site, roi, noise, draws, chosen.samples_sigma_h_m, chosen.samples_rtk_factor)
+    cost = band_cost(cam_site, req.band, chosen.samples_site, replace(req.limits, marker_size_m=chosen.marker_size_m), lambda keep: predict_points_on_roi(
+        cam_site, chosen.samples_site[keep], roi, noise, draws, chosen.samples_sigma_h_m[keep], chosen.samples_rtk_factor[keep]).summary()["combined_px"]["rms"])
+    warnings += [cost["text"]] if cost else []
     limits = replace(req.limits, marker_size_m=chosen.marker_size_m)
     if chosen.cruise_m_s is not None:
         req = replace(req, flight=replace(req.flight, speed_m_s=min(req.flight.speed_m_s, chosen.cruise_m_s)))
