@@ -236,3 +236,23 @@ def test_a_url_with_a_query_is_a_bare_single_camera():
     assert [(s.name, s.url) for s in specs] == [(None, "http://cam/stream.mjpg?res=1080&fps=25")]
     specs = parse_video_flags(["n-1=rtsp://cam/a?x=1", "n_2=/dev/video0"])
     assert [(s.name, s.url) for s in specs] == [("n-1", "rtsp://cam/a?x=1"), ("n_2", "/dev/video0")]
+
+
+def test_a_site_plan_gives_each_camera_the_waypoints_it_sees(tmp_path):
+    """plan --site's plan.json: each camera's live plan holds its own guess and origin and the grid points it sees."""
+    from dronecal_field.live.progress import expected_seqs
+    from dronecal_field.live.site import camera_live_plan
+    from dronecal_field.mavlink.missionfile import CMD_NAV_WAYPOINT, read_mission
+
+    mission = read_mission(write_plan(tmp_path / "mission.plan", WAYPOINTS, hold_s=1.0))
+    nav = [it for it in mission.items if it.command == CMD_NAV_WAYPOINT and it.seq >= 4]
+    grid = [{"mission_seq": it.seq, "lat_deg": it.x * 1e-7, "lon_deg": it.y * 1e-7, "camera": cam, "seen_by": seen}
+            for it, cam, seen in zip(nav, ("a", "b", "a"), ({"a": {}}, {"b": {}, "a": {}}, {"a": {}}))]
+    plan = {"kind": "site", "grid": grid, "marker": {"size_m": 0.4},
+            "cameras": [{"name": "a", "enu_origin": {"lat_deg": 1.0, "lon_deg": 2.0, "h_m": 3.0}, "camera_guess": {"width": 640}},
+                        {"name": "b", "enu_origin": {"lat_deg": 1.5, "lon_deg": 2.5, "h_m": 3.0}, "camera_guess": {"width": 480}}]}
+    a, b = camera_live_plan(plan, "a"), camera_live_plan(plan, "b")
+    assert camera_live_plan(plan, "c") is None and camera_live_plan(None, "a") is None
+    assert (a["camera_guess"]["width"], b["camera_guess"]["width"]) == (640, 480) and b["enu_origin"]["lat_deg"] == 1.5
+    assert expected_seqs(mission, a) == [4, 5, 6] and expected_seqs(mission, b) == [5]
+    assert a["marker"] == {"size_m": 0.4}

@@ -301,10 +301,9 @@ def run(args: argparse.Namespace) -> int:
             print("dry run: nothing uploaded, nothing recorded")
             return 0
         if not args.no_live and several:  # before the upload: a --live-port that cannot be served stops fly with nothing uploaded
-            from dronecal_field.live.site import SiteCamera, start_live_site
-            from dronecal_field.recording.cameras import camera_plan
+            from dronecal_field.live.site import SiteCamera, camera_live_plan, start_live_site
 
-            live = start_live_site(mission, marker, [SiteCamera(c.spec.name, c.status.width, c.status.height, camera_plan(plan_json, c.spec.name))
+            live = start_live_site(mission, marker, [SiteCamera(c.spec.name, c.status.width, c.status.height, camera_live_plan(plan_json, c.spec.name))
                                                      for c in cams], _site_origin(plan_json), args.min_fix, args.camera_latency,
                                    args.live_host, args.live_port)
         elif not args.no_live:

@@ -15,9 +15,12 @@ CPU, so that four streams fit a 2-core field laptop beside the recorder:
 - every worker at nice +10 as the single camera's, below the recorder.
 
 A camera's verdict names re-fly waypoints only when the plan says which
-waypoints it must see (plan.json ``cameras`` with that camera's ``grid``);
-otherwise a camera that does not see a waypoint meant for its neighbour is
-not "missed": its verdict counts the waypoints where the marker was seen.
+waypoints it must see: a ``plan --site`` plan.json (``cameras``: each
+camera's guess, ROI and ENU origin at its pole's foot; ``grid``: each point
+with the cameras that see it, ``seen_by``) gives each camera its own plan
+(:func:`camera_live_plan`) and its own ENU origin. Otherwise a camera that
+does not see a waypoint meant for its neighbour is not "missed": its
+verdict counts the waypoints where the marker was seen.
 The Foxglove view (``--live-port``) shows the first camera.
 """
 
@@ -36,12 +39,31 @@ MIN_RING_BYTES = 24 << 20  # per camera: a few seconds of 4K JPEG, more than a h
 
 @dataclass(frozen=True)
 class SiteCamera:
-    """One camera of the live check: its name, image size and its own plan (plan.json's entry for it), if any."""
+    """One camera of the live check: its name, image size and its own plan (:func:`camera_live_plan`), if any."""
 
     name: str
     width: int
     height: int
     plan: dict | None = None
+
+
+def camera_live_plan(plan_json: dict | None, name: str) -> dict | None:
+    """Camera ``name``'s own plan out of a site plan.json: its entry in ``cameras`` (camera_guess, roi, site_frame,
+    enu_origin) with the ``grid`` points it sees (``seen_by``, else ``camera``) and the shared ``marker``; None
+    when plan.json does not name the camera."""
+    from dronecal_field.recording.cameras import camera_plan
+
+    entry = camera_plan(plan_json, name)
+    if entry is None:
+        return None
+    sub = dict(entry)
+    grid = plan_json.get("grid") if isinstance(plan_json, dict) else None
+    if isinstance(grid, list) and "grid" not in sub:
+        sub["grid"] = [g for g in grid if isinstance(g, dict)
+                       and (name in (g.get("seen_by") or {}) or (not g.get("seen_by") and g.get("camera") == name))]
+    if isinstance(plan_json, dict) and "marker" in plan_json and "marker" not in sub:
+        sub["marker"] = plan_json["marker"]
+    return sub
 
 
 def site_options(min_fix: str, n_cameras: int) -> LiveOptions:
@@ -92,16 +114,21 @@ def start_live_site(mission: Any, marker: Any, cameras: list[SiteCamera], origin
     """A live calibration per camera, started; with ``live_port`` > 0 the Foxglove view of the first camera."""
     from dronecal_field.live.session import open_view
 
+    from dronecal_field.runfile.records import site_origin_from_plan_json
+
     view = open_view(live_host, live_port)
     options = site_options(min_fix, len(cameras))
     ring_bytes = max(MIN_RING_BYTES, RING_BYTES // max(1, len(cameras)))
+    # a camera's guess and ROI are in the ENU frame at its own pole's foot: its live frame is that one
+    origins = {cam.name: (site_origin_from_plan_json(cam.plan, f"plan.json camera {cam.name}") if cam.plan else None) or origin
+               for cam in cameras}
     lives = {
-        cam.name: LiveCalibration(mission, marker, cam.width, cam.height, plan=cam.plan, origin=origin, options=options,
+        cam.name: LiveCalibration(mission, marker, cam.width, cam.height, plan=cam.plan, origin=origins[cam.name], options=options,
                                   view=view if i == 0 else None, camera_latency_s=camera_latency_s,
                                   ring_frames=RING_FRAMES, ring_bytes=ring_bytes)
         for i, cam in enumerate(cameras)
     }
-    planned = {cam.name: bool(cam.plan and isinstance(cam.plan.get("grid"), list)) for cam in cameras}
+    planned = {cam.name: bool(cam.plan and isinstance(cam.plan.get("grid"), list) and cam.plan["grid"]) for cam in cameras}
     return LiveSite(lives, planned, view).start()
 
 

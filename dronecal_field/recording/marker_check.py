@@ -5,9 +5,10 @@ on its own by a fresh decoder, on the recorder's monitor thread: never the
 whole stream. :meth:`MarkerCheck.probe` keeps the probe within a CPU budget
 (``cpu_budget``, a fraction of one core, over every camera it serves): a
 frame probed before is not decoded again, and after each probe the next waits
-at least ``min_period_s`` or the probe's own CPU time over the budget (a 4K
-H.265 keyframe, ~0.1 s of CPU to decode, is then probed every ~3 s, not every
-second: issue 22's recorder measured 15.4 % of a core, most of it this probe).
+at least ``min_period_s`` or the probe's own CPU time over the budget. A 4K
+H.265 keyframe costs ~0.07 s of CPU to decode and detect
+(benchmarks/bench_recorder_rtsp.py, 2026-11-27: 4 probes, 0.27 s): probed every
+second that is ~7 % of a core, within the budget ~2 % (one every ~2.3 s).
 """
 
 from __future__ import annotations
