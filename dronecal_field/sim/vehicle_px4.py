@@ -35,7 +35,7 @@ which runs the same probe on both and prints them side by side:
   EKF_STATUS_REPORT; HIL_STATE_QUATERNION (SIH's truth) when asked.
 * Flight (:class:`Px4Model`): take-off spool and climb, jerk-limited
   acceleration on legs, a corner speed at fly-through waypoints, the hold
-  time as planned, the land speeds, "Disarmed by landing" 4 s after
+  time as planned, the land speeds, "Disarmed by landing" 3.2 s after
   touchdown. Not modelled: the SITL lingered ~7 s within 0.5 m of a
   fly-through waypoint before the next leg (its flight took 53 s, ours 44 s).
 """
@@ -83,12 +83,12 @@ def px4_params(speed_mps: float = 5.0) -> CopterParams:
 
     Take-off: airborne 4.9 s after MISSION_START, climbing at 0.67-0.84 m/s;
     holds: the still time matches the plan; landing at 0.64-0.69 m/s, the
-    last 0.5 m at 0.35 m/s, disarmed 4 s after touchdown (3.6-4.4 s) (the land
+    last 0.5 m at 0.35 m/s, disarmed 3.2 s after touchdown (3.6-4.4 s seen, 1 Hz HEARTBEAT) (the land
     detector, then COM_DISARM_LAND 2 s); yaw up to ~60 deg/s (MPC_YAWRAUTO_MAX).
     """
     return CopterParams(wp_speed_mps=speed_mps, wp_accel_mps2=1.8, wp_settle_s=0.0, takeoff_climb_mps=0.77, climb_mps=3.0,
                         descent_mps=1.5, land_speed_mps=0.35, land_speed_high_mps=0.7, land_alt_low_m=0.5, spool_up_s=4.4,
-                        disarm_delay_s=10.0, landed_disarm_s=4.0, yaw_rate_dps=60.0, hover_drift_m=0.05, drift_tau_s=3.0)  # fmt: skip
+                        disarm_delay_s=10.0, landed_disarm_s=3.2, yaw_rate_dps=60.0, hover_drift_m=0.05, drift_tau_s=3.0)  # fmt: skip
 
 
 # ----- storage -----
