@@ -248,6 +248,9 @@ def _summary_lines(report, title: str, out: Path) -> list[str]:
             + (f"; predicted ground error there {validity.inside_cm_rms:.1f} cm RMS (max {validity.inside_cm_max:.1f} cm)"
                if validity.inside_cm_rms is not None else "")
         )
+    if getattr(report, "track", None) is not None:  # what the receiver's reported accuracy means (pipeline/gnss_quality.py)
+        from dronecal_field.pipeline.gnss_quality import gnss_quality_of_report
+        lines.append("  gnss: " + gnss_quality_of_report(report).headline)
     for w in all_warnings(report):
         lines.append(f"  warning: {w}")
     lines.append(f"report: {report.outputs.get('report_html', out)}")

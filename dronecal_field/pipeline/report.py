@@ -21,6 +21,7 @@ import numpy as np
 
 from dronecal_field.core.camera import PARAM_NAMES
 from dronecal_field.errors import InputError
+from dronecal_field.pipeline.gnss_quality import gnss_quality_of_report
 
 CAMERA_FILE = "camera.yaml"
 CAMERA_INFO_FILE = "camera_info.yaml"
@@ -182,6 +183,7 @@ def report_dict(report) -> dict:
             "fix_rate_hz": _fix_rate_hz(report),
             "repeated_fixes_left_out": report.fixes_repeated,
             "fix_times": report.offset.gnss_times,
+            "quality": list(gnss_quality_of_report(report).sentences),  # what the reported accuracy means (pipeline/gnss_quality.py)
         },
         "points": {
             "pairing": (
