@@ -34,7 +34,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--site", metavar="TOML", help="site file with the same keys as the flags (examples in missions/)")
+    parser.add_argument("--site", metavar="TOML", help="site file with the same keys as the flags (examples in missions/); "
+                        "with [[pole]] and [[camera]] tables, one mission for every camera (missions/site-two-poles.toml)")
     parser.add_argument("--out", metavar="DIR", required=True, help="output folder (written atomically; a previous plan folder is replaced)")
     parser.add_argument("--scout", action="store_true", help="write the scout flight instead (issue 23): a 2-minute mission any camera "
                         "(HFOV 30-110 deg, tilt 0-60 deg, azimuth within 30 deg of --azimuth, or any without it) sees; needs only --lat, --lon, "
@@ -61,6 +62,11 @@ def run(args: argparse.Namespace) -> int:
     from dronecal_field.plan.site import OPTIONS, load_site_file, resolve_options
     from dronecal_field.plan.stage import make_plan, request_from_options, write_plan
 
+    if args.site:
+        from dronecal_field.plan.multisite import is_multi_site
+
+        if is_multi_site(args.site):
+            return run_site(args)
     values: dict = load_site_file(args.site) if args.site else {}
     for spec in OPTIONS:
         v = getattr(args, spec.key, None)
@@ -104,6 +110,45 @@ def run(args: argparse.Namespace) -> int:
     paths = write_plan(result, args.out)
     print(format_report(result, args.out))
     for w in result.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    print(f"wrote {', '.join(p.name for p in paths)} to {args.out}")
+    return 0
+
+
+def run_site(args: argparse.Namespace) -> int:
+    """``plan --site`` with a site file of several cameras ([[camera]] tables): one mission for all of them."""
+    from dataclasses import replace
+
+    from dronecal_field.cli import check_marker, check_out_dir
+    from dronecal_field.errors import InputError
+    from dronecal_field.plan.multiplan import make_site_plan, site_request
+    from dronecal_field.plan.multisite import CAMERA_EXTRA_KEYS, load_multi_site
+    from dronecal_field.plan.site import OPTIONS, resolve_options
+    from dronecal_field.plan.sitereport import format_site_report, write_site_plan
+
+    if getattr(args, "scout", False) or getattr(args, "from_run", None):
+        raise InputError("--scout/--from-run plan one camera; in a site file give from_run = \"scout.mcap\" in that camera's [[camera]] table")
+    if args.scheduler:
+        raise InputError("--scheduler scores the paper strategies of one camera; a site plans image layouts here: leave it out")
+    flags = {o.key: getattr(args, o.key) for o in OPTIONS if getattr(args, o.key, None) is not None}
+    per_camera = [o.flag for o in OPTIONS if o.key in flags and (o.group in ("camera", "intrinsics") or o.key in CAMERA_EXTRA_KEYS)]
+    if per_camera:
+        raise InputError(f"{', '.join(per_camera)} would set every camera of the site {args.site}: give it in the [[camera]] tables instead")
+    spec = load_multi_site(args.site)
+    spec = replace(spec, cameras=tuple(replace(c, values={**c.values, **flags}) for c in spec.cameras))
+    shared = resolve_options({**spec.shared, **flags})
+    if shared["strategy"] != "image" or shared["optimize"]:
+        raise InputError("a site plans image-space layouts only: leave out strategy/optimize (paper grids are for one camera)")
+    check_marker(shared["aruco_dict"], shared["marker_id"])
+    check_out_dir("--out", args.out)
+    site, distortions = site_request(spec)
+    from dronecal_field.cli import announce_first_compile
+
+    announce_first_compile()
+    plan = make_site_plan(site, distortions)
+    paths = write_site_plan(plan, args.out)
+    print(format_site_report(plan, args.out))
+    for w in plan.warnings:
         print(f"warning: {w}", file=sys.stderr)
     print(f"wrote {', '.join(p.name for p in paths)} to {args.out}")
     return 0

@@ -166,3 +166,127 @@ def render_preview(result, path: str | os.PathLike) -> None:
     )
     fig.tight_layout()
     fig.savefig(os.fspath(path), format="png")
+
+
+def render_site_preview(plan, path: str | os.PathLike) -> None:
+    """Write the preview of a ``plan.multiplan.SitePlan`` to ``path`` (PNG).
+
+    Left, the site from above (ENU at the first pole, north up): poles with
+    their keep-out, each camera's ground footprint (cut at 40 m) in its colour,
+    the route, and every hold coloured by the camera it faces, ringed when
+    other cameras read it too. Right, one small panel per camera: its image
+    with its ROI outline, the cells its samples reach (shaded: its coverage)
+    and the samples it reads, its own filled, other cameras' open.
+    """
+    import matplotlib
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle, Polygon
+
+    from dronecal_field.plan.stage import footprint_site
+
+    base = plan.base
+    R = base.site.R_enu_from_site
+    cams = plan.cameras
+    pts = plan.points
+    colours = matplotlib.colormaps["tab10"]
+
+    def en(p: np.ndarray) -> np.ndarray:
+        p = np.atleast_2d(np.asarray(p, float))
+        if p.shape[1] == 2:
+            p = np.column_stack([p, np.zeros(len(p))])
+        return (p @ R.T)[:, :2]
+
+    n = len(cams)
+    cols = 2 if n > 1 else 1
+    rows = int(np.ceil(n / cols))
+    fig = Figure(figsize=(9 + 5.2 * cols, max(7.5, 3.4 * rows)), dpi=100)
+    FigureCanvasAgg(fig)
+    gs = fig.add_gridspec(rows, 1 + cols, width_ratios=[1.9] + [1.0] * cols)
+    ax = fig.add_subplot(gs[:, 0])
+    span = [en(pts.vehicle)]
+    for i, cam in enumerate(cams):
+        fp = cam.to_ref(np.column_stack([footprint_site(cam.camera_site), np.zeros(len(footprint_site(cam.camera_site)))]))
+        cov = plan.coverage[i]
+        ax.add_patch(Polygon(en(fp), closed=True, facecolor=colours(i), edgecolor=colours(i), alpha=0.12, lw=1.2,
+                             label=f"{cam.name}: footprint; ROI covered {100 * cov:.0f} %"))
+        c = en(cam.camera_ref.pose.position_world[None])[0]
+        a = R @ cam.R_ref_from_own @ np.array([4.0, 0.0, 0.0])
+        ax.annotate("", xy=(c[0] + a[0], c[1] + a[1]), xytext=(c[0], c[1]), arrowprops={"arrowstyle": "->", "color": colours(i), "lw": 1.8})
+    for p in plan.summary["poles"]:
+        e, nn = p["position_enu_m"][0], p["position_enu_m"][1]
+        if p["keep_out_m"] > 0:
+            ax.add_patch(Circle((e, nn), p["keep_out_m"], facecolor="#ffd6d6", edgecolor="red", ls=":", zorder=2))
+        ax.plot(e, nn, marker="^", color="black", ms=11, ls="none", zorder=6)
+        ax.annotate(f"pole {p['name']}", (e, nn), textcoords="offset points", xytext=(6, -12), fontsize=9, weight="bold")
+        span.append(np.array([[e, nn]]))
+    path_col = ["0.3", "tab:olive", "tab:cyan", "tab:pink"]
+    for k, r in enumerate(plan.routes):
+        track = np.vstack([r.takeoff_site[None], r.points] + ([r.takeoff_site[None]] if r.end == "land" else []))
+        te = en(track)
+        ax.plot(te[:, 0], te[:, 1], "-", color=path_col[k % len(path_col)], lw=0.7, zorder=3,
+                label="route" if len(plan.routes) == 1 else f"flight {k + 1}")
+    ve = en(pts.vehicle)
+    shared = plan.seen_holds.sum(axis=0) > 1
+    for i, cam in enumerate(cams):
+        sel = pts.owner == i
+        ax.scatter(*ve[sel].T, s=16, color=colours(i), edgecolors="black", linewidths=0.3, zorder=4)
+    if shared.any():
+        ax.scatter(*ve[shared].T, s=60, facecolors="none", edgecolors="black", linewidths=0.8, zorder=5, label="hold read by 2+ cameras")
+    t = en(plan.routes[0].takeoff_site[None])[0]
+    ax.plot(*t, marker="*", color="green", ms=14, ls="none", label="take-off / land", zorder=6)
+    span = np.vstack(span + [t[None]])
+    lo, hi = span.min(axis=0) - 6, span.max(axis=0) + 6
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.grid(alpha=0.3)
+    ax.set_xlabel(f"east of pole {cams[0].pole} (m)")
+    ax.set_ylabel(f"north of pole {cams[0].pole} (m)")
+    ax.set_title("the site from above (north up): holds coloured by the camera they face", fontsize=10)
+    ax.legend(loc="best", fontsize=7, framealpha=0.6)
+
+    for i, cam in enumerate(cams):
+        a = fig.add_subplot(gs[i // cols, 1 + i % cols])
+        w, h = cam.camera_site.width, cam.camera_site.height
+        a.add_patch(Polygon([[0, 0], [w, 0], [w, h], [0, h]], closed=True, fill=False, edgecolor="black"))
+        S = cam.from_ref(pts.samples[plan.seen_samples[i]])
+        own = pts.samples_owner[plan.seen_samples[i]] == i
+        uv = cam.camera_site.project(S)
+        roi = cam.roi
+        if roi is not None:
+            du, dv = roi.cell_px
+            reached = np.zeros_like(roi.cells)
+            ok = np.all(np.isfinite(uv), axis=1)
+            if ok.any():
+                r_, c_ = roi.cell_of(uv[ok])
+                ny, nx = roi.cells.shape
+                for dr in (-1, 0, 1):
+                    for dc in (-1, 0, 1):
+                        rr, cc = r_ + dr, c_ + dc
+                        inside = (rr >= 0) & (rr < ny) & (cc >= 0) & (cc < nx)
+                        reached[rr[inside], cc[inside]] = True
+            for (rr, cc) in zip(*np.nonzero(reached & roi.cells)):
+                a.add_patch(Polygon([[cc * du, rr * dv], [(cc + 1) * du, rr * dv], [(cc + 1) * du, (rr + 1) * dv], [cc * du, (rr + 1) * dv]],
+                                    closed=True, facecolor=colours(i), alpha=0.18, edgecolor="none"))
+            for k, loop in enumerate(roi.outline_uv()):
+                a.plot(loop[:, 0], loop[:, 1], "-", color="purple", lw=1.0, label="ROI" if k == 0 else None)
+        a.scatter(uv[own, 0], uv[own, 1], s=7, color=colours(i), edgecolors="black", linewidths=0.2, label="its own samples", zorder=3)
+        if (~own).any():
+            a.scatter(uv[~own, 0], uv[~own, 1], s=12, facecolors="none", edgecolors="black", linewidths=0.5, label="other cameras' samples", zorder=3)
+        a.set_xlim(-0.03 * w, 1.03 * w)
+        a.set_ylim(1.03 * h, -0.03 * h)
+        a.set_aspect("equal")
+        a.tick_params(labelsize=6)
+        e = plan.summary["cameras"][i]
+        px = e["predicted_roi_px_rms"]
+        a.set_title(f"{cam.name} ({w}x{h}, f {cam.camera_site.intrinsics.fx:.0f} px): ROI covered {e['coverage']['pct']:.0f} %\n"
+                    f"{e['holds_owned']} own holds, {e['holds_seen']} read; predicted {'-' if px is None else f'{px:.2f}'} px RMS, "
+                    f"ground {e['predicted_ground_cm_rms'] if e['predicted_ground_cm_rms'] is not None else '-'} cm", fontsize=8)
+        if i == 0:
+            a.legend(loc="lower right", fontsize=6)
+    f = plan.summary["flight"]
+    fig.suptitle(f"{plan.request.name or 'dronecal-field site plan'}: {n} cameras, {f['n_flights']} flight(s), {f['flight_time_s'] / 60:.1f} min "
+                 f"(budget {f['budget_s'] / 60:.1f} min), marker {plan.marker_size_m:g} m", fontsize=11)
+    fig.tight_layout()
+    fig.savefig(os.fspath(path), format="png")
