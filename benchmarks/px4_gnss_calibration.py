@@ -10,7 +10,7 @@ against the simulator's truth camera: focal error (%), camera position
 focal std, ground error at 15 m) against the true error, with the sentence
 the report prints about the GNSS (pipeline/gnss_quality.py).
 
-Run: ``.venv/bin/python benchmarks/px4_gnss_calibration.py [--seeds 2] [--speedup 3] [--mission PATH]``
+Run: ``.venv/bin/python benchmarks/px4_gnss_calibration.py [--seeds 2] [--speedup 2] [--replan]``
 (about 2-4 min a flight on a busy 2-core machine).
 """
 
@@ -34,15 +34,12 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("/tmp/px4-gnss-calibration"))
     parser.add_argument("--seeds", type=int, default=1)
-    parser.add_argument("--speedup", type=float, default=3.0)
-    parser.add_argument("--mission", type=Path, help="a mission.plan made by tests/test_px4_sim_flight.plan_for_px4 (its folder's ../truth.yaml is used)")
+    parser.add_argument("--speedup", type=float, default=2.0)
+    parser.add_argument("--replan", action="store_true", help="plan again instead of flying tests/data/px4_sim_mission.plan")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    if args.mission is None:
-        args.mission = plan_for_px4(args.out)
-        truth = args.out / "truth.yaml"
-    else:
-        truth = args.mission.parent.parent / "truth.yaml"
+    mission = plan_for_px4(args.out, saved=not args.replan)  # the truth camera goes to out/truth.yaml
+    truth = args.out / "truth.yaml"
     rows = []
     for seed in range(args.seeds):
         for gnss in ("auto", "rtk"):
@@ -52,7 +49,7 @@ def main() -> int:
             out.mkdir()
             shutil.copy(truth, out / "truth.yaml")
             t0 = time.monotonic()
-            fly_px4_sim(out, args.mission, gnss=gnss, speedup=args.speedup, seed=seed, trials=100)
+            fly_px4_sim(out, mission, gnss=gnss, speedup=args.speedup, seed=seed, trials=100)
             s = score(out)
             report = s["report"]
             row = dict(gnss=gnss, seed=seed, wall_s=round(time.monotonic() - t0), focal_pct=s["focal_pct"], focal_px=s["focal_px"],
