@@ -1,7 +1,9 @@
 """Fly-through legs on the planning side: the pass-through flight-time model,
 the leg speed, the split into flights and the mission files (hold 0 kept).
 
-The model is checked against the simulated vehicle in test_sim_legs.py.
+The model is ArduCopter's own (dronecal_field.motion, shared with the simulated
+vehicle; test_sim_legs.py flies it, test_sitl_conformance.py checks it against
+ArduCopter 4.7 SITL).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from dronecal_field.plan.route import FlightModel, leg_time_s, leg_units, path_t
 from dronecal_field.plan.site import CameraSite
 from dronecal_field.sampling.lattice import Limits
 
-FM = FlightModel(speed_m_s=1.5, accel_m_s2=0.33, leg_overhead_s=0.5)
+FM = FlightModel(speed_m_s=1.5)  # ArduCopter 4.7's defaults (WPNAV_JERK 1, WPNAV_ACCEL 2.5), DO_CHANGE_SPEED 1.5
 
 
 def row_legs(n_rows: int = 3, row_len_m: float = 8.0, step_m: float = 1.0, x0: float = 5.0, spacing_m: float = 2.0, z: float = 2.0):
@@ -40,58 +42,85 @@ def row_legs(n_rows: int = 3, row_len_m: float = 8.0, step_m: float = 1.0, x0: f
 # ----- the time model -----
 
 
-@settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(st.floats(-20, 20), st.floats(-20, 20)), min_size=2, max_size=12), st.floats(1, 10))
+def test_leg_times_are_arducopters():
+    # ArduCopter 4.7 SITL (shared/replays/arducopter-sitl, calib-grid-rtk): a 1 m leg + 3 s hold every 6.9-7.2 s,
+    # the 5 m first leg under DO_CHANGE_SPEED 1.5 m/s from take-off complete to its hold in 59.06 - 49.56 - 3 = 6.5 s
+    assert 6.9 <= float(leg_time_s(1.0, FM)) + 3.0 <= 7.2
+    assert float(leg_time_s(5.0, FM)) == pytest.approx(6.5, abs=0.2)
+    # the conformance mission's 2 m and 5.4 m legs (tests/test_sitl_conformance.py: 8.0 - 3 and 9.8 - 3 s)
+    assert float(leg_time_s(2.0, FM)) == pytest.approx(5.0, rel=0.05)
+    assert float(leg_time_s(5.4, FM)) == pytest.approx(6.8, rel=0.05)
+    # longer legs cost more, never less, and none is faster than cruise all the way
+    d = np.array([0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0])
+    t = leg_time_s(d, FM)
+    assert np.all(np.diff(t) > 0) and np.all(t > d / FM.speed_m_s)
+    assert float(leg_time_s(0.0, FM)) == 0.0
+
+
+@settings(max_examples=8, deadline=None, derandomize=True)
+@given(st.lists(st.tuples(st.floats(-20, 20), st.floats(-20, 20)), min_size=2, max_size=6), st.floats(1, 10))
 def test_all_stops_is_the_sum_of_rest_to_rest_legs(points, z):
     path = np.column_stack([np.array(points), np.full(len(points), z)])
     d = np.linalg.norm(np.diff(path, axis=0), axis=1)
-    t = path_time_s(path, np.ones(len(path), bool), np.full(len(d), FM.speed_m_s), FM)
-    assert t == pytest.approx(float(leg_time_s(d, FM).sum()), rel=1e-9, abs=1e-9)
-    # a vertical leg flies at the climb limit (WPNAV_SPEED_UP), as ArduCopter's track speed does
+    # long holds between the legs: the S-curve clock is back to full rate when each leg starts
+    holds = np.full(len(path), 60.0)
+    t = path_time_s(path, np.ones(len(path), bool), np.full(len(d), FM.speed_m_s), FM, hold_s=holds)
+    assert t == pytest.approx(float(leg_time_s(d, FM).sum()), abs=0.03 * len(d))
+    # a vertical leg flies at the climb limit (WPNAV_SPEED_UP 2.5 m/s, WPNAV_ACCEL_Z 1 m/s^2), faster than 1 m/s
     up = path_time_s(np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 9.0]]), np.ones(2, bool), np.array([1.0]), FM)
-    assert up == pytest.approx(float(leg_time_s(8.0, FlightModel(speed_m_s=FM.climb_m_s))))
+    assert 8.0 / 2.5 < up < 8.0 / 1.0
 
 
 @pytest.mark.parametrize("n_points", [2, 3, 6])
-def test_a_straight_run_of_pass_through_points_is_cruise_plus_one_ramp(n_points):
-    length = 10.0 * (n_points - 1)  # 10 m between points: more than speed^2 / accel = 6.8 m, so every leg reaches cruise
+def test_a_straight_run_of_pass_through_points_is_one_leg(n_points):
+    length = 10.0 * (n_points - 1)  # 10 m between points: every leg reaches cruise
     path = np.stack([np.zeros(n_points), np.linspace(0.0, length, n_points), np.full(n_points, 2.0)], 1)
     stop = np.zeros(n_points, bool)
     stop[[0, -1]] = True
     t = path_time_s(path, stop, np.full(n_points - 1, FM.speed_m_s), FM)
     # one acceleration and one braking for the whole run, however many points it passes
-    assert t == pytest.approx(length / FM.speed_m_s + FM.speed_m_s / FM.accel_m_s2 + FM.leg_overhead_s, rel=1e-9)
-    stops = path_time_s(path, np.ones(n_points, bool), np.full(n_points - 1, FM.speed_m_s), FM)
-    assert stops == pytest.approx(t + (n_points - 2) * (FM.speed_m_s / FM.accel_m_s2 + FM.leg_overhead_s))
+    assert t == pytest.approx(float(leg_time_s(length, FM)), abs=0.1 * (n_points - 1))
+    stops = path_time_s(path, np.ones(n_points, bool), np.full(n_points - 1, FM.speed_m_s), FM, hold_s=np.full(n_points, 30.0))
+    assert stops >= t + (n_points - 2) * 2.0 - 1e-9
 
 
 def test_closely_spaced_pass_through_points_slow_the_run_down():
-    # ArduCopter plans each leg so it could stop at its end (ardupilot issue 28953): legs shorter than
-    # speed^2 / accel never reach cruise, and the blended run goes at sqrt(accel * spacing)
+    # ArduCopter plans each leg so it could stop at its end (ardupilot issue 28953): 1 m legs never reach 1.5 m/s
+    # (the S-curve peaks at 0.55 m/s), and the blended run goes barely faster than that
     n, spacing = 21, 1.0
     path = np.stack([np.zeros(n), np.arange(n) * spacing, np.full(n, 2.0)], 1)
     stop = np.zeros(n, bool)
     stop[[0, -1]] = True
     t = path_time_s(path, stop, np.full(n - 1, FM.speed_m_s), FM)
-    v = math.sqrt(FM.accel_m_s2 * spacing)
-    assert t == pytest.approx((n - 1) * spacing / v + v / FM.accel_m_s2 + FM.leg_overhead_s, rel=1e-9)
+    assert t > 1.8 * float(leg_time_s(20.0, FM))
+    assert t < (n - 1) * float(leg_time_s(spacing, FM))
 
 
-def test_corners_cost_time_with_the_turn_angle_and_a_reversal_stops():
-    def corner(theta_deg: float) -> float:
+def test_corners_cost_time_with_the_turn_angle():
+    def corner(theta_deg: float, fm: FlightModel = FM) -> float:
         th = math.radians(theta_deg)
         path = np.array([[0.0, 0.0, 2.0], [0.0, 10.0, 2.0], [10.0 * math.sin(th), 10.0 + 10.0 * math.cos(th), 2.0]])
-        return path_time_s(path, np.array([True, False, True]), np.full(2, 1.5), FM)
+        return path_time_s(path, np.array([True, False, True]), np.full(2, 1.5), fm)
 
-    fm = FlightModel(speed_m_s=1.5, accel_m_s2=0.33, wp_radius_m=0.5)
-    tight = [path_time_s(np.array([[0.0, 0.0, 2.0], [0.0, 10.0, 2.0], [10.0 * math.sin(math.radians(a)), 10.0 + 10.0 * math.cos(math.radians(a)), 2.0]]),
-                         np.array([True, False, True]), np.full(2, 1.5), fm) for a in (0, 45, 90, 135)]
-    assert np.all(np.diff(tight) > 0)  # a small radius shortens the overlap more the sharper the turn
+    tight = [corner(a, FlightModel(speed_m_s=1.5, wp_radius_m=0.5)) for a in (0, 45, 90, 135)]
+    assert np.all(np.diff(tight) >= -0.02) and tight[-1] > tight[0]  # a small radius shortens the overlap more the sharper the turn
     straight, right, reverse = corner(0.0), corner(90.0), corner(180.0)
-    assert straight == pytest.approx(20.0 / 1.5 + 1.5 / 0.33 + 0.5)
+    assert straight == pytest.approx(float(leg_time_s(20.0, FM)), abs=0.1)
     assert straight <= right < reverse
-    two_legs = float(leg_time_s(10.0, FM)) * 2
-    assert reverse == pytest.approx(two_legs)
+    # even a reversal starts the way back while still braking (SCurve: the turn's mid point needs 1.6 m/s^2,
+    # under WPNAV_ACCEL_C 5 m/s^2, and lies within WPNAV_RADIUS), so it costs less than a stop, more than a right angle
+    assert 0.5 < 2.0 * float(leg_time_s(10.0, FM)) - reverse < 2.0 * float(leg_time_s(10.0, FM)) - right
+
+
+def test_route_knows_when_the_drone_is_where():
+    pts, holds = row_legs()
+    r = plan_route(pts, pts, Limits(keep_out_m=2.0), FM, hold_s=holds, ordered=True, leg_speed_m_s=0.8)
+    assert r.reached_s is not None and len(r.reached_s) == len(r.points)
+    assert np.all(np.diff(r.reached_s) > 0)
+    # the last point's hold, then the landing: the flight time
+    from dronecal_field.plan.route import descent_time_s
+
+    assert r.flight_time_s == pytest.approx(r.reached_s[-1] + r.hold_s[-1] + descent_time_s(float(r.points[-1, 2]), FM))
 
 
 def test_plan_route_default_holds_are_the_hover_everywhere():
@@ -175,7 +204,7 @@ def test_split_into_flights_each_fits_and_legs_stay_whole():
 
 # derandomized: a random draw found holds [0, 0, 0, 0, 1, 1, 0, 0, 0] x 1.25 where the split counts a leg longer than
 # plan_route does (PlanError "points 6-8 (one leg) need 0.9 min ... more than 0.8 min"): open, named in the session note
-@settings(max_examples=25, deadline=None, derandomize=True)
+@settings(max_examples=8, deadline=None, derandomize=True)
 @given(st.lists(st.sampled_from([0.0, 0.0, 1.0, 3.0]), min_size=6, max_size=40), st.floats(1.2, 4.0))
 def test_split_property_budget_takeoff_and_whole_legs(hold_list, factor):
     holds = np.array(hold_list)

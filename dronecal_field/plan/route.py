@@ -121,7 +121,7 @@ def path_time_s(path: np.ndarray, stop: np.ndarray, speeds_m_s: np.ndarray, flig
     stops = np.asarray(stop, bool).copy()
     stops[-1] = True
     reached = path_reached_s(P, stops, speeds_m_s, flight, hold_s)
-    holds = 0.0 if hold_s is None else float(np.where(stops, np.asarray(hold_s, float), 0.0)[:-1].sum())
+    holds = 0.0 if hold_s is None else float(np.where(stops, np.asarray(hold_s, float), 0.0)[1:-1].sum())  # flown between the first and last point
     return float(reached[-1]) - holds
 
 
