@@ -55,6 +55,26 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+
+def tree_cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a live process and all its descendants so far (/proc), 0 when gone."""
+    total, todo = 0.0, [pid]
+    while todo:
+        p = todo.pop()
+        try:
+            fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / CLK_TCK
+            for task in Path(f"/proc/{p}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+        except (OSError, IndexError, ValueError):
+            continue
+    return total
+
+
+def load_text() -> str:
+    return "load average " + ", ".join(f"{v:.1f}" for v in os.getloadavg()) + f" (1/5/15 min, {os.cpu_count()} cores)"
 
 
 def main() -> int:
@@ -70,6 +90,8 @@ def main() -> int:
     p.add_argument("--codec", choices=("h264", "h265"), default="h265")
     p.add_argument("--max-flight-time", type=float, default=10.0, help="plan's flight time, minutes (default %(default)s)")
     p.add_argument("--out", default=None, help="work folder (default: a temporary one)")
+    p.add_argument("--plan-trials", type=int, default=200, help="plan's Monte-Carlo trials per candidate (default %(default)s; fewer plan faster on a loaded machine)")
+    p.add_argument("--plan-dir", default=None, help="fly this plan folder (made by an earlier run) instead of planning again")
     args = p.parse_args()
     width, height = (int(v) for v in args.size.lower().split("x"))
     out = Path(args.out) if args.out else Path(os.environ.get("TMPDIR", "/tmp")) / f"bench-rtsp-chain-{int(time.time())}"
@@ -86,16 +108,18 @@ def main() -> int:
                    "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"])]
 
     t = time.monotonic()
-    run_step("plan", cli_argv(
-        "plan", "--out", out / "plan", f"--lat={SITE['lat']}", f"--lon={SITE['lon']}", "--ground-alt", SITE["ground_h"],
-        "--mount-height", SITE["mount_height"], "--azimuth", SITE["azimuth"], "--tilt", SITE["tilt"],
-        "--image-size", f"{width}x{height}", "--focal-px", TRUTH["focal_px"] * scale * 0.95, "--distortion", "medium",
-        *marker_args, "--hover", "3", "--trials", "200", "--max-flight-time", args.max_flight_time,
-    ), logs / "plan.log", timeout_s=900)
-    print(f"plan: {time.monotonic() - t:.0f} s", flush=True)
-    mission = out / "plan" / "mission.plan"
+    plan_dir = Path(args.plan_dir) if args.plan_dir else out / "plan"
+    if not args.plan_dir:
+        run_step("plan", cli_argv(
+            "plan", "--out", out / "plan", f"--lat={SITE['lat']}", f"--lon={SITE['lon']}", "--ground-alt", SITE["ground_h"],
+            "--mount-height", SITE["mount_height"], "--azimuth", SITE["azimuth"], "--tilt", SITE["tilt"],
+            "--image-size", f"{width}x{height}", "--focal-px", TRUTH["focal_px"] * scale * 0.95, "--distortion", "medium",
+            *marker_args, "--hover", "3", "--trials", args.plan_trials, "--max-flight-time", args.max_flight_time,
+        ), logs / "plan.log", timeout_s=3600)
+    print(f"plan: {time.monotonic() - t:.0f} s ({load_text()})", flush=True)
+    mission = plan_dir / "mission.plan"
     if not mission.exists():  # plan split a long plan into flights within --max-flight-time: fly the first
-        mission = out / "plan" / "mission-1.plan"
+        mission = plan_dir / "mission-1.plan"
         print(f"plan: split into flights; flying {mission.name}", flush=True)
     plan = json.loads(mission.read_text())
     home = plan["mission"]["plannedHomePosition"]
@@ -108,14 +132,19 @@ def main() -> int:
                              "--codec", args.codec, "--fps", args.fps, *marker_args), (logs / "sim-camera.log").open("w"))
     run_path = out / "run.mcap"
     try:
-        _wait_for_tcp(rtsp_port, camera, logs / "sim-camera.log", timeout_s=600)
+        _wait_for_tcp(rtsp_port, camera, logs / "sim-camera.log", timeout_s=900)
         fly_log = (logs / "fly.log").open("w")
+        print(f"flight starts: {load_text()}", flush=True)
+        camera_cpu0 = tree_cpu_s(camera.pid)
         t_fly = time.monotonic()
         fly = _start(cli_argv("fly", "--connect", f"udp:127.0.0.1:{vehicle_port}", "--mission", mission,
                               "--video", video_url, "--out", run_path, "--start", "--calibrate", "--timeout-s", 3600), fly_log)
         _pid, status, usage = os.wait4(fly.pid, 0)
         fly.returncode = os.waitstatus_to_exitcode(status)
         fly_wall = time.monotonic() - t_fly
+        camera_cpu = tree_cpu_s(camera.pid) - camera_cpu0
+        print(f"flight ended: {load_text()}", flush=True)
+        print(f"sim camera (render + I420 + RTSP server + encoder): {camera_cpu:.1f} s CPU = {100 * camera_cpu / fly_wall:.0f} % of one core over fly's {fly_wall:.0f} s")
     finally:
         _stop(camera)
         _stop(vehicle)
