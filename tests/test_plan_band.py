@@ -82,3 +82,24 @@ def test_4k_plan_flown_by_the_4k_truth():
     # the same truth 5 % longer in focal (a datasheet 5 % off): still every marker
     longer = truth.with_(intrinsics=replace(truth.intrinsics, fx=2730.0, fy=2730.0))
     assert markers_in_view(longer, result.chosen.marker_site, limits).all()
+
+
+def test_screen_cameras_are_each_factor_alone():
+    """The screen: focal x (1 + tol), tilt -+, azimuth -+, the weakest distortion, each with the other factors as guessed;
+    no band, no screen. band_cost is None when every corner sees every sample."""
+    req = request_from_options(resolve_options({**K4, "focal_tolerance": "10%", "tilt_tolerance": 1, "azimuth_tolerance": 2,
+                                                "distortion_range": "none,medium"}))
+    guess = guess_camera(req.site, req.lens, frame="site")
+    cams = screen_cameras(guess, req.band)
+    assert len(cams) == 6
+    assert sorted(round(c.intrinsics.fx) for c in cams) == [2600] * 5 + [2860]
+    assert sum(c.distortion.k1 == 0.0 for c in cams) == 1 and sum(c.distortion.k1 == guess.distortion.k1 for c in cams) == 5
+    axis = guess.pose.position_world + 10.0 * guess.pose.R_cam_from_world[2]
+    shift = np.array([c.project(axis[None])[0] - [1920.0, 1080.0] for c in cams])
+    assert np.abs(shift[:, 1]).max() == pytest.approx(2600 * math.tan(math.radians(1.0)), rel=0.05)
+    assert screen_cameras(guess, GuessBand(focal_tolerance=0.0, tilt_tolerance_deg=0.0, azimuth_tolerance_deg=0.0, distortions=())) == ()
+    from dronecal_field.sampling.band import band_cost
+
+    ahead = guess.pose.position_world + 8.0 * guess.pose.R_cam_from_world[2]
+    limits = replace(req.limits, marker_size_m=0.3)
+    assert band_cost(guess, req.band, ahead[None], limits, lambda keep: 1.0) is None

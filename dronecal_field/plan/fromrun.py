@@ -98,6 +98,15 @@ def _angle_sigmas(camera: Camera) -> tuple[float, float]:
     return float(math.sqrt(max(cov[0, 0], 0.0))), float(math.sqrt(max(cov[1, 1], 0.0)))
 
 
+def _scout_options(trials: int):
+    """calibrate's options for a scout: every frame along its legs (calibrate keeps one per 0.25 s; the scout's fast rows
+    cross the view in 2-3 s, so that left 27 points of a 2 m pole's scout)."""
+    from dronecal_field.pipeline.results import CalibrateOptions
+    from dronecal_field.pipeline.sampling import SamplingOptions
+
+    return CalibrateOptions(trials=trials, sampling=SamplingOptions(leg_period_s=0.0))
+
+
 def estimate_from_run(path: str | Path, trials: int = 0) -> CameraEstimate:
     """Calibrate the scout run with calibrate's pipeline and read the camera and its sigmas."""
     from dronecal_field.pipeline.run import CalibrateOptions, calibrate_run
@@ -105,7 +114,7 @@ def estimate_from_run(path: str | Path, trials: int = 0) -> CameraEstimate:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"--from-run {path} does not exist: give the scout's run file (fly wrote RUN.mcap)")
-    report = calibrate_run(path, CalibrateOptions(trials=trials))
+    report = calibrate_run(path, _scout_options(trials))
     centred = not _principal_point_known(report.camera)
     if centred:
         # the scout's rows left the principal point and the view's direction trading off (a 2 m pole's scout: (-157, -147)
@@ -115,7 +124,7 @@ def estimate_from_run(path: str | Path, trials: int = 0) -> CameraEstimate:
 
         n = len(report.used_points)
         model = CalibrationModel(distortion="k1" if n >= 30 else "none", fix_principal_point=True)
-        report = calibrate_run(path, CalibrateOptions(trials=trials, model=model))
+        report = calibrate_run(path, replace(_scout_options(trials), model=model))
     cam = report.camera
     C = cam.covariance
     sd = {n: (math.sqrt(max(float(C[i, i]), 0.0)) if C is not None else math.nan) for i, n in enumerate(PARAM_NAMES)}
