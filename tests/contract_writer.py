@@ -818,3 +818,194 @@ def iter_detection_frames(renderer: Renderer, capture_ns: np.ndarray) -> Iterato
     """(capture_ns, grey image) for each time, for detector tests without a file."""
     for t in capture_ns:
         yield int(t), renderer.render(int(t))
+
+
+# --------------------------------------------------------------------------
+# Several cameras in one run (run-format.md, "Several cameras in one run")
+
+
+@dataclass
+class SiteCamera:
+    """One camera of a several-camera run: its truth and how its frames are stamped.
+
+    ``latency_s`` is the true lag of its stamps behind capture (its own clock offset to the GNSS stream);
+    ``declared_latency`` what the writer puts in ``camera.<name>.latency_s`` (None: the key is left out);
+    ``phase_s`` shifts its frame times against the other cameras' (cameras are not synchronised).
+    """
+
+    name: str
+    camera: Camera
+    latency_s: float = 0.0
+    declared_latency: str | None = None
+    clock: str | None = None
+    phase_s: float = 0.0
+    video: bool = False  # reserved: this writer writes JPEG frames (/cameras/<name>/image) only
+
+
+def view_waypoints(
+    camera: Camera,
+    lateral_m: tuple[float, ...] = (-2.5, 0.0, 2.5),
+    ahead_m: tuple[float, ...] = (6.0, 8.5, 11.0),
+    up_m: tuple[float, ...] = (1.5, 3.5),
+) -> np.ndarray:
+    """(M, 3) ENU waypoints of ``grid_waypoints`` laid out in front of ``camera``: ``ahead_m`` along its
+    horizontal viewing direction from its pole, ``lateral_m`` to its right, ``up_m`` above the ground."""
+    forward = camera.pose.R_cam_from_world[2]
+    f = np.array([forward[0], forward[1]]) / max(np.hypot(forward[0], forward[1]), 1e-9)
+    right = np.array([f[1], -f[0]])
+    pole = camera.pose.position_world[:2]
+    grid = grid_waypoints(lateral_m, ahead_m, up_m)
+    xy = pole + grid[:, :1] * right + grid[:, 1:2] * f
+    return np.c_[xy, grid[:, 2]]
+
+
+def site_waypoints(cameras: list[Camera], min_apart_m: float = 1.0, **grid) -> np.ndarray:
+    """(M, 3) the union of each camera's ``view_waypoints`` (points closer than ``min_apart_m`` to one already
+    taken are left out: they count for both), ordered per height by bearing from the cameras' centroid."""
+    centre = np.mean([c.pose.position_world[:2] for c in cameras], axis=0)
+    taken: list[np.ndarray] = []
+    for cam in cameras:
+        for p in view_waypoints(cam, **grid):
+            if all(np.linalg.norm(p - q) >= min_apart_m for q in taken):
+                taken.append(p)
+    pts = np.array(taken)
+    bearing = np.arctan2(pts[:, 0] - centre[0], pts[:, 1] - centre[1])
+    dist = np.hypot(pts[:, 0] - centre[0], pts[:, 1] - centre[1])
+    heights = sorted(set(np.round(pts[:, 2], 3)))
+    out = []
+    for k, z in enumerate(heights):
+        idx = np.flatnonzero(np.isclose(pts[:, 2], z))
+        idx = idx[np.lexsort((dist[idx], bearing[idx]))]
+        out.append(pts[idx if k % 2 == 0 else idx[::-1]])
+    return np.concatenate(out)
+
+
+def facing_point(cameras: list[Camera]) -> Camera:
+    """A stand-in camera at the cameras' mean position, for ``make_flight``: the drone's nose points there,
+    so the marker faces every pole of a site (within the angle the poles subtend)."""
+    c = cameras[0]
+    return c.with_(pose=CameraPose.from_position(c.pose.R_cam_from_world, np.mean([k.pose.position_world for k in cameras], axis=0)))
+
+
+def write_site_run(path: str | Path, cameras: list[SiteCamera], flight: Flight, look: MarkerLook, spec: RunSpec) -> dict:
+    """Write a contract-following several-camera run: one ``/cameras/<name>/image`` topic per camera, metadata
+    ``cameras`` and ``camera.<name>.width/height/latency_s/clock``, no ``/camera/...``, no ``camera.width``.
+
+    The GNSS fixes, events and attitude are shared and written as :func:`write_run` writes them (``spec``'s
+    fps, gnss_hz, gnss_sigma_m, gnss_noise_tau_s, jpeg_quality, with_events, with_attitude, site_origin,
+    attachments, seed, chunk_size are used; the other messy-data flags are not).
+
+    Returns
+    -------
+    dict with ``frames`` {name: (F,) capture ns}, ``stamps`` {name: (F,) stamp ns}, ``n_fixes``,
+    ``truth`` {name: Camera}.
+    """
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+    from foxglove_schemas_protobuf.Event_pb2 import Event
+    from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
+    from mcap.writer import CompressionType, Writer
+
+    names = [c.name for c in cameras]
+    assert len(set(names)) == len(names), "camera names must differ"
+    rng = np.random.default_rng(spec.seed)
+    t_start, t_end = int(flight.t_ns[0]), int(flight.t_ns[-1])
+    records: list[tuple[int, str, bytes]] = []
+
+    n_fix = int((t_end - t_start) * 1e-9 * spec.gnss_hz)
+    fix_t = t_start + np.round(np.arange(n_fix) / spec.gnss_hz * 1e9).astype(np.int64)
+    pos, _ = flight.at(fix_t)
+    sigma = np.array(spec.gnss_sigma_m, float)
+    white = rng.normal(size=pos.shape)
+    if spec.gnss_noise_tau_s > 0 and len(fix_t) > 1:
+        a = np.exp(-np.diff(fix_t, prepend=fix_t[0]).astype(float) * 1e-9 / spec.gnss_noise_tau_s)
+        for k in range(1, len(white)):
+            white[k] = a[k] * white[k - 1] + np.sqrt(1.0 - a[k] ** 2) * white[k]
+    geo = enu_to_geodetic(pos + white * sigma, ORIGIN)
+    for k, t in enumerate(fix_t):
+        msg = LocationFix()
+        _stamp(msg.timestamp, int(t))
+        msg.frame_id = "gnss"
+        msg.latitude, msg.longitude, msg.altitude = (float(v) for v in geo[k])
+        msg.position_covariance.extend(np.diag(sigma**2).ravel().tolist())
+        msg.position_covariance_type = 2
+        kv = msg.metadata.add()
+        kv.key, kv.value = "fix_type", spec.fix_type
+        records.append((int(t), "/gnss/fix", msg.SerializeToString()))
+
+    frames, stamps = {}, {}
+    for sc in cameras:
+        renderer = Renderer(camera=sc.camera, flight=flight, look=look)
+        n_frames = int((t_end - t_start) * 1e-9 * spec.fps)
+        capture = t_start + np.round((np.arange(n_frames) / spec.fps + sc.phase_s) * 1e9).astype(np.int64)
+        capture = capture[capture <= t_end]
+        stamp = capture + int(round(sc.latency_s * 1e9))
+        for k in range(len(capture)):
+            msg = CompressedImage()
+            _stamp(msg.timestamp, int(stamp[k]))
+            msg.frame_id = sc.name
+            msg.format = "jpeg"
+            msg.data = encode_jpeg(renderer.render(int(capture[k])), spec.jpeg_quality)
+            records.append((int(stamp[k]), f"/cameras/{sc.name}/image", msg.SerializeToString()))
+        frames[sc.name], stamps[sc.name] = capture, stamp
+
+    if spec.with_events:
+        for a, b, seq in flight.holds:
+            msg = Event()
+            _stamp(msg.start_time, a)
+            _stamp(msg.end_time, b)
+            for key, value in (("type", "hover"), ("seq", str(seq)), ("hold_s", f"{(b - a) * 1e-9:.3f}")):
+                kv = msg.metadata.add()
+                kv.key, kv.value = key, value
+            records.append((b, "/events", msg.SerializeToString()))
+    if spec.with_attitude:
+        att_t = np.arange(t_start, t_end, 100_000_000, dtype=np.int64)
+        _, rpy = flight.at(att_t)
+        for k, t in enumerate(att_t):
+            fields = {"time_boot_ms": int((t - t_start) // 1_000_000), "roll": float(rpy[k, 0]), "pitch": float(rpy[k, 1]),
+                      "yaw": float((rpy[k, 2] + np.pi) % (2 * np.pi) - np.pi), "_time_unix_ns": int(t)}
+            records.append((int(t), "/mavlink/ATTITUDE", json.dumps(fields).encode()))
+    records.sort(key=lambda r: r[0])
+
+    metadata = {
+        "format_version": "1",
+        "cameras": ",".join(names),
+        "marker.kind": look.kind,
+        "marker.offset_frd_m": ",".join(f"{v:.4f}" for v in flight.offset_frd_m),
+        "marker.dictionary": look.dictionary, "marker.id": str(look.marker_id), "marker.size_m": f"{look.size_m:.4f}",
+    }
+    for sc in cameras:
+        metadata[f"camera.{sc.name}.width"] = str(sc.camera.width)
+        metadata[f"camera.{sc.name}.height"] = str(sc.camera.height)
+        if sc.declared_latency is not None:
+            metadata[f"camera.{sc.name}.latency_s"] = sc.declared_latency
+        if sc.clock is not None:
+            metadata[f"camera.{sc.name}.clock"] = sc.clock
+    for key in spec.omit_metadata_keys:
+        metadata.pop(key, None)
+
+    with open(path, "wb") as stream:
+        writer = Writer(stream, chunk_size=spec.chunk_size, compression=CompressionType.NONE)
+        writer.start(profile="", library="dronecal-tests-contract-writer")
+        image_schema = writer.register_schema("foxglove.CompressedImage", "protobuf", _file_descriptor_set(CompressedImage))
+        channels = {f"/cameras/{n}/image": writer.register_channel(f"/cameras/{n}/image", "protobuf", image_schema) for n in names}
+        channels["/gnss/fix"] = writer.register_channel(
+            "/gnss/fix", "protobuf", writer.register_schema("foxglove.LocationFix", "protobuf", _file_descriptor_set(LocationFix)))
+        if spec.with_events:
+            channels["/events"] = writer.register_channel(
+                "/events", "protobuf", writer.register_schema("foxglove.Event", "protobuf", _file_descriptor_set(Event)))
+        if spec.with_attitude:
+            sid = writer.register_schema("mavlink.ATTITUDE", "jsonschema", b'{"type": "object"}')
+            channels["/mavlink/ATTITUDE"] = writer.register_channel("/mavlink/ATTITUDE", "json", sid)
+        writer.add_metadata("dronecal.run", metadata)
+        for name, data in spec.attachments.items():
+            writer.add_attachment(create_time=0, log_time=0, name=name, media_type="application/json", data=data)
+        if spec.site_origin is not None:
+            o = spec.site_origin
+            writer.add_metadata("dronecal.site", {"origin_lat": repr(o.lat_deg), "origin_lon": repr(o.lon_deg), "origin_h": repr(o.h_m)})
+        sequence: dict[int, int] = {}
+        for t, topic, data in records:
+            cid = channels[topic]
+            sequence[cid] = sequence.get(cid, 0) + 1
+            writer.add_message(channel_id=cid, log_time=int(t), data=data, publish_time=int(t), sequence=sequence[cid])
+        writer.finish()
+    return {"frames": frames, "stamps": stamps, "n_fixes": len(fix_t), "truth": {sc.name: sc.camera for sc in cameras}}

@@ -183,8 +183,7 @@ def test_joint_refuses_runs_of_two_different_cameras(flights, tmp_path):
 
 def test_a_flight_too_small_to_calibrate_alone_still_contributes(flights, tmp_path):
     """A flight cut short after 3 holds (6 needed alone) is paired at its motion-based offset and pooled."""
-    from dronecal_field.pipeline.joint import calibrate_joint
-    from dronecal_field.pipeline.run import CalibrateOptions
+    from dronecal_field.pipeline.run import CalibrateOptions, calibrate_runs
 
     _, paths = flights
     short = HALVES[2][[0, 3, 8]]
@@ -192,7 +191,7 @@ def test_a_flight_too_small_to_calibrate_alone_still_contributes(flights, tmp_pa
     write_run(raw, TRUTH, make_flight(TRUTH, short, hold_s=2.5, move_s=1.5, seed=32), MarkerLook(),
               RunSpec(fps=8.0, latency_s=0.30, site_origin=ORIGIN, seed=42))
     _with_attachments(raw, path, {"plan.json": _plan_json(), "mission.plan": _mission_plan(2)})
-    report = calibrate_joint([paths[0], path], CalibrateOptions(trials=0))
+    report = calibrate_runs([paths[0], path], CalibrateOptions(trials=0)).cameras[None]
     alone, small = report.runs
     assert alone.alone and alone.used == 12
     assert not small.alone and small.used == 3 and "too few good waypoints" in small.alone_reason

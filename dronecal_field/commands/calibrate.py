@@ -179,24 +179,61 @@ def run_single(args: argparse.Namespace, run_path: Path, live=None) -> int:
     ``live``: pipeline.framecache.FrameResults of fly's live pass over this run (``fly --calibrate``), or None.
     """
     from dronecal_field.cli import announce_first_compile
-    from dronecal_field.pipeline.run import calibrate_run
+    from dronecal_field.pipeline.run import calibrate_runs
 
     out = args.out if args.out is not None else run_path.with_name(run_path.stem + "-calibration")
     announce_first_compile()
-    report = calibrate_run(run_path, _options(args, out), live=live)
-    print("\n".join(_summary_lines(report, run_path.name, out)))
+    site = calibrate_runs([run_path], _options(args, out), live=live)
+    if site.several:
+        return _print_site(site, run_path.name, out)
+    print("\n".join(_summary_lines(site.cameras[None], run_path.name, out)))
     return 0
+
+
+def _print_site(site, title: str, out: Path) -> int:
+    """What calibrate prints about a site: each camera's summary, then every pair; 1 when a camera failed."""
+    import sys
+
+    names = [n for n in (*site.cameras, *site.failed)]
+    lines = [f"calibrated site {title}: {len(site.cameras)} of {len(names)} cameras ({', '.join(names)}) in one ENU frame"]
+    for name, report in site.cameras.items():
+        own = _summary_lines(report, f"camera {name}", out / name)
+        # a hold of another camera's view is not a loss of this one: counted, not listed
+        unseen = sum(1 for p in getattr(report, "hover_points", []) if not p.used and p.dropped.startswith("0 marker detections"))
+        own = [line for line in own[:-1] if not ("dropped window" in line and ": 0 marker detections" in line)]
+        if unseen:
+            own.insert(1, f"  {unseen} holds outside its view (no marker detection)")
+        lines += ["  " + line for line in own]
+        if getattr(report, "runs", None):
+            lines += [f"    {r.path.name}: {r.used} points used, time offset {r.offset.offset_s:+.3f} s" for r in report.runs]
+    for pair in site.pairs:
+        lines.append(
+            f"  {pair.b} from {pair.a}: {pair.distance_m:.3f} m apart (\u00b1 {1000 * pair.translation_std_m:.1f} mm), turned "
+            f"{pair.rotation_deg:.2f}\u00b0 (\u00b1 {pair.rotation_std_deg:.3f}\u00b0); "
+            + (f"{pair.shared_ground_m2:.0f} m\u00b2 of ground 3-30 m seen by both" if pair.shares_ground else "no ground seen by both")
+        )
+    lines.append(f"report: {site.outputs.get('report_html', out)}")
+    print("\n".join(lines))
+    for name, error in site.failed.items():
+        print(f"dronecal-field calibrate: camera {name}: {error}", file=sys.stderr)
+    return 1 if site.failed else 0
 
 
 def run_joint(args: argparse.Namespace) -> int:
     """The runs of one camera pooled into one calibration, in this process: the summary on stdout."""
     from dronecal_field.cli import announce_first_compile
-    from dronecal_field.pipeline.joint import calibrate_joint
+    from dronecal_field.errors import InputError
+    from dronecal_field.pipeline.run import calibrate_runs
 
     first = args.run[0]
     out = args.out if args.out is not None else first.with_name(first.stem + "-joint-calibration")
+    if len(args.run) < 2:
+        raise InputError("--joint needs two or more run files: pass the runs of every flight of the plan")
     announce_first_compile()
-    report = calibrate_joint(args.run, _options(args, out))
+    site = calibrate_runs(args.run, _options(args, out))
+    if site.several:
+        return _print_site(site, " + ".join(p.name for p in args.run) + " jointly", out)
+    report = site.cameras[None]
     lines = _summary_lines(report, " + ".join(p.name for p in args.run) + " jointly", out)
     per_run = [
         f"  {r.path.name}" + (f" (flight {r.flight})" if r.flight is not None else "") + f": {r.used} points used, "

@@ -2,10 +2,11 @@
 
 A plan that does not fit one battery is flown as flights (``mission-1.plan``,
 ``mission-2.plan``, ...), one run file each; each flight alone covers part of
-the view only. This stage pools their points into one calibration::
+the view only. This stage pools their points into one calibration (``pool_runs``; the
+orchestration of runs x cameras is ``pipeline.run.calibrate_runs``)::
 
-    per run: read track -> hover windows + legs -> detections -> time alignment   (run._run_stages)
-             -> points and solve at that run's own offset, legs timing, noise    (run._solve_at_offset)
+    per run: read track -> hover windows + legs -> detections -> time alignment   (stages.run_stages)
+             -> points and solve at that run's own offset, legs timing, noise    (solve.solve_at_offset)
     points of every run -> the first run's ENU frame (geodesy, pyproj)
     -> one solve on all points -> one uncertainty (Monte-Carlo, linearised, region of validity) -> report
 
@@ -33,23 +34,10 @@ import numpy as np
 
 from dronecal_field.errors import DegenerateGeometryError, InputError
 from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic, geodetic_to_enu
-from dronecal_field.pipeline.run import (
-    CalibrateOptions,
-    CalibrationReport,
-    FrameStats,
-    RunStages,
-    Track,
-    _clock_jump_cost,
-    _Clock,
-    _damage_cost,
-    _offset_with_timing,
-    _points,
-    _run_stages,
-    _solve,
-    _solve_at_offset,
-    _uncertainty,
-    _with_camera,
-)
+from dronecal_field.pipeline.confidence import uncertainty
+from dronecal_field.pipeline.results import CalibrateOptions, CalibrationReport, FrameStats, Track
+from dronecal_field.pipeline.solve import pair_points, solve_at_offset, solve_points
+from dronecal_field.pipeline.stages import RunStages, StageClock, clock_jump_cost, damage_cost, offset_with_timing, with_camera
 
 MAX_CAMERA_APART_M = 1.0  # plans whose cameras lie further apart are of different cameras
 
@@ -233,15 +221,8 @@ class JointReport(CalibrationReport):
     runs: tuple[JointRun, ...] = field(default_factory=tuple)
 
 
-def calibrate_joint(paths: list[str | Path], options: CalibrateOptions = CalibrateOptions()) -> JointReport:
-    """One camera from the points of every run (flights of one plan); outputs into ``options.out_dir`` when set.
-
-    Raises
-    ------
-    InputError : runs that are not one camera (image size, planned camera place), a run with no marker or no hold
-    DegenerateGeometryError, CalibrationError : the pooled points give no camera
-    """
-    paths = [Path(p) for p in paths]
+def check_runs(paths: list[Path]) -> None:
+    """Refuse fewer than two runs, or one run file given twice (InputError, one line)."""
     if len(paths) < 2:
         raise InputError("--joint needs two or more run files: pass the runs of every flight of the plan")
     seen: dict[Path, Path] = {}
@@ -249,25 +230,41 @@ def calibrate_joint(paths: list[str | Path], options: CalibrateOptions = Calibra
         if p.resolve() in seen:
             raise InputError(f"{seen[p.resolve()]} and {p} are the same run file: give each flight's run once")
         seen[p.resolve()] = p
-    plans = [plan_of_run(p) for p in paths]
+
+
+def pool_runs(stages: list[RunStages], plans: list[PlanOfRun], options: CalibrateOptions, clock: StageClock) -> "JointReport":
+    """One camera from the points of every run (flights of one plan); outputs into ``options.out_dir`` when set.
+
+    Parameters
+    ----------
+    stages : stages 1-4 of each run, for this camera (``stages.run_stages``), the first run's ENU frame the joint one
+    plans : what each run says about its plan (``plan_of_run``), in the same order
+    clock : the stage clock the timings land in
+
+    Raises
+    ------
+    InputError : runs that are not one camera (image size, planned camera place)
+    DegenerateGeometryError, CalibrationError : the pooled points give no camera
+    """
+    plans = [replace(p, width=int(st.md.width), height=int(st.md.height)) for p, st in zip(plans, stages)]
+    if stages[0].camera is not None:
+        plans = [replace(p, camera_wgs84=None) for p in plans]  # a site's plan guesses one camera, not this one
     check_one_camera(plans)
-    clock = _Clock()
-    stages = [_run_stages(p, options, None, clock) for p in paths]
     origin = stages[0].read.origin
     parts = [clock("calibration_s", _alone, st, options) for st in stages]
     points, runs, tracks = _pool(stages, parts, plans, origin)
     md = stages[0].md
-    result, reason = clock("calibration_s", _solve, points, md, options)
+    result, reason = clock("calibration_s", solve_points, points, md, options)
     if options.recentre and any(s is None for s, _, _, _ in parts) and np.any(result.camera.distortion.as_array() != 0.0):
         # runs paired without a camera of their own: their centres again under the pooled distortion, and solve once more
         i = result.camera.intrinsics
         K_dist = (np.array([i.fx, i.fy, i.cx, i.cy]), result.camera.distortion.as_array())
         parts = [p if p[0] is not None else _paired_at_motion(st, options, K_dist, reason=p[3]) for st, p in zip(stages, parts)]
         points, runs, tracks = _pool(stages, parts, plans, origin)
-        result, reason = clock("calibration_s", _solve, points, md, options, (result, reason))
+        result, reason = clock("calibration_s", solve_points, points, md, options, (result, reason))
     camera = result.camera.with_(enu_origin=tuple(origin.as_list()))
-    result = _with_camera(result, camera)
-    unc = clock("uncertainty_s", _uncertainty, camera, points, result, options, origin, stages[0].read.plan_roi)
+    result = with_camera(result, camera)
+    unc = clock("uncertainty_s", uncertainty, camera, points, result, options, origin, stages[0].read.plan_roi)
     warnings = _warnings(stages, parts, runs)
     if options.annotate:
         warnings.append("--annotate is not done for a joint calibration (one annotated copy per run would need the camera "
@@ -301,10 +298,10 @@ def _alone(st: RunStages, options: CalibrateOptions):
     """(Solved or None, points, offset as reported, why not alone) of one run: its own solve when it has enough
     points, else its points paired at the motion-based offset with the raw marker centres."""
     try:
-        solved, offset = _solve_at_offset(st.read, st.windows, st.legs, st.dets, st.offset, st.md, options)
+        solved, offset = solve_at_offset(st.read, st.windows, st.legs, st.dets, st.offset, st.md, options)
     except DegenerateGeometryError as exc:
         return _paired_at_motion(st, options, None, reason=str(exc))
-    return solved, solved.points, _offset_with_timing(offset, solved.timing, st.read, solved.noise), None
+    return solved, solved.points, offset_with_timing(offset, solved.timing, st.read, solved.noise), None
 
 
 def _paired_at_motion(st: RunStages, options: CalibrateOptions, K_dist, reason: str | None = None):
@@ -319,8 +316,8 @@ def _paired_at_motion(st: RunStages, options: CalibrateOptions, K_dist, reason: 
         centres = centres_under_distortion(np.array(corners), *K_dist)
     timing = Timing(st.offset.offset_s, st.offset.std_s, 0.0, None, 0.0, "not estimated", n_points=st.offset.n_points)
     marker_size = st.md.marker.size_m if st.md.marker.kind == "aruco" else None
-    pts = _points(st.read.track, st.read.attitude, st.read.offset_frd_m, st.windows, st.legs, st.dets, centres, timing, marker_size, options)
-    return None, pts, _offset_with_timing(st.offset, timing, st.read, None), reason
+    pts = pair_points(st.read.track, st.read.attitude, st.read.offset_frd_m, st.windows, st.legs, st.dets, centres, timing, marker_size, options)
+    return None, pts, offset_with_timing(st.offset, timing, st.read, None), reason
 
 
 def _pool(stages: list[RunStages], parts: list, plans: list[PlanOfRun], origin: EnuOrigin):
@@ -407,8 +404,8 @@ def _warnings(stages: list[RunStages], parts: list, runs: list[JointRun]) -> lis
     for st, (solved, pts, _, why), run in zip(stages, parts, runs):
         name = st.path.name
         own = list(st.warnings) + (list(solved.warnings) if solved is not None else [])
-        own += [_damage_cost(span, pts, st.read.track.t_ns) for span in st.damaged]
-        own += [_clock_jump_cost(e, pts, st.read.track.t_ns) for e in st.jumps]
+        own += [damage_cost(span, pts, st.read.track.t_ns) for span in st.damaged]
+        own += [clock_jump_cost(e, pts, st.read.track.t_ns) for e in st.jumps]
         out += [f"{name}: {w}" for w in own]
         if not run.alone:
             out.append(f"{name} does not calibrate alone ({why}); its points are paired at its time offset from the marker's "
