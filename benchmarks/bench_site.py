@@ -9,7 +9,7 @@ Each camera has its own clock offset to the GNSS stream (+0.12 s, -0.08 s). The 
 union of a 3x3x2 grid in front of each camera (2.5 s holds, 8 fps, RTK noise 8 mm / 12 mm). Printed per
 run: each camera's ground 3-30 m RMS px against its truth (sim.compare, as bench_calibrate measures it),
 focal %, position cm; the relative pose's error (mm, deg) against its reported 1-sigma; calibrate's wall
-time against the flight time. By hand (several minutes):
+and CPU time against the flight time (the wall time means little on a loaded machine). By hand (several minutes):
 
     .venv/bin/python benchmarks/bench_site.py [--seeds 3] [--trials 0] [--kinds same,apart]
 """
@@ -61,10 +61,10 @@ def one(kind: str, seed: int, trials: int, folder: Path) -> dict:
     path = folder / f"{kind}-{seed}.mcap"
     write_site_run(path, [SiteCamera("a", a, latency_s=0.12, declared_latency="unknown"), SiteCamera("b", b, latency_s=-0.08, phase_s=0.04)],
                    flight, MarkerLook(), RunSpec(fps=8.0, seed=seed + 3, site_origin=ORIGIN))
-    tick = time.perf_counter()
+    tick, cpu = time.perf_counter(), time.process_time()
     site = calibrate_runs([path], CalibrateOptions(trials=trials, seed=seed, out_dir=folder / f"{kind}-{seed}"))
-    wall = time.perf_counter() - tick
-    row = {"kind": kind, "seed": seed, "wall_s": wall, "flight_s": (flight.t_ns[-1] - flight.t_ns[0]) / 1e9, "holds": len(wps)}
+    wall, cpu = time.perf_counter() - tick, time.process_time() - cpu
+    row = {"kind": kind, "seed": seed, "wall_s": wall, "cpu_s": cpu, "flight_s": (flight.t_ns[-1] - flight.t_ns[0]) / 1e9, "holds": len(wps)}
     for name, report in site.cameras.items():
         c = compare_cameras(truth[name], report.camera)
         row[name] = (c.ground.rms_px, c.focal_error_pct, c.position_error_cm, len(report.used_points), report.offset.offset_s)
@@ -90,13 +90,13 @@ def main() -> None:
                     f"{n}: ground 3-30 m {row[n][0]:.2f} px, focal {row[n][1]:.2f} %, position {row[n][2]:.1f} cm, "
                     f"{row[n][3]} points, offset {row[n][4]:+.3f} s" for n in ("a", "b"))
                     + f"; relative {row['pair'][0]:.1f} mm (1-sigma {row['pair'][1]:.1f}), {row['pair'][2]:.3f} deg "
-                      f"(1-sigma {row['pair'][3]:.3f}), shared ground {row['pair'][4]:.0f} m2; calibrate {row['wall_s']:.0f} s "
-                      f"for a {row['flight_s']:.0f} s flight ({row['wall_s'] / row['flight_s']:.2f}x)", flush=True)
-    print("\n| run | a ground 3-30 m px | b ground 3-30 m px | relative mm (1-sigma) | relative deg (1-sigma) | calibrate / flight |")
+                      f"(1-sigma {row['pair'][3]:.3f}), shared ground {row['pair'][4]:.0f} m2; calibrate {row['wall_s']:.0f} s wall, "
+                      f"{row['cpu_s']:.0f} s CPU for a {row['flight_s']:.0f} s flight ({row['cpu_s'] / row['flight_s']:.2f}x in CPU)", flush=True)
+    print("\n| run | a ground 3-30 m px | b ground 3-30 m px | relative mm (1-sigma) | relative deg (1-sigma) | calibrate wall, CPU / flight |")
     print("| --- | --- | --- | --- | --- | --- |")
     for r in rows:
         print(f"| {r['kind']} {r['seed']} | {r['a'][0]:.2f} | {r['b'][0]:.2f} | {r['pair'][0]:.1f} ({r['pair'][1]:.1f}) | "
-              f"{r['pair'][2]:.3f} ({r['pair'][3]:.3f}) | {r['wall_s']:.0f} s / {r['flight_s']:.0f} s |")
+              f"{r['pair'][2]:.3f} ({r['pair'][3]:.3f}) | {r['wall_s']:.0f} s, {r['cpu_s']:.0f} s / {r['flight_s']:.0f} s |")
     z_t = np.array([r["pair"][0] / r["pair"][1] for r in rows])
     z_r = np.array([r["pair"][2] / r["pair"][3] for r in rows])
     print(f"error / 1-sigma: translation max {z_t.max():.2f} (mean {z_t.mean():.2f}), rotation max {z_r.max():.2f} (mean {z_r.mean():.2f})")

@@ -27,7 +27,9 @@ from contract_writer import (
     write_site_run,
 )
 from dronecal_field.camerafile import read_camera
+from dronecal_field.errors import ContractError
 from dronecal_field.pipeline.site import RelativePose, relative_pose_error
+from dronecal_field.runfile.reader import open_run
 from dronecal_field.sim.compare import compare_cameras
 
 A = pole_camera(azimuth_deg=-20, position_enu=(0.0, 0.0, 5.0), tilt_deg=18)
@@ -78,10 +80,11 @@ def test_a_two_camera_run_calibrates_each_camera_and_their_relative_pose(site_ru
     dt_m, dr_deg = relative_pose_error(rel, A, B)
     # the two cameras share the pole: the truth is 0 m apart, turned 40 degrees (azimuth) and 4 (tilt)
     assert abs(pair["rotation_deg"] - 40.2) < 1.0, pair["rotation_deg"]
-    assert dt_m < 0.05 and dr_deg < 0.6, (dt_m, dr_deg)
-    # the reported 1-sigma covers the true error within 3 sigma, and is not vacuous (centimetres, tenths of a degree)
+    assert dt_m < 0.10 and dr_deg < 1.0, (dt_m, dr_deg)
+    # the reported 1-sigma covers the true error within 3 sigma, and is not vacuous: 12 holds a camera pin each to a
+    # few centimetres and tenths of a degree (measured on this run: 25 mm against 53 mm, 0.3 deg against 0.57)
     assert dt_m < 3 * pair["translation_std_m"] and dr_deg < 3 * pair["rotation_std_deg"], (dt_m, dr_deg, pair)
-    assert pair["translation_std_m"] < 0.08 and pair["rotation_std_deg"] < 0.8, pair
+    assert pair["translation_std_m"] < 0.15 and pair["rotation_std_deg"] < 1.2, pair
 
 
 def test_a_one_camera_run_keeps_its_outputs_where_they_were(tmp_path):
@@ -129,10 +132,30 @@ SIZES = {"camera.a.width": "640", "camera.a.height": "480"}
     ({"cameras": "a", **SIZES}, ["/cameras/a/image", "/camera/image"], "a run has either one camera on /camera/... or several"),
     ({"cameras": "a", **SIZES}, ["/cameras/a/image", "/cameras/c/image"], "topic /cameras/c/image is of camera 'c', which metadata 'cameras' (a) does not list"),
     ({"cameras": "a", "camera.a.width": "640"}, ["/cameras/a/image"], "has no 'camera.a.height'"),
+    ({"cameras": "a", **SIZES}, ["/cameras/a/image", "/cameras/a/video"], "camera 'a' has both /cameras/a/image and /cameras/a/video"),
 ])
-def test_a_bad_several_camera_run_is_refused_in_one_line(tmp_path, metadata, topics, says):
+def test_a_bad_several_camera_run_is_refused_naming_the_problem(tmp_path, metadata, topics, says):
     path = tmp_path / "bad.mcap"
     _bad_run(path, metadata, topics)
+    with pytest.raises(ContractError) as err:
+        open_run(path)
+    assert says in str(err.value) and "\n" not in str(err.value), str(err.value)
+
+
+def test_calibrate_refuses_a_bad_several_camera_run_in_one_line(tmp_path):
+    path = tmp_path / "bad.mcap"
+    _bad_run(path, {"cameras": "a", **SIZES}, ["/cameras/a/image", "/camera/image"])
     proc = run_cli("calibrate", str(path), "--out", str(tmp_path / "out"), "--trials", "0")
-    assert proc.returncode == 2 and says in proc.stderr, proc.stderr
+    assert proc.returncode == 2 and "a run has either one camera on /camera/... or several" in proc.stderr, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
+
+
+def test_several_camera_metadata_round_trips():
+    from dronecal_field.runfile.records import CameraMeta, MarkerSpec, RunMetadata
+
+    md = RunMetadata(format_version=1, width=640, height=480, marker=MarkerSpec(kind="aruco", dictionary="DICT_4X4_50", marker_id=7, size_m=0.4),
+                     cameras=(CameraMeta("west", 640, 480, 0.12, "arrival"), CameraMeta("east-4k", 3840, 2160, None, None)), camera_name="west")
+    text = md.to_mcap_metadata()
+    assert text["cameras"] == "west,east-4k" and "camera.width" not in text and text["camera.east-4k.latency_s"] == "unknown"
+    back = RunMetadata.from_mcap_metadata(text)
+    assert back.cameras == md.cameras and back.for_camera("east-4k").width == 3840 and back.for_camera("west").camera_latency_s == 0.12

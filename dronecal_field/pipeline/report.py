@@ -168,6 +168,8 @@ def report_dict(report) -> dict:
                 "offset_frd_m": list(md.marker.offset_frd_m),
             },
             "camera_latency_s_declared": md.camera_latency_s,
+            # a several-camera run: which of its cameras this report is of (one-camera runs have no such key)
+            **({"camera": md.camera_name, "cameras": list(md.camera_names())} if getattr(md, "camera_name", None) else {}),
         },
         "frame": {
             "enu_origin": {"lat_deg": report.origin.lat_deg, "lon_deg": report.origin.lon_deg, "h_m": report.origin.h_m},
