@@ -87,6 +87,7 @@ def gnss_quality(
     holds_used: int,
     median_range_m: float,
     spread_rad: float = SPREAD_RAD,
+    focal_std_pct: float | None = None,
 ) -> GnssQuality:
     """What a run's GNSS means for its calibration.
 
@@ -103,6 +104,11 @@ def gnss_quality(
         Median distance from the camera to the marker points, metres.
     spread_rad : float
         Angle the points span from the camera, radians.
+    focal_std_pct : float or None
+        This calibration's own focal standard deviation (its Monte-Carlo),
+        percent: said beside the GNSS floor, and the larger is ``focal_pct``
+        (a flight whose geometry does not separate focal from distance does
+        worse than the GNSS alone allows).
 
     Returns
     -------
@@ -120,12 +126,23 @@ def gnss_quality(
     position = h_acc_m if not rtk else h_acc_m / math.sqrt(max(holds_used, 1))
     vertical = "" if v_acc_m is None else f" / {v_acc_m:.2g} m vertical"
     kind = fix_name if rtk else f"{fix_name}, no RTK"
+    flight = ""
+    if focal_std_pct is not None and math.isfinite(focal_std_pct):
+        flight = f" at best (this flight's Monte-Carlo: ±{_pct(focal_std_pct)} %)"
+        focal = max(focal, focal_std_pct)
+        floor = 100.0 * e / (max(median_range_m, 1.0) * spread_rad * math.sqrt(max(holds_used, 1)))
+    else:
+        floor = focal
     head = (f"GNSS reported {h_acc_m:.2g} m{vertical} ({kind}): the camera position is known to ~{_m(position)} "
-            f"and focal to ~{focal:.2g} %")  # fmt: skip
+            f"and focal to ~{_pct(floor)} %{flight}")  # fmt: skip
     if rtk:
         # no advice: receivers report RTK fixed conservatively (ArduPilot's u-blox driver says 0.3 m whatever the scatter)
         return GnssQuality(fix, h_acc_m, v_acc_m, rtk, position, focal, (head,))
     return GnssQuality(fix, h_acc_m, v_acc_m, rtk, position, focal, (f"{head}; fly with RTK for a survey-grade calibration",))
+
+
+def _pct(v: float) -> str:
+    return f"{v:.0f}" if v >= 10 else f"{v:.2g}"
 
 
 def _m(v: float) -> str:
@@ -148,5 +165,9 @@ def gnss_quality_of_report(report: object) -> GnssQuality:
         centre = np.asarray(cam.pose.position_world, float)
         ranges = [float(np.linalg.norm(np.asarray(p.marker_enu_m, float) - centre)) for p in used if getattr(p, "marker_enu_m", None) is not None]
     median_range = float(np.median(ranges)) if ranges else 10.0
+    mc = getattr(report, "monte_carlo", None) or getattr(report, "linearised", None)
+    fx_std = (getattr(mc, "param_std", None) or {}).get("fx") if mc is not None else None
+    fx = cam.intrinsics.fx if cam is not None else None
+    focal_std = 100.0 * fx_std / fx if fx_std is not None and fx else None
     return gnss_quality(track.fix_types, None if h is None else float(h), None if v is None else float(v),
-                        holds_used=len(used), median_range_m=median_range)  # fmt: skip
+                        holds_used=len(used), median_range_m=median_range, focal_std_pct=focal_std)  # fmt: skip
