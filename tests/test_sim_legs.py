@@ -5,8 +5,9 @@ points (NAV_WAYPOINT hold 0) is written as a .plan, read back, uploaded to
 ``sim vehicle`` and flown in AUTO at 20x. ArduCopter (SCurve, Copter 4.1+)
 flies through such a point without stopping, rounding a corner within
 WPNAV_RADIUS at cruise x cos(turn / 2), and reports MISSION_ITEM_REACHED half
-way through the turn; the vehicle must do the same, and the plan's flight-time
-model must predict the flight.
+way through the turn; the vehicle must do the same (it flies
+``dronecal_field.motion``, the firmware's algorithm), and the plan's
+flight-time model, the same code, must predict the flight.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from dronecal_field.mavlink import ardupilot as ap
 from dronecal_field.mavlink import missionfile as mf
 from dronecal_field.mavlink.link import open_link
 from dronecal_field.mavlink.mission import download_mission, upload_and_verify
+from dronecal_field.motion import SCurve, turn_start_s
 from dronecal_field.plan import mission as msn
 from dronecal_field.plan.route import FlightModel, plan_route
 from dronecal_field.plan.site import CameraSite
@@ -44,11 +46,11 @@ HOLDS = np.array([2.0, 0.0, 0.0, 0.0, 2.0])
 TURN_DEG = {1: 0.0, 2: 90.0, 3: 90.0}
 LEG_SPEED = 1.5
 TRANSIT_SPEED = 2.0
-# a snappy copter (1 m/s^2, no settle) so the 6 m legs reach the leg speed: this file checks the blend's geometry and
-# the timing model's form, test_sim_flight_timing the ArduCopter-fitted defaults
-PARAMS = dataclasses.replace(FAST_PARAMS, wp_accel_mps2=1.0, wp_settle_s=0.0)
+# a snappier copter (WPNAV_JERK 3 m/s^3) so the 6 m legs reach the leg speed: this file checks the blend's geometry
+# and the timing model, test_sim_flight_timing and test_sitl_conformance the firmware's defaults
+PARAMS = dataclasses.replace(FAST_PARAMS, wp_jerk_mps3=3.0, wp_settle_s=0.0)
 # the plan's timing model with the simulated vehicle's parameters
-SIM_FLIGHT = FlightModel(speed_m_s=TRANSIT_SPEED, accel_m_s2=PARAMS.wp_accel_mps2, leg_overhead_s=0.0, hover_s=2.0,
+SIM_FLIGHT = FlightModel(speed_m_s=TRANSIT_SPEED, accel_m_s2=PARAMS.wp_accel_mps2, jerk_m_s3=PARAMS.wp_jerk_mps3, leg_overhead_s=0.0, hover_s=2.0,
                          spool_up_s=PARAMS.spool_up_s, takeoff_climb_m_s=PARAMS.takeoff_climb_mps, land_speed_m_s=PARAMS.land_speed_mps,
                          land_high_speed_m_s=PARAMS.land_speed_high_mps, land_detect_s=PARAMS.landed_disarm_s,
                          wp_radius_m=PARAMS.wp_radius_m, climb_m_s=PARAMS.climb_mps, descent_m_s=PARAMS.descent_mps)
@@ -171,16 +173,28 @@ def test_pass_through_points_keep_speed_and_are_passed_within_the_wp_radius(flow
         if turn == 0.0:
             assert d[near] < 0.1
         else:
-            # apex offset of the blend: accel * tau^2 / 8 * |u_out - u_in| with tau = speed / accel
-            tau = LEG_SPEED / PARAMS.wp_accel_mps2
-            assert d[near] == pytest.approx(PARAMS.wp_accel_mps2 * tau**2 / 8 * 2 * math.sin(math.radians(turn) / 2), abs=0.08)
+            # apex offset of the blend: the turn's mid point when the next leg starts (motion.turn_start_s)
+            assert d[near] == pytest.approx(_apex_offset_m(k), abs=0.08)
     # between leaving the first hold and braking for the last, it never stops
-    t0 = reached[seqs[0]] + LEG_SPEED / PARAMS.wp_accel_mps2 + 0.2
+    ramp_s = SCurve.track(np.zeros(3), np.array([20.0, 0.0, 0.0]), LEG_SPEED, PARAMS.wpnav).accel_end_s
+    t0 = reached[seqs[0]] + ramp_s + 0.2
     arrive = t[np.argmax((np.linalg.norm(pos[:, :2] - POINTS[4, :2], axis=1) < 0.02) & (t > t0))]
-    t1 = arrive - LEG_SPEED / PARAMS.wp_accel_mps2 - 0.2
+    t1 = arrive - ramp_s - 0.2
     inside = (t > t0) & (t < t1)
     assert inside.sum() > 100
     assert speed[inside].min() > 0.65 * LEG_SPEED
+
+
+def _apex_offset_m(k: int) -> float:
+    """How far the turn's mid point passes from pass-through point ``k`` (site frame), by ArduCopter's SCurve blend."""
+    p = PARAMS.wpnav
+    this = SCurve.track(POINTS[k - 1], POINTS[k], LEG_SPEED, p)
+    nxt = SCurve.track(POINTS[k], POINTS[k + 1], LEG_SPEED, p)
+    switch = turn_start_s(this, nxt, p)
+    assert switch is not None
+    half = 0.5 * (this.end_s - switch)
+    s1, s2 = this.state1(switch + half)[0], nxt.state1(half)[0]
+    return float(np.linalg.norm((s1 - this.length_m) * this.unit + s2 * nxt.unit))
 
 
 def test_straight_leg_flies_at_the_leg_speed(flown):
@@ -196,8 +210,11 @@ def test_holds_stop_and_last_their_time(flown):
     t, pos, speed = _track(rec)
     reached = {m.seq: tt for tt, m in rec.of("MISSION_ITEM_REACHED")}
     for k in (0, 4):
-        at = (np.linalg.norm(pos - POINTS[k], axis=1) < 0.1) & (speed == 0.0) & (t <= reached[_wp_seqs(items)[k]])
-        assert reached[_wp_seqs(items)[k]] - t[np.argmax(at)] == pytest.approx(HOLDS[k], abs=0.15)
+        at = (np.linalg.norm(pos - POINTS[k], axis=1) < 0.1) & (speed < 0.05) & (t <= reached[_wp_seqs(items)[k]])
+        # the hold timer starts as the S-curve ends; the vehicle slows under 5 cm/s on the point within a second
+        # of that (ArduCopter 4.7 SITL: 0.5-0.8 s before, the S-curve's tail is that slow, then it sways at
+        # 3-7 cm/s; this snappier copter's follower creeps in up to 0.5 s after)
+        assert -0.5 <= reached[_wp_seqs(items)[k]] - t[np.argmax(at)] - HOLDS[k] <= 1.0
 
 
 def test_flight_time_model_predicts_the_simulated_flight(flown):
@@ -216,7 +233,7 @@ def test_a_long_straight_run_of_pass_through_points_flies_at_constant_speed():
     """Ten pass-through points 5 m apart on a line: one acceleration, cruise, one braking (pure model, no sockets)."""
     from dronecal_field.sim.vehicle_flight import CopterModel
 
-    params = CopterParams(wp_speed_mps=LEG_SPEED, wp_accel_mps2=PARAMS.wp_accel_mps2)
+    params = CopterParams(wp_speed_mps=LEG_SPEED, wp_jerk_mps3=PARAMS.wp_jerk_mps3)
 
     def to_enu(item):
         return np.array([item.x * 1e-3, item.y * 1e-3, item.z])
@@ -235,15 +252,16 @@ def test_a_long_straight_run_of_pass_through_points_flies_at_constant_speed():
         for s in m.reached:
             reached[s] = m.time_s
         m.reached.clear()
-        if 2 in reached and 12 not in reached and 10.0 < m.pos[1] < 50.0:
+        if 2 in reached and 12 not in reached and 12.0 < m.pos[1] < 48.0:
             speeds.append(float(np.linalg.norm(m.vel)))
     assert sorted(reached) == list(range(1, 13))  # no DO item after the takeoff: it is reported itself
-    assert len(speeds) > 500 and np.allclose(speeds, LEG_SPEED, rtol=1e-6)
+    # the blended legs add up to the cruise; the vehicle follows its target within 1.5 %
+    assert len(speeds) > 400 and np.allclose(speeds, LEG_SPEED, rtol=0.015)
     gaps = np.diff([reached[s] for s in range(3, 12)])
     assert np.allclose(gaps, 5.0 / LEG_SPEED, atol=0.051)
 
 
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=12, deadline=None, derandomize=True)
 @given(st.lists(st.tuples(st.floats(-15, 15), st.floats(-15, 15), st.floats(1.5, 5.0), st.sampled_from([0.0, 0.0, 0.0, 1.0, 2.0])), min_size=2, max_size=9),
        st.floats(0.5, 3.0), st.floats(0.5, 3.0))
 def test_the_time_model_and_the_simulated_vehicle_agree_on_any_route(points, speed, radius):
@@ -255,7 +273,8 @@ def test_the_time_model_and_the_simulated_vehicle_agree_on_any_route(points, spe
     holds = np.array([p[3] for p in points])
     holds[-1] = 1.0
     params = CopterParams(wp_radius_m=radius)
-    fm = FlightModel(speed_m_s=speed, accel_m_s2=params.wp_accel_mps2, leg_overhead_s=params.wp_settle_s, spool_up_s=params.spool_up_s - 0.3,
+    # the plan's take-off: spool-up + alt / climb + 0.3 s; the simulator's slows into its altitude instead (6.0 s for 2 m)
+    fm = FlightModel(speed_m_s=speed, accel_m_s2=params.wp_accel_mps2, leg_overhead_s=params.wp_settle_s, spool_up_s=params.spool_up_s - 0.1,
                      wp_radius_m=radius, climb_m_s=params.climb_mps, descent_m_s=params.descent_mps)
     alt = 2.0
 
