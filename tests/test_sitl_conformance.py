@@ -59,22 +59,15 @@ def test_mission_modes_and_arming_conform(rows, prefix):
         assert row.ok, row
 
 
-# Known differences, left open (docs/simulators.md, "Conformance"): the firmware flies legs on a
-# jerk-limited S-curve (WPNAV_JERK 1 m/s^3), the simulator on a trapezoid tuned to the recorded 1 m
-# legs (0.33 m/s^2), which plan.route.FlightModel shares; longer legs are 6-19 % slower in the simulator.
-LEGS_ARE_TRAPEZOIDS = pytest.mark.xfail(reason="sim legs: trapezoid at 0.33 m/s^2, the firmware a jerk-limited S-curve: 2-5 m legs 6-19 % slower", strict=False)
-
-
 @pytest.mark.parametrize(
     "prefix",
     [
         "last wp reached -> disarmed",
         "wp seq 4 still", "wp seq 5 still", "wp seq 7 still", "wp seq 8 still",
-        pytest.param("wp seq 5 reached after previous", marks=LEGS_ARE_TRAPEZOIDS),
-        pytest.param("wp seq 6 reached after previous", marks=LEGS_ARE_TRAPEZOIDS),
-        pytest.param("wp seq 7 reached after previous", marks=LEGS_ARE_TRAPEZOIDS),
-        pytest.param("wp seq 8 reached after previous", marks=LEGS_ARE_TRAPEZOIDS),
-        pytest.param("start -> wp", marks=LEGS_ARE_TRAPEZOIDS),
+        # legs on ArduCopter's own S-curve (dronecal_field.motion: WPNAV_JERK 1 m/s^3, the S-curve clock slowed
+        # while the vehicle lags), the fly-through turn as SCurve starts it, the take-off's shaped climb
+        "wp seq 5 reached after previous", "wp seq 6 reached after previous", "wp seq 7 reached after previous",
+        "wp seq 8 reached after previous", "start -> wp",
     ],
 )  # fmt: skip
 def test_leg_and_hold_timing_conform(rows, prefix):
