@@ -29,6 +29,32 @@ Measured (each a real process; fly's CPU from os.wait4, user + system):
   frames lost in the stream (pts gaps, RTSP), video gaps, and the frames its
   simulator made (``sim camera: N frames``);
 - the flight time: the recording's wall time, and in vehicle seconds (x ``--speedup``).
+
+Measured 2026-11-27 12:38-12:47 (2 cores shared with seven other sessions'
+tests and benchmarks: load average 25-28), ``--site-plan`` = ``plan --site
+missions/site-two-poles.toml`` (one flight, 891 s planned, 46 holds, 57 legs,
+83 waypoints), ``--scale 0.5 --fps 10 --speedup 4``, recorder alone:
+
+==========  ======================  ====================  ==========================================
+flight      fly CPU (1 core)        recorded              per camera: recorded / made, dropped, gaps
+==========  ======================  ====================  ==========================================
+4 cameras   22.9 s in 243 s: 9.4 %  228 s = 15.2 min      a-wide 2150 / 2295, 29, 2; a-4k (RTSP H.264
+                                    of vehicle time       1920x1088) 1429 / 1680, 0, 3 (136 lost in the
+                                                          stream, 45 lag spans up to 1.23 s);
+                                                          b-table1 1968 / 2116, 29, 7; b-wide 1870 /
+                                                          2016, 29, 8
+1 camera    17.0 s in 238 s: 7.1 %  224 s = 14.9 min      a-wide 2170 / 2275, 0, 2
+==========  ======================  ====================  ==========================================
+
+Four cameras cost 1.32x one camera's fly CPU: the MAVLink side (10 Hz GNSS,
+37 000 messages to JSON, the tlog) is most of it, three more streams add 2.3
+points. The gaps (3-4 s each, 20 in all; the RTSP camera two of 25 and 42 s)
+are the four simulator processes starved on the loaded machine (each renders
+in Python): every one was said at once (``VIDEO LOST FROM CAMERA b-wide ...
+(2 of 4 cameras still recording)``) and marked as that camera's
+``video_gap``. The 29 frames dropped per MJPEG camera were lost from the
+sources' 16-frame queues while their reader threads were starved; several
+cameras now get 64-frame source queues.
 """
 
 from __future__ import annotations
@@ -63,7 +89,7 @@ def site_cameras(scale: float):
     for cam in site["camera"]:
         pole = poles[cam["pole"]]
         w, h = (int(v) for v in cam["image_size"].split("x"))
-        w, h = int(round(w * scale / 16) * 16), int(round(h * scale / 16) * 16)
+        w, h = int(round(w * scale / 4) * 4), int(round(h * scale / 4) * 4)
         dist = cam.get("distortion", "none")
         d = DISTORTION_LEVELS[dist] if isinstance(dist, str) else Distortion(*[float(v) for v in dist])
         origin = EnuOrigin(pole["lat"], pole["lon"], pole["ground_amsl"])
@@ -89,16 +115,25 @@ def site_plan(work: Path, logs: Path) -> Path | None:
     return None
 
 
-def fly_once(mission: Path, cameras, marker: dict, args, work: Path, logs: Path, tag: str, only_first: bool = False) -> dict:
+def marker_flags(mission: Path, marker: dict) -> list:
+    """The marker the drone carries: plan.json's beside the mission (the size plan chose), else the site file's."""
+    pj = mission.parent / "plan.json"
+    m = json.loads(pj.read_text()).get("marker") if pj.exists() else None
+    if isinstance(m, dict) and m.get("size_m"):
+        return ["--marker-dictionary", m.get("dictionary", "DICT_4X4_50"), "--marker-id", m.get("id", 0), "--marker-size", m["size_m"],
+                "--marker-offset", ",".join(str(v) for v in m.get("offset_frd_m", (0, 0, 0)))]
+    return ["--marker-dictionary", marker.get("aruco_dict", "DICT_4X4_50"), "--marker-id", marker.get("marker_id", 0),
+            "--marker-size", (marker.get("marker_sizes") or [marker.get("marker_size", 0.3)])[0],
+            "--marker-offset", ",".join(str(v) for v in marker.get("marker_offset", (0, 0, 0)))]
+
+
+def fly_once(mission: Path, cameras, marker_args: list, args, work: Path, logs: Path, tag: str, only_first: bool = False) -> dict:
     """Start the simulators, fly the mission recording the cameras, stop them; what was measured."""
     from dronecal_field.camerafile import write_camera
     from dronecal_field.demo import _free_port, _start, _stop, _wait_for_tcp, cli_argv
 
     plan = json.loads(mission.read_text())
     home = plan["mission"]["plannedHomePosition"]
-    marker_args = ["--marker-dictionary", marker.get("aruco_dict", "DICT_4X4_50"), "--marker-id", marker.get("marker_id", 0),
-                   "--marker-size", (marker.get("marker_sizes") or [marker.get("marker_size", 0.3)])[-1],
-                   "--marker-offset", ",".join(str(v) for v in marker.get("marker_offset", (0, 0, 0)))]
     sims, videos, links = [], [], []
     used = cameras[:1] if only_first else cameras
     try:
@@ -171,6 +206,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--mission", default=None, help="mission.plan to fly if plan --site makes none (default missions/security-4k/mission.plan)")
     p.add_argument("--no-site-plan", action="store_true", help="do not try plan --site; fly --mission")
+    p.add_argument("--site-plan", default=None, help="a folder plan --site wrote already (its mission.plan and plan.json)")
     p.add_argument("--speedup", type=float, default=4.0, help="sim vehicle speed-up (default %(default)s)")
     p.add_argument("--fps", type=float, default=10.0, help="each simulated camera's frame rate (default %(default)s)")
     p.add_argument("--scale", type=float, default=0.5, help="the site cameras' image sizes times this (default %(default)s)")
@@ -182,14 +218,25 @@ def main() -> int:
     logs = work / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     cameras, marker = site_cameras(args.scale)
-    mission = None if args.no_site_plan else site_plan(work, logs)
+    if args.site_plan:
+        mission = Path(args.site_plan) / "mission.plan"
+    else:
+        mission = None if args.no_site_plan else site_plan(work, logs)
     mission = mission or Path(args.mission or ROOT / "missions" / "security-4k" / "mission.plan")
+    marker_args = marker_flags(mission, marker)
+    if args.scale != 1.0 and (mission.parent / "plan.json").exists():
+        # plan.json's camera sizes are the full ones: fly would refuse the scaled streams. The mission alone, the marker as flags.
+        alone = work / "mission-only"
+        alone.mkdir(exist_ok=True)
+        (alone / "mission.plan").write_bytes(mission.read_bytes())
+        mission = alone / "mission.plan"
+        print(f"--scale {args.scale:g}: flying the mission without its plan.json (no per-camera plan for the live check)", flush=True)
     print(f"mission {mission}; cameras " + ", ".join(f"{n} {c.intrinsics.width}x{c.intrinsics.height}{' RTSP' if n == RTSP_CAMERA else ''}"
                                                    for n, c in cameras) + f" at {args.fps:g} fps; vehicle x{args.speedup:g}", flush=True)
     runs = [("site", False)] + ([] if args.no_baseline else [("one", True)])
     results = {}
     for tag, only_first in runs:
-        r = fly_once(mission, cameras, marker, args, work, logs, tag, only_first)
+        r = fly_once(mission, cameras, marker_args, args, work, logs, tag, only_first)
         results[tag] = r
         pc = per_camera(r["run"], r["cameras"])
         core = 100 * r["cpu_s"] / r["wall_s"]

@@ -13,7 +13,8 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 
-def probe_video(url: str, first_timeout_s: float = 5.0, probe_s: float = 1.0, rtsp_transport: str = "tcp", rtcp_wait_s: float = 6.0):
+def probe_video(url: str, first_timeout_s: float = 5.0, probe_s: float = 1.0, rtsp_transport: str = "tcp", rtcp_wait_s: float = 6.0,
+                queue_size: int = 16):
     """Open the stream, read the first frame and count frames for ``probe_s``: (source, first, VideoStatus).
 
     An H.264/H.265 stream (RTSP, files) is probed without decoding; over RTSP
@@ -25,7 +26,7 @@ def probe_video(url: str, first_timeout_s: float = 5.0, probe_s: float = 1.0, rt
     from dronecal_field.video import open_video
 
     try:
-        source = open_video(url, rtsp_transport=rtsp_transport)
+        source = open_video(url, rtsp_transport=rtsp_transport, queue_size=queue_size)
     except VideoError as exc:
         return None, None, VideoStatus(url=url, error=str(exc))
     first = source.read(timeout_s=first_timeout_s)
@@ -91,7 +92,10 @@ def probe_cameras(args: argparse.Namespace, plan_json: dict | None) -> list[Prob
 
     specs = args.videos
     with ThreadPoolExecutor(max_workers=len(specs)) as pool:
-        probed = list(pool.map(lambda spec: probe_video(spec.url, rtsp_transport=args.rtsp_transport), specs))
+        # Several cameras: each source holds more frames (64) for its reader thread, which shares the interpreter with
+        # the others: at 10 fps a 1.6 s stall of it overflowed the default 16 (bench_site_fly: 29 dropped per MJPEG camera).
+        queue = 16 if len(specs) == 1 else 64
+        probed = list(pool.map(lambda spec: probe_video(spec.url, rtsp_transport=args.rtsp_transport, queue_size=queue), specs))
     cams = []
     for spec, (source, first, status) in zip(specs, probed):
         plan = plan_json if spec.name is None else camera_plan(plan_json, spec.name)
