@@ -142,3 +142,63 @@ def test_compiled_trial_scores_match_the_camera_model():
     uv_est = project_batch(s.intrinsics, s.distortion, s.R, s.t, X[None])
     np.testing.assert_allclose(rms, np.sqrt(np.mean(np.sum((uv_est - uv_ref) ** 2, -1), -1)), rtol=1e-10)
     assert 0.5 < np.median(rms) < 50.0  # the perturbations move the projections by pixels, not by nothing
+
+
+def _k2_camera_fitted_with_k1():
+    """A lens with k2 (the wide 1080p's k1 -0.28, k2 0.07) on the paper's grid, fitted with k1 only (square pixels)."""
+    from dronecal_field.core.calibrate import CalibrationModel, calibrate
+    from dronecal_field.core.camera import Camera
+
+    p = paper_camera(True)
+    i = p.intrinsics
+    truth = Camera.from_arrays(np.array([i.fx, i.fy, i.cx, i.cy]), np.array([-0.28, 0.07, 0.0, 0.0, 0.0]),
+                               p.pose.R_cam_from_world, p.pose.t_cam_from_world, p.width, p.height)
+    X = paper_grid(truth)
+    pixels = truth.project(X) + np.random.default_rng(3).normal(0.0, 0.3, (len(X), 2))
+    fit = calibrate(X, pixels, truth.width, truth.height, model=CalibrationModel("k1", fix_aspect_ratio=True), loss="huber")
+    return truth, X, pixels, fit
+
+
+def test_model_term_covers_an_unmodelled_lens_term():
+    """Issue 20: a k1 fit of a k2 lens claimed its focal length to 1 px when it was 5.8 px off; the model term says so."""
+    truth, X, pixels, fit = _k2_camera_fitted_with_k1()
+    assert fit.model.fitted and fit.model == type(fit.model)("k1", fix_aspect_ratio=True)
+    err = abs(fit.camera.intrinsics.fx - truth.intrinsics.fx)
+    kw = dict(sigma_3d=(0.0, 0.0, 0.0), sigma_2d=0.3, model=fit.model)
+    noise = linearised(fit.camera, X, model_term=False, **kw)
+    cov_only = linearised(fit.camera, X, **kw)  # a fitted model: the richer model's covariance by default
+    full = linearised(fit.camera, X, fitted_pixels=pixels, **kw)
+    assert noise.model_term is None and cov_only.model_term == full.model_term == "k1k2+fixed-aspect"
+    assert err > 4.0 * noise.param_std["fx"]  # noise alone: confidently wrong
+    assert noise.param_std["fx"] < cov_only.param_std["fx"] < full.param_std["fx"]
+    assert 0.5 < err / full.param_std["fx"] < 1.5
+    assert full.ground_error_15m_cm > noise.ground_error_15m_cm
+    # the paper's RMS statistics are the noise's alone
+    assert full.rms_mean == noise.rms_mean and full.rms_percentiles == noise.rms_percentiles
+    # the Monte-Carlo: the same trials, the same term added root-sum-square
+    m0 = monte_carlo(fit.camera, X, trials=30, seed=1, model_term=False, **kw)
+    m1 = monte_carlo(fit.camera, X, trials=30, seed=1, fitted_pixels=pixels, **kw)
+    assert np.array_equal(m0.rms, m1.rms) and m1.model_term == "k1k2+fixed-aspect"
+    extra = full.param_std["fx"] ** 2 - noise.param_std["fx"] ** 2
+    assert m1.param_std["fx"] == pytest.approx(np.sqrt(m0.param_std["fx"] ** 2 + extra), rel=1e-6)
+    # a model named by the caller (the paper's uncertainty command, plan) is noise only
+    assert linearised(truth, X, model="k1").model_term is None
+
+
+def test_linearised_rss_moments_match_the_dense_formula(table1):
+    """The residual sum of squares' moments in O(N m^2) equal tr((I - H) Sigma) and 2 tr(((I - H) Sigma)^2) formed densely."""
+    from dronecal_field.core.calibrate import resolve_model
+    from dronecal_field.core.uncertainty import _jacobian_and_noise, _sigmas, _ssr_moments
+
+    cam, X = table1
+    s3, s2 = _sigmas(X, (0.01, 0.01, 0.015), 2.0)
+    Jm, blocks = _jacobian_and_noise(cam, X, s3, s2, resolve_model("default", len(X)).parameter_map())
+    G = np.linalg.pinv(Jm.T @ Jm)
+    n = len(X)
+    Sigma = np.zeros((2 * n, 2 * n))
+    for i in range(n):
+        Sigma[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = blocks[i]
+    M = (np.eye(2 * n) - Jm @ G @ Jm.T) @ Sigma
+    mean, var = _ssr_moments(Jm, blocks, G)
+    assert mean == pytest.approx(np.trace(M), rel=1e-10)
+    assert var == pytest.approx(2.0 * np.trace(M @ M), rel=1e-8)
