@@ -73,6 +73,41 @@ def tree_cpu_s(pid: int) -> float:
     return total
 
 
+def hold_stream_open(url: str, timeout_s: float = 600.0):
+    """Open the simulated camera's stream once and keep reading it (a daemon thread drops the packets).
+
+    GStreamer's RTSP server prepares a shared media on the first DESCRIBE and
+    answers it only once the encoder has made its first picture: at 4K H.265
+    on a loaded machine that is 14-21 s, past ``fly``'s 5 s open timeout
+    (measured: "Invalid data found when processing input"). A real camera's
+    encoder runs all the time; this client keeps ours running the same way,
+    so ``fly`` meets a stream that is already flowing. Returns the container.
+    """
+    import threading
+
+    import av
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            container = av.open(url, options={"rtsp_transport": "tcp"}, timeout=(60.0, 30.0))
+            break
+        except av.FFmpegError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(1.0)
+
+    def drain() -> None:
+        try:
+            for _ in container.demux(video=0):
+                pass
+        except av.FFmpegError:
+            pass
+
+    threading.Thread(target=drain, daemon=True, name="warm-client").start()
+    return container
+
+
 def load_text() -> str:
     return "load average " + ", ".join(f"{v:.1f}" for v in os.getloadavg()) + f" (1/5/15 min, {os.cpu_count()} cores)"
 
@@ -133,6 +168,9 @@ def main() -> int:
     run_path = out / "run.mcap"
     try:
         _wait_for_tcp(rtsp_port, camera, logs / "sim-camera.log", timeout_s=900)
+        t = time.monotonic()
+        hold_stream_open(video_url)
+        print(f"stream flowing {time.monotonic() - t:.0f} s after the RTSP port opened (a warm client holds it open)", flush=True)
         fly_log = (logs / "fly.log").open("w")
         print(f"flight starts: {load_text()}", flush=True)
         camera_cpu0 = tree_cpu_s(camera.pid)
