@@ -256,3 +256,38 @@ def test_a_site_plan_gives_each_camera_the_waypoints_it_sees(tmp_path):
     assert (a["camera_guess"]["width"], b["camera_guess"]["width"]) == (640, 480) and b["enu_origin"]["lat_deg"] == 1.5
     assert expected_seqs(mission, a) == [4, 5, 6] and expected_seqs(mission, b) == [5]
     assert a["marker"] == {"size_m": 0.4}
+
+
+def test_one_camera_of_two_lost_is_named_loudly_and_its_return_said():
+    """The video-loss alarm per camera (no --on-video-loss hold: nothing is commanded, so no link is needed)."""
+    from dronecal_field.recording.alarm import VideoLossAlarm
+    from dronecal_field.recording.feed import CameraStatus
+    from dronecal_field.recording.status import RecorderStatus, format_camera_status, format_status
+
+    def status(north_ok: bool, south_ok: bool) -> RecorderStatus:
+        cams = tuple(CameraStatus(name=n, fps=15.0 if ok else 0.0, frames=300, dropped=0, gaps=0 if ok else 1, video_ok=ok, marker_seen=True)
+                     for n, ok in (("north", north_ok), ("south", south_ok)))
+        return RecorderStatus(waypoint=3, waypoints=8, mode="AUTO", armed=True, fix="rtk_fixed", satellites=18, fps=sum(c.fps for c in cams),
+                              frames=600, dropped=0, marker_seen=True, link_ok=True, video_ok=north_ok and south_ok, elapsed_s=62,
+                              remaining_s=190, cameras=cams)
+
+    alarm = VideoLossAlarm(link=None)
+    assert alarm.update(status(True, True), 100.0) == [] and alarm.lost_since is None
+    [(text, loud)] = alarm.update(status(True, False), 101.0)
+    assert loud and text.startswith("VIDEO LOST FROM CAMERA south at waypoint 3/8: no frame from it (1 of 2 cameras still recording)")
+    assert "--on-video-loss hold would hold" in text and alarm.lost_since == 101.0
+    assert alarm.update(status(True, False), 110.0) == []  # said every 15 s, not every tick
+    assert alarm.update(status(True, False), 116.5) == [("VIDEO STILL LOST FROM CAMERA south (16 s)", True)]
+    assert alarm.update(status(True, True), 121.0) == [("video from camera south back after 20.0 s (the gap is marked in the run)", False)]
+    assert alarm.lost_since is None and alarm.losses == 1 and not alarm.held
+    # the single camera's words are as they were
+    single = VideoLossAlarm(link=None)
+    [(text, loud)] = single.update(RecorderStatus(waypoint=5, waypoints=24, mode="AUTO", armed=True, fix="rtk_fixed", satellites=18, fps=0.0,
+                                                  frames=10, dropped=0, marker_seen=None, link_ok=True, video_ok=False, elapsed_s=1,
+                                                  remaining_s=None), 5.0)
+    assert loud and text.startswith("VIDEO LOST at waypoint 5/24: no frame from the camera; waypoints flown now have no images")
+    # the status: the main line counts the cameras and names the lost one; each camera has its own line
+    line = format_status(status(True, False))
+    assert line == "wp 3/8 AUTO armed | rtk_fixed 18 sats | 2 cameras 0 dropped | 01:02 / ~03:10 left | NO VIDEO from 1 of 2: south"
+    assert format_camera_status(status(True, False).cameras[1], live="live 2 ok 0 missed") == \
+        "  cam south:  0.0 fps 300 frames 0 dropped 1 gaps | marker yes | NO VIDEO | live 2 ok 0 missed"
