@@ -104,9 +104,10 @@ class LiveSite:
         """Each camera's new summary lines, prefixed with its name."""
         return [f"[{name}] {line}" for name, live in self.cameras.items() for line in live.new_summaries()]
 
-    def finish(self, timeout_s: float = 30.0) -> dict[str, LiveResult]:
-        """Every camera's result (waypoints its worker had not reached are checked by ``calibrate`` from the file)."""
-        return {name: live.finish(timeout_s, run_path=None) for name, live in self.cameras.items()}
+    def finish(self, timeout_s: float = 30.0, run_path: Any = None) -> dict[str, LiveResult]:
+        """Every camera's result; waypoints its worker had not reached are checked from the ring, else from its own
+        topic of the closed run file (``run_path``)."""
+        return {name: live.finish(timeout_s, run_path=run_path) for name, live in self.cameras.items()}
 
 
 def start_live_site(mission: Any, marker: Any, cameras: list[SiteCamera], origin: Any, min_fix: str,
@@ -125,7 +126,7 @@ def start_live_site(mission: Any, marker: Any, cameras: list[SiteCamera], origin
     lives = {
         cam.name: LiveCalibration(mission, marker, cam.width, cam.height, plan=cam.plan, origin=origins[cam.name], options=options,
                                   view=view if i == 0 else None, camera_latency_s=camera_latency_s,
-                                  ring_frames=RING_FRAMES, ring_bytes=ring_bytes)
+                                  ring_frames=RING_FRAMES, ring_bytes=ring_bytes, camera=cam.name)
         for i, cam in enumerate(cameras)
     }
     planned = {cam.name: bool(cam.plan and isinstance(cam.plan.get("grid"), list) and cam.plan["grid"]) for cam in cameras}
@@ -146,8 +147,10 @@ def camera_verdict(name: str, result: LiveResult, planned: bool) -> tuple[str, t
         text += f"; predicted ground error {est.ground_error_15m_cm:.1f} cm at 15 m ({est.n_points} points)"
     elif est is None:
         text += "; no live calibration yet (calibrate needs 6 points)"
+    if result.checked_after_landing:
+        text += f"; {len(result.checked_after_landing)} checked after landing from the run file (the live worker was behind)"
     if result.unchecked:
-        text += f"; {len(result.unchecked)} waypoints left to calibrate (the live worker was behind)"
+        text += f"; {len(result.unchecked)} waypoints left to calibrate (not checked live)"
     return text, ()
 
 
@@ -157,7 +160,7 @@ def conclude_site(site: LiveSite, run_path: Path, mission: Any, timeout_s: float
     from dronecal_field.live.refly import write_refly_plan
     from dronecal_field.live.session import refly_path
 
-    results = site.finish(timeout_s)
+    results = site.finish(timeout_s, run_path=run_path if run_path.is_file() else None)
     lines = site.new_summaries()
     doc: dict[str, Any] = {"run": run_path.name, "cameras": {}}
     refly: set[int] = set()

@@ -146,13 +146,15 @@ class LiveCalibration:
     camera_latency_s : the stream's declared latency (the camera offset until one is estimated).
     job_queue : waypoints waiting for the worker before further ones are skipped.
     ring_frames, ring_bytes : the frame ring's bounds (RING_FRAMES, RING_BYTES).
+    camera : the camera's name in a several-camera run (its frames read back from ``/cameras/<camera>/...``), else None.
     """
 
     def __init__(
         self, mission: Any, marker: Any, width: int, height: int, plan: dict | None = None, origin: Any = None,
         options: LiveOptions = LiveOptions(), view: Any = None, camera_latency_s: float | None = None, job_queue: int = 8,
-        ring_frames: int = RING_FRAMES, ring_bytes: int = RING_BYTES,
+        ring_frames: int = RING_FRAMES, ring_bytes: int = RING_BYTES, camera: str | None = None,
     ) -> None:
+        self.camera = camera
         self.mission = mission
         self.marker = marker
         self.width, self.height = int(width), int(height)
@@ -360,7 +362,7 @@ class LiveCalibration:
 
         windows = [(int(e.timestamp_ns) + self.camera_offset_ns, int(e.timestamp_ns + e.duration_ns) + self.camera_offset_ns) for e in events]
         try:
-            with open_run(run_path) as run:
+            with (open_run(run_path) if self.camera is None else open_run(run_path, camera=self.camera)) as run:
                 return list(run.iter_frames(windows))
         except Exception as exc:  # noqa: BLE001 - a damaged file: the verdict says they were not checked
             with self._lock:
