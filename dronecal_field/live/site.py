@@ -12,6 +12,12 @@ CPU, so that four streams fit a 2-core field laptop beside the recorder:
 - fewer frames a hold and a leg per camera (``LiveOptions.frames_per_hold``
   and ``frames_per_leg`` divided by the number of cameras, at least 4 and 6);
 - a frame ring of ``RING_BYTES`` shared out between the cameras;
+- one waypoint job at a time among the cameras (a shared lock), and after
+  each a rest that keeps the jobs within ``SITE_CPU_SHARE`` of one core: the
+  four workers of bench_site_fly --live, each on its own, dropped 35 % of the
+  frames at load 40 (a niced worker preempted while holding the interpreter
+  lock stalls the recorder's threads); a job that waits for its turn until
+  its frames left the ring is checked after landing from the run file;
 - every worker at nice +10 as the single camera's, below the recorder.
 
 A camera's verdict names re-fly waypoints only when the plan says which
@@ -27,6 +33,7 @@ The Foxglove view (``--live-port``) shows the first camera.
 from __future__ import annotations
 
 import json
+import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -35,6 +42,7 @@ from dronecal_field.live.progress import LiveOptions, constrained
 from dronecal_field.live.worker import RING_BYTES, RING_FRAMES, LiveCalibration, LiveResult
 
 MIN_RING_BYTES = 24 << 20  # per camera: a few seconds of 4K JPEG, more than a hold's frames
+SITE_CPU_SHARE = 0.35  # of one core, the live jobs of every camera together
 
 
 @dataclass(frozen=True)
@@ -120,13 +128,15 @@ def start_live_site(mission: Any, marker: Any, cameras: list[SiteCamera], origin
     view = open_view(live_host, live_port)
     options = site_options(min_fix, len(cameras))
     ring_bytes = max(MIN_RING_BYTES, RING_BYTES // max(1, len(cameras)))
+    job_lock = threading.Lock()
     # a camera's guess and ROI are in the ENU frame at its own pole's foot: its live frame is that one
     origins = {cam.name: (site_origin_from_plan_json(cam.plan, f"plan.json camera {cam.name}") if cam.plan else None) or origin
                for cam in cameras}
     lives = {
         cam.name: LiveCalibration(mission, marker, cam.width, cam.height, plan=cam.plan, origin=origins[cam.name], options=options,
                                   view=view if i == 0 else None, camera_latency_s=camera_latency_s,
-                                  ring_frames=RING_FRAMES, ring_bytes=ring_bytes, camera=cam.name)
+                                  ring_frames=RING_FRAMES, ring_bytes=ring_bytes, camera=cam.name, job_lock=job_lock,
+                                  cpu_share=SITE_CPU_SHARE)
         for i, cam in enumerate(cameras)
     }
     planned = {cam.name: bool(cam.plan and isinstance(cam.plan.get("grid"), list) and cam.plan["grid"]) for cam in cameras}

@@ -33,6 +33,7 @@ again at the next keyframe, and what it cannot decode is left to ``calibrate``.
 from __future__ import annotations
 
 import collections
+import contextlib
 import os
 import queue
 import threading
@@ -147,14 +148,19 @@ class LiveCalibration:
     job_queue : waypoints waiting for the worker before further ones are skipped.
     ring_frames, ring_bytes : the frame ring's bounds (RING_FRAMES, RING_BYTES).
     camera : the camera's name in a several-camera run (its frames read back from ``/cameras/<camera>/...``), else None.
+    job_lock : a lock shared by several cameras' workers: one waypoint job at a time among them (None: its own pace).
+    cpu_share : after each job, rest (holding ``job_lock``) so that jobs take at most this share of one core.
     """
 
     def __init__(
         self, mission: Any, marker: Any, width: int, height: int, plan: dict | None = None, origin: Any = None,
         options: LiveOptions = LiveOptions(), view: Any = None, camera_latency_s: float | None = None, job_queue: int = 8,
         ring_frames: int = RING_FRAMES, ring_bytes: int = RING_BYTES, camera: str | None = None,
+        job_lock: Any = None, cpu_share: float = 1.0,
     ) -> None:
         self.camera = camera
+        self._job_lock = job_lock
+        self.cpu_share = min(1.0, max(0.05, float(cpu_share)))
         self.mission = mission
         self.marker = marker
         self.width, self.height = int(width), int(height)
@@ -446,7 +452,7 @@ class LiveCalibration:
                 ring = list(self._frames)
                 if self._ring_holds(event, ring):
                     self._current_event = event
-                    self._check(event, ring)
+                    self._paced_check(event, ring)
                     self._current_event = None
                 else:
                     self._defer(event)  # its frames are gone from the ring: not "missed", checked after landing
@@ -463,6 +469,19 @@ class LiveCalibration:
                 break  # finish() checks what is still queued, after landing
         self._close_zones()
         self._cpu_s = time.thread_time() - t_cpu
+
+    def _paced_check(self, event: RunEvent, ring: list) -> None:
+        """One job in flight: alone among the cameras sharing ``job_lock``, then a rest that keeps the jobs within
+        ``cpu_share`` of a core (a resting worker holds no interpreter lock: the recorder's threads run)."""
+        if self._job_lock is None and self.cpu_share >= 1.0:
+            self._check(event, ring)
+            return
+        with self._job_lock if self._job_lock is not None else contextlib.nullcontext():
+            t0 = time.thread_time()
+            self._check(event, ring)
+            rest = (time.thread_time() - t0) * (1.0 / self.cpu_share - 1.0)
+            if rest > 0:
+                self._stop.wait(min(rest, 10.0))
 
     def _prepare(self) -> None:
         from dronecal_field.pipeline.detect import make_aruco_detector
