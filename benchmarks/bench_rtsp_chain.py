@@ -126,6 +126,7 @@ def main() -> int:
     p.add_argument("--max-flight-time", type=float, default=10.0, help="plan's flight time, minutes (default %(default)s)")
     p.add_argument("--out", default=None, help="work folder (default: a temporary one)")
     p.add_argument("--plan-trials", type=int, default=200, help="plan's Monte-Carlo trials per candidate (default %(default)s; fewer plan faster on a loaded machine)")
+    p.add_argument("--warm-client", action="store_true", help="open the stream and keep reading it before fly starts (4K H.265: the first DESCRIBE outlasts fly's 5 s open timeout)")
     p.add_argument("--plan-dir", default=None, help="fly this plan folder (made by an earlier run) instead of planning again")
     args = p.parse_args()
     width, height = (int(v) for v in args.size.lower().split("x"))
@@ -169,8 +170,9 @@ def main() -> int:
     try:
         _wait_for_tcp(rtsp_port, camera, logs / "sim-camera.log", timeout_s=900)
         t = time.monotonic()
-        hold_stream_open(video_url)
-        print(f"stream flowing {time.monotonic() - t:.0f} s after the RTSP port opened (a warm client holds it open)", flush=True)
+        if args.warm_client:
+            hold_stream_open(video_url)
+            print(f"stream flowing {time.monotonic() - t:.0f} s after the RTSP port opened (a warm client holds it open)", flush=True)
         fly_log = (logs / "fly.log").open("w")
         print(f"flight starts: {load_text()}", flush=True)
         camera_cpu0 = tree_cpu_s(camera.pid)
