@@ -33,7 +33,7 @@ def fly(plan_dir: Path, truth_path: Path, run_path: Path, logs: Path, speedup: f
     (logs / tag).mkdir(parents=True, exist_ok=True)
     sims = start_simulators(truth_path, tuple(home), logs / tag, speedup, fps, dict(MARKER, size_m=json.loads((plan_dir / "plan.json").read_text())["marker"]["size_m"]))
     try:
-        sims.wait_ready()
+        sims.wait_ready(timeout_s=300.0)  # a 4K ray map on a loaded machine
         run_step("fly", cli_argv("fly", "--connect", sims.vehicle_url, "--mission", plan_dir / "mission.plan", "--video", sims.video_url,
                                  "--out", run_path, "--start", "--timeout-s", "1500"), logs / f"fly-{tag}.log", timeout_s=1800)
     finally:
