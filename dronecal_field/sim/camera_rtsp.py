@@ -152,7 +152,15 @@ def _serve(host: str, port: int, path: str, width: int, height: int, fps: str, c
             top.connect("deep-element-added", rtcp_at_capture)
         with lock:
             state["src"], state["pipeline"] = pipeline.get_by_name("src"), pipeline
-        media.connect("unprepared", lambda _m: state.update(src=None, pipeline=None))
+        media.connect("unprepared", lambda _m: forget(pipeline))
+
+    def forget(pipeline) -> None:
+        # Only this media's own pipeline: a client that reconnects gets a new media, configured before
+        # the old one's "unprepared" comes; clearing then left the new media unfed (the stream went
+        # silent for good after fly's first reconnect: "NO VIDEO" for the rest of a flight).
+        with lock:
+            if state["pipeline"] is pipeline:
+                state.update(src=None, pipeline=None)
 
     server = GstRtspServer.RTSPServer()
     server.set_address(host)
