@@ -73,7 +73,7 @@ def test_short_probe_flight_matches_the_sitl_measurements():
 
 def test_what_the_reported_gnss_accuracy_means():
     sitl = gnss_quality(["3d"] * 50, 0.9, 1.78, holds_used=16, median_range_m=10.0)
-    assert sitl.headline.startswith("GNSS reported 0.9 m / 1.8 m vertical (3D fix, no RTK): the camera position is known to ~0.9 m")
+    assert sitl.headline.startswith("GNSS reported 0.9 m / 1.8 m vertical (3D fix, no RTK): from the GNSS alone the camera position is known to ~0.9 m")
     assert "fly with RTK" in sitl.headline and sitl.limits_calibration and sitl.focal_pct == pytest.approx(2.25)
     rtk = gnss_quality(["rtk_fixed"] * 50, 0.014, 0.01, holds_used=16, median_range_m=10.0)
     assert not rtk.limits_calibration and "fly with RTK" not in rtk.headline and rtk.camera_position_m == pytest.approx(0.0035)

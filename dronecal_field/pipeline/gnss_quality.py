@@ -24,7 +24,7 @@ Example
 >>> q.camera_position_m, round(q.focal_pct, 1)
 (0.9, 2.2)
 >>> print(q.headline)  # doctest: +NORMALIZE_WHITESPACE
-GNSS reported 0.9 m (3D fix, no RTK): the camera position is known to ~0.9 m and focal to ~2.2 %; fly with RTK for a survey-grade calibration
+GNSS reported 0.9 m (3D fix, no RTK): from the GNSS alone the camera position is known to ~0.9 m and focal to ~2.2 %; fly with RTK for a survey-grade calibration
 """
 
 from __future__ import annotations
@@ -133,7 +133,7 @@ def gnss_quality(
         floor = 100.0 * e / (max(median_range_m, 1.0) * spread_rad * math.sqrt(max(holds_used, 1)))
     else:
         floor = focal
-    head = (f"GNSS reported {h_acc_m:.2g} m{vertical} ({kind}): the camera position is known to ~{_m(position)} "
+    head = (f"GNSS reported {h_acc_m:.2g} m{vertical} ({kind}): from the GNSS alone the camera position is known to ~{_m(position)} "
             f"and focal to ~{_pct(floor)} %{flight}")  # fmt: skip
     if rtk:
         # no advice: receivers report RTK fixed conservatively (ArduPilot's u-blox driver says 0.3 m whatever the scatter)
