@@ -188,7 +188,7 @@ def probe(link: MavLink, *, rate: float = 1.0, scenario: Scenario = FULL, log=pr
     obs["roi201_p1_back"] = float(back[1].p1)
     time.sleep(1.5 / rate)  # PX4 checks a new mission's feasibility a moment after the upload
     obs["start_with_roi201"] = int(link.command_long(300, (0, 0)))
-    if obs["start_with_roi201"] == 0:  # accepted (seen once in four SITL runs): it armed; disarm before the real mission
+    if obs["start_with_roi201"] == 0:  # accepted (the SITL did, 1.5 s after the upload): it armed; disarm before the real mission
         link.command_long(400, (0, 21196))
         time.sleep(2.0 / rate)
     rec.requests.clear()
@@ -322,6 +322,12 @@ def _flight(rec: _Recorder, t_start: float, scenario: Scenario) -> dict:
         if not modes or modes[-1] != label:
             modes.append(label)
     out["modes"] = modes
+    flown: list[str] = []
+    for a, m, armed in rec.modes:
+        label = f"{m}{'*' if armed else ''}"
+        if a >= t_start and (not flown or flown[-1] != label):
+            flown.append(label)
+    out["modes_flown"] = flown
     out["flight_s"] = float(t[after][-1] - start_s)
     out["track"] = [[round(float(v), 3) for v in row] for row in np.column_stack([t, e, n, u, speed, vz, hdg])[after][::2]]
     return out
@@ -375,13 +381,13 @@ def rows(sitls: list[dict], sim: dict) -> list[tuple[str, str, str, bool]]:
     same("MISSION_CURRENT.total, no mission", "mission_total_empty", None)
     same("pre-flight (ekf, ready_to_arm, home, gnss) with --min-fix 3d", "preflight", None)
     same("GPS fix type, h_acc, v_acc mm", ("gps_fix_type", "gps_h_acc_mm", "gps_v_acc_mm"), None)
-    near("GPS time_usec minus boot clock, s", "gps_time_minus_boot_s", 0.25)
+    near("GPS time_usec minus boot clock, s", "gps_time_minus_boot_s", 0.3)  # two latest messages: a fix interval apart at most
     near("GPS new fixes/s (asked 10 Hz)", "gps_fix_hz", 1.0)
     same("SYS_STATUS pre-arm bit, sensors healthy", ("sys_status_prearm_bit", "sys_status_health_ok"), None)
     same("ESTIMATOR_STATUS flags; EKF_STATUS_REPORT sent", ("estimator_flags", "ekf_status_report"), None)
     same("requests, first upload of the session", "requests_first_upload", None)
     same("DO_SET_ROI(201) mode 3 stored as", "roi201_p1_back", None)
-    same("MISSION_START with DO_SET_ROI (2 = DENIED)", "start_with_roi201", None)
+    same("MISSION_START 1.5 s after uploading DO_SET_ROI (0 = ACCEPTED)", "start_with_roi201", None)
     same("requests, next upload", "requests_next_upload", None)
     same("read back identical by fly's PX4 rules", "readback_identical", None)
     same("seq 0 is the first item (command)", "mission_seq0_command", None)
@@ -390,12 +396,14 @@ def rows(sitls: list[dict], sim: dict) -> list[tuple[str, str, str, bool]]:
     same("yaw 236.57 read back (float32 radians)", "yaw_back", None)
     same("ROI command stored", "roi_command_back", None)
     same("MISSION_CURRENT.total (items uploaded)", "mission_total", None)
-    same("modes flown (* armed)", "modes", None)
+    same("modes from MISSION_START (* armed)", "modes_flown", None)
+    # tolerances: the SITL's own spread over its runs (hold still 2.7-4.0 s for 3 s, descent 0.64-0.83 m/s, disarm 2.5-4.4 s
+    # after touchdown, seen on a 1 Hz HEARTBEAT)
     near("airborne after MISSION_START, s", "airborne_after_start_s", 1.0)
     near("climb rate, m/s", "climb_rate_mps", 0.15, rel=True)
     for name in sitls[0]["holds"]:
         planned = sitls[0]["holds"][name]["planned_s"]
-        near(f"hold {name} ({planned:g} s planned): still s", None, 0.5, get=lambda x, n=name: x["holds"][n]["still_s"])
+        near(f"hold {name} ({planned:g} s planned): still s", None, 1.3, get=lambda x, n=name: x["holds"][n]["still_s"])
         near(f"hold {name}: yaw error to the pole, deg", None, 3.0, get=lambda x, n=name: x["holds"][n]["yaw_err_deg"])
         near(f"hold {name}: first reached minus hold end, s", None, 0.5, get=lambda x, n=name: x["holds"][n].get("reached_minus_hold_end_s"))
     if sitls[0].get("leg1_top_mps") is not None:  # the full flight's legs
@@ -409,9 +417,9 @@ def rows(sitls: list[dict], sim: dict) -> list[tuple[str, str, str, bool]]:
     same("MISSION_ITEM_REACHED seqs", "reached_seqs", None)
     near("reached repeats, period s", "reached_repeat_period_s", 0.1)
     near("reached repeats of the LAND item", None, 1.0, get=lambda x: x["reached_counts"].get(str(max(map(int, x["reached_counts"])))) if x["reached_counts"] else None)
-    near("descent rate, m/s", "descent_rate_mps", 0.15, rel=True)
-    near("landed from the LAND point, m", "land_miss_m", 0.5)
-    near("disarm after touchdown, s", "disarm_after_touchdown_s", 1.0)
+    near("descent rate, m/s", "descent_rate_mps", 0.2, rel=True)
+    near("landed from the LAND point, m", "land_miss_m", 1.0)
+    near("disarm after touchdown, s", "disarm_after_touchdown_s", 1.5)
     near("flight, MISSION_START to disarm + 2 s, s", "flight_s", 0.1, rel=True)
     return out
 

@@ -17,8 +17,9 @@ Measured on PX4 v1.16.0 SITL with SIH (``../shared/sitl/px4-1.16``, README there
   3.1470000743865967), positions 1e-7 degree integers, DO items keep frame 2;
   a NAV item's yaw (param 4) is kept in float32 radians (236.57 deg reads back
   as 236.56997680664062).
-  DO_SET_ROI (201) with ROI mode 3 is stored with param 1 = 0 and the
-  vehicle then refuses MISSION_START (DENIED): the PX4 mission uses
+  DO_SET_ROI (201) with ROI mode 3 is stored with param 1 = 0 (ROI none:
+  MISSION_START is DENIED right after the upload, as for any mission not yet
+  checked, and ACCEPTED 1.5 s later; flown, it turns nothing): the PX4 mission uses
   DO_SET_ROI_LOCATION (195), which it stores and flies (yaw towards the
   point, within 2-3 degrees once turned).
 * MISSION_ITEM_REACHED repeats the last reached item about once a second
@@ -130,7 +131,7 @@ def px4_item(item: MissionItem) -> MissionItem:
     """One file item as PX4 takes it (file numbering kept).
 
     DO_SET_ROI (201) in ROI-location mode becomes DO_SET_ROI_LOCATION (195):
-    PX4 stores 201's mode as 0 and refuses to start such a mission. A hold
+    PX4 stores 201's mode as 0 (ROI none), so the camera-facing yaw is lost. A hold
     waypoint gets an acceptance radius (param 2) of :data:`HOLD_ACCEPTANCE_M`:
     with PX4's default (NAV_ACC_RAD, 2 m) its hold timer starts 2 m before
     the point, so holds 0.5 m apart were "reached" every 3.1 s while the

@@ -16,9 +16,10 @@ which runs the same probe on both and prints them side by side:
   PX4's ``format_mavlink_mission_item`` (:func:`px4_stored`): frame 3 reads
   back as 6 in int mode, altitude and params float32, a NAV item's yaw
   through float32 radians, DO items in frame 2, DO_SET_ROI (201) stored with
-  mode 0 and the mission then refused at MISSION_START (DENIED, "Mission
-  start denied! No valid mission"). MISSION_CURRENT.total is 65535 with no
-  mission.
+  mode 0 (ROI none: flown, it turns nothing). MISSION_START is DENIED ("Mission
+  start denied! No valid mission") until the navigator has checked a new
+  upload (1 s here; the SITL denied at once and accepted 1.5 s later).
+  MISSION_CURRENT.total is 65535 with no mission.
 * MISSION_START arms and starts in one command; arming in AUTO.MISSION
   starts the mission too. DO items run in sequence after the NAV item
   before them is reached (ArduCopter runs them as that item starts), so a
@@ -61,7 +62,7 @@ PX4_BOOT_S = 12.0  # SITL: GPS, home and a healthy EKF2 about 10-15 s after star
 PX4_BASE_MODE = ap.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | 4 | 8 | 16  # custom, auto, guided, stabilize: 29 (SITL)
 REACHED_REPEAT_S = 1.0  # measured 1.006 s
 REACHED_REPEAT_FOR_S = 10.0  # 10-11 messages per item when nothing follows
-MISSION_VALID_AFTER_S = 0.3  # navigator's feasibility check after an upload: DENIED until then
+MISSION_VALID_AFTER_S = 1.0  # navigator's feasibility check after an upload: DENIED until then (SITL: DENIED at once, ACCEPTED 1.5 s later)
 PX4_GPS_RATE_MS = 133.0  # 7.5 new fixes/s when asked for 10 Hz (SITL)
 SITL_GNSS = dict(gnss_sigma_h_m=0.2, gnss_sigma_v_m=0.5)  # SensorGpsSim: generate_wgn() * 0.2 / 0.5
 SITL_ACC_MM = (900, 1780)  # GPS_RAW_INT h_acc, v_acc on the SITL (eph 0.9, epv 1.78)
@@ -141,8 +142,8 @@ def px4_stored(item: MissionItem) -> MissionItem | None:
 
 
 def mission_valid(items: list[MissionItem]) -> bool:
-    """PX4's feasibility as the simulator checks it: a mission, and no DO_SET_ROI stored with mode 0."""
-    return bool(items) and not any(it.command == mf.CMD_DO_SET_ROI for it in items)
+    """PX4's feasibility as the simulator checks it: a mission (a DO_SET_ROI stored with mode 0 passes and flies without its ROI)."""
+    return bool(items)
 
 
 class Px4MissionServer(MissionServer):
@@ -503,6 +504,20 @@ class Px4Vehicle(SimVehicle):
                 return ap.MAV_RESULT_DENIED
             return m.arm()
         return super()._command(link, msg)
+
+    # ----- GPS -----
+    def _gps_step(self, now: float) -> None:
+        """SIH's receiver: a fix every ``gps_rate_ms``, stamped when measured (the SITL's time_usec sat -0.05..+0.06 s
+        from the boot clock of the position beside it; ArduPilot's u-blox is 104 ms late)."""
+        self._history.append((now, self.model.position.copy()))
+        del self._history[:-20]
+        if now + 1e-9 < self._next_fix_s:
+            return
+        period = self.config.gps_rate_ms * 1e-3
+        self._next_fix_s = math.ceil(now / period + 0.5) * period
+        c = self.config
+        noise = self.rng.standard_normal(3) * np.array([c.gnss_sigma_h_m, c.gnss_sigma_h_m, c.gnss_sigma_v_m])
+        self._last_fix = (now, self.model.position.copy() + noise)
 
     # ----- reached messages -----
     def _broadcast_active(self, msg: Any) -> None:
