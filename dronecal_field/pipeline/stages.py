@@ -117,7 +117,8 @@ def run_stages(path: Path, options: CalibrateOptions, live, clock: "StageClock",
         jumps = [e for e in run.iter_events() if e.type == "clock_jump"]
     warnings += [f"run file: {w}" for w in run_warnings] + read.warnings + notes
     if dets.size_mismatch:
-        warnings.append(f"frames are not {md.width}x{md.height} as camera.width/height say")
+        key = "camera.width/height" if camera is None else f"camera.{camera}.width/height"
+        warnings.append(f"frames are not {md.width}x{md.height} as {key} say")
     if dets.stats.frames_corrupt:
         warnings.append(f"{dets.stats.frames_corrupt} corrupt frames skipped")
     if not dets.items:
@@ -155,8 +156,7 @@ def offset_with_timing(offset: TimeOffset, timing: Timing, read: TrackRead, nois
 
 
 def with_camera(result, camera):
-    from dataclasses import replace
-
+    """A CalibrationResult with its camera replaced (e.g. by the same camera carrying its ENU origin)."""
     return replace(result, camera=camera)
 
 
