@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -159,3 +160,22 @@ def test_single_camera_site_file_still_plans_one_camera(tmp_path):
     assert is_multi_site(tmp_path / "s.toml")
     (tmp_path / "one.toml").write_text("[camera]\nlat = 1.0\n")
     assert not is_multi_site(tmp_path / "one.toml")
+
+
+def test_marker_seen_needs_view_size_and_facing():
+    from dronecal_field.core.camera import CameraPose, Distortion, Intrinsics, look_rotation
+    from dronecal_field.plan.multiplan import MAX_FACING_DEG, marker_seen
+
+    # 1280x960, f 1110 px, 3 m up, looking along +X (east in ENU terms here) 20 deg down
+    fwd = np.array([math.cos(math.radians(20)), 0.0, -math.sin(math.radians(20))])
+    cam = Camera(intrinsics=Intrinsics(fx=1110.0, fy=1110.0, cx=640.0, cy=480.0, width=1280, height=960), distortion=Distortion(),
+                 pose=CameraPose.from_position(look_rotation(fwd), np.array([0.0, 0.0, 3.0])))
+    marker = np.array([[6.0, 0.0, 1.0], [6.0, 0.0, 1.0], [6.0, 0.0, 1.0], [40.0, 0.0, 1.0], [6.0, 30.0, 1.0]])
+    turn = math.radians(MAX_FACING_DEG + 5)
+    facing = np.array([[-1.0, 0.0], [-math.cos(turn), math.sin(turn)], [-math.cos(math.radians(50)), math.sin(math.radians(50))],
+                       [-1.0, 0.0], [-1.0, 0.0]])
+    ok, uv, px = marker_seen(cam, marker, facing, 0.3, 20.0)
+    assert ok.tolist() == [True, False, True, False, False]  # facing, turned 65 deg, turned 50 deg, 8 px at 40 m, outside the image
+    assert px[0] == pytest.approx(1110 * 0.3 / math.hypot(6.0, 2.0), rel=1e-6)  # 52.7 px face-on
+    assert px[2] == pytest.approx(px[0] * math.cos(math.radians(50)), rel=1e-6)
+    assert uv[0, 0] == pytest.approx(640.0, abs=1e-6)
