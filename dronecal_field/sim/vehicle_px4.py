@@ -37,8 +37,8 @@ which runs the same probe on both and prints them side by side:
 * Flight (:class:`Px4Model`): take-off spool and climb, jerk-limited
   acceleration on legs, a corner speed at fly-through waypoints, the hold
   time as planned, the land speeds, "Disarmed by landing" 3.2 s after
-  touchdown. Not modelled: the SITL lingered ~7 s within 0.5 m of a
-  fly-through waypoint before the next leg (its flight took 53 s, ours 44 s).
+  touchdown. Not modelled: in one SITL run of three the vehicle lingered ~7 s
+  within 0.5 m of a fly-through waypoint before the next leg (53 s against 46).
 """
 
 from __future__ import annotations
