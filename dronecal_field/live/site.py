@@ -17,7 +17,10 @@ CPU, so that four streams fit a 2-core field laptop beside the recorder:
   four workers of bench_site_fly --live, each on its own, dropped 35 % of the
   frames at load 40 (a niced worker preempted while holding the interpreter
   lock stalls the recorder's threads); a job that waits for its turn until
-  its frames left the ring is checked after landing from the run file;
+  its frames left the ring is checked after landing from the run file
+  (the latest ``AFTER_LANDING_MAX`` per camera: four cameras with ~80 each
+  kept fly concluding for over 6 minutes at load 30; the rest are
+  ``calibrate``'s, said in the verdict);
 - every worker at nice +10 as the single camera's, below the recorder.
 
 A camera's verdict names re-fly waypoints only when the plan says which
@@ -43,6 +46,7 @@ from dronecal_field.live.worker import RING_BYTES, RING_FRAMES, LiveCalibration,
 
 MIN_RING_BYTES = 24 << 20  # per camera: a few seconds of 4K JPEG, more than a hold's frames
 SITE_CPU_SHARE = 0.35  # of one core, the live jobs of every camera together
+AFTER_LANDING_MAX = 8  # waypoints a camera checks after landing (the latest); the rest are calibrate's
 
 
 @dataclass(frozen=True)
@@ -136,7 +140,7 @@ def start_live_site(mission: Any, marker: Any, cameras: list[SiteCamera], origin
         cam.name: LiveCalibration(mission, marker, cam.width, cam.height, plan=cam.plan, origin=origins[cam.name], options=options,
                                   view=view if i == 0 else None, camera_latency_s=camera_latency_s,
                                   ring_frames=RING_FRAMES, ring_bytes=ring_bytes, camera=cam.name, job_lock=job_lock,
-                                  cpu_share=SITE_CPU_SHARE)
+                                  cpu_share=SITE_CPU_SHARE, after_landing_max=AFTER_LANDING_MAX)
         for i, cam in enumerate(cameras)
     }
     planned = {cam.name: bool(cam.plan and isinstance(cam.plan.get("grid"), list) and cam.plan["grid"]) for cam in cameras}

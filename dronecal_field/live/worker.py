@@ -150,14 +150,17 @@ class LiveCalibration:
     camera : the camera's name in a several-camera run (its frames read back from ``/cameras/<camera>/...``), else None.
     job_lock : a lock shared by several cameras' workers: one waypoint job at a time among them (None: its own pace).
     cpu_share : after each job, rest (holding ``job_lock``) so that jobs take at most this share of one core.
+    after_landing_max : at most this many waypoints checked by ``finish`` (the latest); the rest are left to
+        ``calibrate`` ("not checked"). None: all of them.
     """
 
     def __init__(
         self, mission: Any, marker: Any, width: int, height: int, plan: dict | None = None, origin: Any = None,
         options: LiveOptions = LiveOptions(), view: Any = None, camera_latency_s: float | None = None, job_queue: int = 8,
         ring_frames: int = RING_FRAMES, ring_bytes: int = RING_BYTES, camera: str | None = None,
-        job_lock: Any = None, cpu_share: float = 1.0,
+        job_lock: Any = None, cpu_share: float = 1.0, after_landing_max: int | None = None,
     ) -> None:
+        self.after_landing_max = after_landing_max
         self.camera = camera
         self._job_lock = job_lock
         self.cpu_share = min(1.0, max(0.05, float(cpu_share)))
@@ -290,6 +293,11 @@ class LiveCalibration:
         busy_with = self._current_event
         if self._thread is not None and self._thread.is_alive() and busy_with is not None:
             pending.append(busy_with)  # a starved worker (nice +10 on a loaded machine) may never finish it: checked here too
+        if self.after_landing_max is not None and len(pending) > self.after_landing_max:
+            pending.sort(key=lambda e: e.timestamp_ns)
+            keep = max(0, int(self.after_landing_max))
+            self._deferred.extend(pending[: len(pending) - keep])  # left to calibrate: the pilot does not wait for them
+            pending = pending[len(pending) - keep :]
         self._check_after_landing(pending, run_path)
         pending = list(self._deferred)
         self._view_stop.set()  # the view went on saying how the check after landing went
