@@ -57,7 +57,8 @@ def mission_timing(items: list[mf.MissionItem], flight: FlightModel) -> tuple[li
     stop = ~((H <= 0) & (legs > 0.01))
     stop[-1] = True
     reached = path_reached_s(P, stop, np.asarray(speeds[1:]), flight, H)
-    return seqs, reached + H  # MISSION_ITEM_REACHED comes when the hold ends
+    # MISSION_ITEM_REACHED comes when the hold ends; the path starts at the first waypoint, before its own hold
+    return seqs, reached + H + H[0] * (np.arange(len(P)) > 0)
 
 
 def recorded_reached(tlog: Path) -> dict[int, float]:

@@ -9,7 +9,8 @@ Flight time is ArduCopter 4.7's own waypoint navigation, flown by
 planned and simulated times agree by construction): every leg a jerk-limited
 S-curve (WPNAV_JERK 1 m/s^3, WPNAV_ACCEL, the DO_CHANGE_SPEED speed), its clock
 slowed while the vehicle lags its target, as AC_WPNav does; a 1 m leg takes
-4.0 s, so a 3 s hold cycle takes 7.0 s (recorded 6.9-7.2 s); a pass-through
+3.8 s from rest and 3.9 s after a 3 s hold, so a 3 s hold cycle takes 6.9 s
+(recorded 6.9-7.2 s); a pass-through
 point (hold 0: NAV_WAYPOINT param 1 = 0 followed by another waypoint) starts
 the next leg while this one brakes, once the turn's apex lies within
 WPNAV_RADIUS and the corner needs less than WPNAV_ACCEL_C, so a straight run
