@@ -12,8 +12,10 @@ pose from its own (15, 15) parameter covariance (the left rotation
 perturbation and the translation of docs/conventions.md) and pairing the
 samples: the two cameras are treated as independent. Their errors share the
 GNSS noise of the points both saw, which moves both cameras together and
-cancels in the difference, so independence can only over-state the spread of
-the relative pose, never under-state it.
+cancels in the difference, so independence leans towards over-stating the
+spread of the relative pose. Measured (benchmarks/bench_site.py, six runs of the
+independent writer): translation error / 1-sigma mean 0.81, max 1.28; rotation
+mean 0.62, max 0.92.
 """
 
 from __future__ import annotations

@@ -162,8 +162,8 @@ def site_html(site, data: dict) -> str:
         + "<h2>Cameras</h2><table><tr><th>camera</th><th>image</th><th>position ENU m</th><th>model</th><th>RMS px</th>"
           "<th>time offset s</th><th>ground error 15 m cm</th></tr>" + "".join(rows) + "</table>"
         + "<h2>Relative poses</h2><p>B's centre in A's camera frame (x right, y down, z forward) and the rotation from A's "
-          "frame to B's, with 1-sigma uncertainties from each camera's pose covariance (the two taken as independent, which "
-          "over-states the spread, never under-states it).</p><table><tr><th>pair</th><th>distance</th><th>B in A's frame m</th>"
+          "frame to B's, with 1-sigma uncertainties from each camera's pose covariance (the two taken as independent: their "
+          "shared GNSS noise cancels in the difference, so this leans towards over-stating the spread).</p><table><tr><th>pair</th><th>distance</th><th>B in A's frame m</th>"
           "<th>rotation</th><th>ground both see</th></tr>" + "".join(pairs) + "</table>"
         + "</body></html>"
     )
