@@ -37,9 +37,35 @@ recorded, 14 holds and 43 legs):
   recorded, the pts gaps counted as lost ("VIDEO LOST"), 0 video gaps, 0
   dropped by the recorder; 2 holds had no frame and were named for re-fly.
 
-At 3840x2160 the simulator's Python renderer makes ~3-4 frames a second
-(0.25-0.33 s a frame here) and its ray map takes ~2 minutes to build: the
-4K25 chain the issue asks for cannot run at real time on this machine.
+Again 2026-11-27 after the renderer's streaming path (render_in_place: 5-20 ms
+of CPU a 4K frame, ``bench_sim_camera_rates.py``) and the RTSP server's
+media fix (a reconnect used to leave the new media unfed: NO VIDEO for the
+rest of the flight). The 4K25 H.265 chain cannot run here: x265 needs
+~134-205 ms of CPU a 4K frame (3.4-5 cores for 25 fps, before fly), x264
+~42 ms; and at 4K H.265 the first DESCRIBE is answered only after the first
+encoded picture (14-21 s at load 22: fly's 5 s open fails; ``--warm-client``
+holds the stream open first). A 4K 5 fps attempt at load 50-65 got ~0.3 fps
+out of its encoder and was stopped. What ran: ``--size 1280x720 --fps 10
+--codec h265 --plan-dir`` the demo's 5.9-minute fly-through plan (24 holds,
+36 fly-through points, 1693 leg fixes; the same angular geometry as the 4K
+camera), load average 42 at the start of the flight, 24 at its end (other
+sessions' simulators, flights and tests):
+
+- fly: 530 s wall, 91.8 s of CPU = 17.3 % of one core with the live pass;
+  the simulated camera 100.8 s = 19 % (render, I420, RTSP server, x265);
+- 1621 frames recorded, 0 dropped by the recorder, 1533 lost in the stream
+  (the starved encoder delivered 5-7 of the 10 fps), 3 video gaps (12-31 s
+  reconnects), 6 corrupt frames skipped;
+- calibration ready 155.2 s after the run file was closed (target 30 s):
+  calibrate's detection stage 38.9 s with 463 frames from the live pass
+  (478 access units decoded) against 86.0 s without it (1310 decoded); the
+  rest is the after-landing check of the 35 waypoints the live worker had
+  not reached, the report, validity and uncertainty;
+- ``calibrate`` on the file alone 143.0 s: fx 1000.08 px, principal point
+  (632.60, 356.29) px; fly's own calibration fx 996.31 px, (632.15, 354.25)
+  px (truth fx 1000): NOT the same camera: fly's calibrate skipped 6 frames
+  as corrupt that the file decodes cleanly (495 vs 499 frames with the
+  marker).
 """
 
 from __future__ import annotations
