@@ -55,6 +55,20 @@ in Python): every one was said at once (``VIDEO LOST FROM CAMERA b-wide ...
 ``video_gap``. The 29 frames dropped per MJPEG camera were lost from the
 sources' 16-frame queues while their reader threads were starved; several
 cameras now get 64-frame source queues.
+
+With the live check (``--live --no-baseline``, the same flight, load 25-40):
+
+- four free-running live workers (one per camera): 2296 frames dropped of
+  ~6350 (35 %), fly 11.9 % of a core over 544 s (its live work after landing
+  included);
+- one job at a time among the cameras within 0.35 of a core (live/site.py),
+  at most 8 waypoints a camera checked after landing: 7483 frames recorded,
+  0 dropped (a-wide 2124, a-4k 1493, b-table1 1985, b-wide 1881), fly 62.4 s
+  of CPU = 19.7 % of one core over 317 s (228 s recording, then the checks
+  after landing); 35-46 waypoints checked live per camera, ~40-50 a camera
+  left to ``calibrate``. The marker (0.3 m, the plan's) was seen at 16/35,
+  1/46, 9/43 and 11/38 of them: half-size images, and the nose faces one
+  camera at a time (the plan's yaw rule).
 """
 
 from __future__ import annotations
