@@ -26,6 +26,12 @@ For every run, |true error| / reported 1-sigma for:
   predicted 1-sigma, ``validity.pixel_errors`` std and extrapolation terms, with
   the points the region calls unsupported counted apart).
 
+``--terms`` picks the reported std: ``noise`` (the measured sigmas alone,
+before issue 20), ``covariance`` (+ the next richer model's excess
+covariance: what ``calibrate`` reports while its uncertainty stage does not
+pass the fitted pixels) or ``full`` (+ the richer fit's departure from the
+camera, ``linearised(..., fitted_pixels=result.pixels)``).
+
 Printed: one line per run, then the median and maximum ratio per figure
 (target: median 0.5-1.5, no case far above).
 """
@@ -48,7 +54,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_perturbation import LOOK, make_case  # noqa: E402
 from contract_writer import write_run  # noqa: E402
 
-MODEL_TERM = True  # --noise-only: False (the figures before the model term)
+TERMS = {"noise": (False, False), "covariance": (True, False), "full": (True, True)}
 DEFAULT_ONLY = "base,speed2,hold1,gnss5,rtk_tau10,shutter"
 
 
@@ -122,15 +128,16 @@ def ring_figures(truth, est, region, covariance) -> tuple[float, float, float]:
     return true_rms, pred, float(np.mean(inside))
 
 
-def score(fit: dict) -> dict:
+def score(fit: dict, terms: str = "full") -> dict:
     from dronecal_field.core.uncertainty import linearised, parameter_covariance
     from dronecal_field.pipeline.validity import assess_validity
 
     truth, result, X, s3, s2 = fit["truth"], fit["result"], fit["X"], fit["s3"], fit["s2"]
     est = result.camera
     t = time.perf_counter()
-    lin = linearised(est, X, sigma_3d=s3, sigma_2d=s2, model=result.model, model_term=MODEL_TERM,
-                     fitted_pixels=result.pixels if MODEL_TERM else None)
+    term, bias = TERMS[terms]
+    lin = linearised(est, X, sigma_3d=s3, sigma_2d=s2, model=result.model, model_term=term,
+                     fitted_pixels=result.pixels if bias else None)
     t_lin = time.perf_counter() - t
     cov = parameter_covariance(est, X, s3, s2, result.model)
     region = assess_validity(result, cov, s3, s2)
@@ -164,6 +171,9 @@ def main() -> None:
     parser.add_argument("--scale4k", type=float, default=0.25, help="4K render scale (default 0.25: 960x540)")
     parser.add_argument("--workdir", type=Path, required=True, help="runs and cached fits (kept)")
     parser.add_argument("--rescore", action="store_true", help="score cached fits only (skip runs not yet fitted)")
+    parser.add_argument("--terms", choices=tuple(TERMS), default="full",
+                        help="reported std: noise only (before issue 20), + the richer model's covariance (what calibrate "
+                             "reports without the fitted pixels), full: + the richer fit's departure (default)")
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -179,7 +189,7 @@ def main() -> None:
                 if fit.get("refused"):
                     print(f"{name:6s} {p:13s} refused: {fit['refused']}")
                     continue
-                row = score(fit)
+                row = score(fit, args.terms)
                 row.update(camera=name, perturbation=p, seed=seed)
                 rows.append(row)
                 parts = "  ".join(f"{k} {row[k][0]:.3g}/{row[k][1]:.3g}={row[k][0] / max(row[k][1], 1e-12):.2f}" for k in FIGURES)
