@@ -87,9 +87,84 @@ def compare(plan: Path, tlog: Path, flight: FlightModel) -> dict[str, float]:
             "median_cycle_err_s": float(np.median(np.diff(planned) - np.diff(flown)))}  # fmt: skip
 
 
+def fly_on_sitl(plan: Path, speedup: float) -> tuple[float, dict[int, float], float]:
+    """Fly ``plan`` on ArduCopter 4.7 SITL from its home: (MISSION_START vehicle s, seq -> reached s, "Disarming motors" s)."""
+    import contextlib
+    import time
+
+    import sitl_conformance as conf
+    from sitl import ArduCopterSitl
+
+    from dronecal_field.mavlink.control import arm_and_start_mission, request_telemetry
+    from dronecal_field.mavlink.link import open_link
+    from dronecal_field.mavlink.mission import upload_and_verify
+
+    items = mf.read_mission(plan).items
+    home = (items[0].x * 1e-7, items[0].y * 1e-7, float(items[0].z))
+    with ArduCopterSitl.start(home, heading_deg=0.0, speedup=speedup) as sitl:
+        with sitl.netns():
+            gcs = open_link(sitl.gcs_url)
+        with contextlib.closing(gcs):
+            rec = conf._Recorder(gcs)
+            gcs.wait_heartbeat(30)
+            request_telemetry(gcs)
+            deadline = time.monotonic() + 300
+            while time.monotonic() < deadline:
+                ekf, gps, st = gcs.latest("EKF_STATUS_REPORT"), gcs.latest("GPS_RAW_INT"), gcs.latest("SYS_STATUS")
+                if ekf is not None and conf._ekf_healthy(ekf.flags) and gps is not None and gps.fix_type >= 3 and st is not None \
+                        and st.onboard_control_sensors_health & conf.ap.MAV_SYS_STATUS_PREARM_CHECK:  # fmt: skip
+                    break
+                time.sleep(0.2)
+            upload_and_verify(gcs, items, ready_timeout_s=120)
+            arm_and_start_mission(gcs, timeout_s=2.0)
+            start = rec.now()
+            deadline = time.monotonic() + 3600
+            while time.monotonic() < deadline and not any(str(m.text).startswith("Disarming") for _t, _w, m in rec.messages("STATUSTEXT", start + 5)):
+                time.sleep(0.5)
+            reached = {}
+            for t, _w, m in rec.messages("MISSION_ITEM_REACHED"):
+                reached.setdefault(int(m.seq), t)
+            disarm = next(t for t, _w, m in rec.messages("STATUSTEXT", start + 5) if str(m.text).startswith("Disarming"))
+            return start, reached, disarm
+
+
+def planned_flight_s(plan: Path, flight: FlightModel) -> float:
+    """The plan's whole flight, arming to disarm, as `plan.route` times it (take-off, legs, holds, NAV_LAND at home)."""
+    from dronecal_field.plan.route import descent_time_s, takeoff_time_s
+
+    items = mf.read_mission(plan).items
+    home = items[0]
+    origin = EnuOrigin(home.x * 1e-7, home.y * 1e-7, float(home.z))
+    takeoff = next(it for it in items if it.command == mf.CMD_NAV_TAKEOFF)
+    pts, holds, speeds = [np.array([0.0, 0.0, float(takeoff.z)])], [0.0], []
+    speed = flight.speed_m_s
+    for it in items[1:]:
+        if it.command == mf.CMD_DO_CHANGE_SPEED and it.p2 > 0:
+            speed = float(it.p2)
+        if it.command == mf.CMD_NAV_WAYPOINT:
+            e, n, _ = geodetic_to_enu(it.x * 1e-7, it.y * 1e-7, float(home.z), origin)[0]
+            pts.append(np.array([e, n, float(it.z)]))
+            holds.append(float(round(it.p1)))
+            speeds.append(speed)
+    P, H = np.asarray(pts), np.asarray(holds)
+    legs = np.append(np.linalg.norm(np.diff(P, axis=0), axis=1), 0.0)  # the leg leaving each point
+    stop = ~((H <= 0) & (legs > 0.01))
+    stop[0] = stop[-1] = True
+    reached = path_reached_s(P, stop, np.asarray(speeds), flight, H)
+    return takeoff_time_s(float(takeoff.z), flight) + float(reached[-1] + H[-1]) + descent_time_s(float(P[-1, 2]), flight)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.parse_args(argv)
+    parser.add_argument("--sitl", type=Path, default=None, help="also fly this .plan on ArduCopter 4.7 SITL and compare the whole flight")
+    parser.add_argument("--speedup", type=float, default=5.0, help="SITL clock, x wall time (default 5)")
+    args = parser.parse_args(argv)
+    flight = FlightModel()
+    if args.sitl is not None:
+        planned = planned_flight_s(args.sitl, flight)
+        start, reached, disarm = fly_on_sitl(args.sitl, args.speedup)
+        print(f"{args.sitl}: planned {planned:.1f} s, flown on ArduCopter 4.7 SITL {disarm - start:.1f} s (MISSION_START to disarm), "
+              f"planned / flown {planned / (disarm - start):.3f}; {len(reached)} MISSION_ITEM_REACHED")
     flight = FlightModel()
     print("| flight | waypoints | flown (SITL), s | planned, s | planned / flown | worst waypoint error, s | median per-waypoint error, s |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")

@@ -69,17 +69,24 @@ class FlightModel:
 
 
 @functools.lru_cache(maxsize=4096)
-def _rest_to_rest_s(length_m: float, climb_m: float, speed_m_s: float, wpnav: WpnavParams) -> float:
-    h = math.sqrt(max(length_m * length_m - climb_m * climb_m, 0.0))
-    _reached, total = path_timing(np.array([[0.0, 0.0, 0.0], [h, 0.0, climb_m]]), np.array([True, True]), np.array([speed_m_s]), wpnav)
-    return total
+def _rest_to_rest_s(length_m: float, speed_m_s: float, hold_s: float, wpnav: WpnavParams) -> float:
+    """A level leg between two holds of ``hold_s``, in a row of such legs (the S-curve clock then runs as it does on a grid)."""
+    path = np.stack([np.arange(4) * length_m, np.zeros(4), np.zeros(4)], 1)
+    reached, _total = path_timing(path, np.ones(4, bool), np.full(3, speed_m_s), wpnav, np.full(4, hold_s))
+    return float(reached[3] - reached[2] - hold_s)
 
 
 def leg_time_s(distance_m: np.ndarray | float, flight: FlightModel) -> np.ndarray:
-    """Time (s) of level rest-to-rest legs (m) as ArduCopter flies them (``motion.WaypointTracker``), ``leg_overhead_s`` added; 0 for 0 m."""
+    """Time (s) of level rest-to-rest legs (m) as ArduCopter flies them (``motion.WaypointTracker``), ``leg_overhead_s`` added; 0 for 0 m.
+
+    Each leg is one of a row of such legs with ``flight.hover_s`` holds between
+    them (a grid): after a short hold the S-curve clock still runs a little
+    slow (a 1 m leg: 3.9 s here, 3.8 s from a long rest).
+    """
     d = np.asarray(distance_m, float)
     wp = flight.wpnav
-    t = np.vectorize(lambda x: _rest_to_rest_s(round(float(x), 4), 0.0, float(flight.speed_m_s), wp) if x > 1e-6 else 0.0, otypes=[float])(d)
+    hold = float(flight.hover_s)
+    t = np.vectorize(lambda x: _rest_to_rest_s(round(float(x), 4), float(flight.speed_m_s), hold, wp) if x > 1e-6 else 0.0, otypes=[float])(d)
     return np.where(d > 1e-6, t + flight.leg_overhead_s, 0.0)
 
 
