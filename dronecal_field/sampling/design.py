@@ -40,10 +40,10 @@ MIN_DEPTH_RATIO = 1.5  # far / near along one ray: enough depth spread to separa
 # moves an edge target that much. Not more: the image's outer band is where the lens is least known, and
 # a lattice held 4 % in left the 4K camera's k3 unseen (F-test power 7 %) and its far ground 1.1 px off.
 GUESS_MARGIN = 0.02
-# an edge target that gets too few depths moves this share of the way to the centre per try: 15 % steps pulled the
-# demo's 9x6 lattice's outer columns 90 px in under the guess band (predicted 5.8 px over the ROI against 2.2 px
-# without a band); 3 % steps stop where the band's cameras still see the marker whole
-INSET_STEP = 0.03
+# an edge target that gets too few depths moves this share of the way to the centre per try, then halves back towards
+# the edge: 15 % steps alone pulled the demo's 9x6 lattice's outer columns 90 px in under the guess band (predicted
+# 5.8 px over the ROI against 2.2 px without a band)
+INSET_STEP = 0.15
 INSET_DEPTH_M = 8.0  # edge targets keep half a marker seen from this far inside the image; nearer depths are screened per point
 DEPTH_GRID_M = np.geomspace(0.6, 120.0, 200)  # distances along a ray that are screened, m
 TIMING_SIGMA_S = 0.01  # std of the offset between a frame's time and the GNSS fix time, s
@@ -280,7 +280,16 @@ def _pick_depths(ok: np.ndarray, n_depths: int, ratio: float | None) -> tuple[li
     return chosen, None
 
 
-def _inset_targets(camera: Camera, targets: np.ndarray, limits: Limits, tries: int = 30) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+def _edge_short(s: dict) -> np.ndarray:
+    """(T,) bool: targets with fewer than two usable depths because the whole marker leaves the image."""
+    ok = s["in_view"] & s["reachable"] & s["big_enough"]
+    short = np.array([_pick_depths(o, 2, None)[1] is not None for o in ok])
+    cut = (s["outside_image"] & ~s["behind_camera"] & s["reachable"] & s["big_enough"]).any(axis=1)
+    return short & cut
+
+
+def _inset_targets(camera: Camera, targets: np.ndarray, limits: Limits, tries: int = 6,
+                   refine: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Pull targets whose marker leaves the image inwards until their rays allow two depths.
 
     The lattice first keeps half a marker seen from :data:`INSET_DEPTH_M`, the margin and
@@ -288,7 +297,8 @@ def _inset_targets(camera: Camera, targets: np.ndarray, limits: Limits, tries: i
     is a guess: a marker planned on the guessed image's edge is off the real
     one when the focal length is 2 % longer); a target that still gets fewer than two depths because
     the whole marker does not fit moves :data:`INSET_STEP` of the way to the lattice centre,
-    up to ``tries`` times (small steps: the outermost targets are what sample the lens's outer band). Returns targets (T, 2), rays (T, 3), points (T, D, 3)
+    up to ``tries`` times, then halves back towards the edge ``refine`` times (to 2 % of the way: the outermost
+    targets are what sample the lens's outer band). Returns targets (T, 2), rays (T, 3), points (T, D, 3)
     and the screen (T, D).
     """
     targets = np.asarray(targets, float).copy()
@@ -297,20 +307,43 @@ def _inset_targets(camera: Camera, targets: np.ndarray, limits: Limits, tries: i
     targets[:, 0] = np.clip(targets[:, 0], eu, camera.width - 1 - eu)
     targets[:, 1] = np.clip(targets[:, 1], ev, camera.height - 1 - ev)
     centre = targets.mean(axis=0)
+    start = targets.copy()
     rays, pts, s = _screen_rays(camera, targets, limits)
-    for _ in range(tries):
-        ok = s["in_view"] & s["reachable"] & s["big_enough"]
-        short = np.array([_pick_depths(o, 2, None)[1] is not None for o in ok])
-        cut = (s["outside_image"] & ~s["behind_camera"] & s["reachable"] & s["big_enough"]).any(axis=1)
-        edge = short & cut
-        if not edge.any():
-            break
-        targets[edge] = centre + (1.0 - INSET_STEP) * (targets[edge] - centre)
-        r2, p2, s2 = _screen_rays(camera, targets[edge], limits)
-        rays[edge], pts[edge] = r2, p2
+
+    def move(which: np.ndarray, pull: np.ndarray) -> np.ndarray:
+        """Place targets ``which`` (bool) ``pull`` of the way to the centre, screen them; returns their edge flags."""
+        targets[which] = centre + (1.0 - pull[which, None]) * (start[which] - centre)
+        r2, p2, s2 = _screen_rays(camera, targets[which], limits)
+        rays[which], pts[which] = r2, p2
         for k in s:
             if isinstance(s[k], np.ndarray) and s[k].shape[:1] == (len(targets),):
-                s[k][edge] = s2[k]
+                s[k][which] = s2[k]
+        return _edge_short(s2)
+
+    good = np.zeros(len(targets))  # pull that works (0: none needed)
+    bad = np.full(len(targets), -1.0)  # largest pull known not to (-1: none tried)
+    edge = _edge_short(s)
+    for _ in range(tries):
+        if not edge.any():
+            break
+        bad[edge] = good[edge]
+        good[edge] = np.minimum(1.0, good[edge] + INSET_STEP)
+        still = np.zeros(len(targets), bool)
+        still[edge] = move(edge, good)
+        edge = still
+    for _ in range(refine):
+        moved = (bad >= 0) & ~edge
+        if not moved.any():
+            break
+        trial = good.copy()
+        trial[moved] = 0.5 * (good[moved] + bad[moved])
+        fails = np.zeros(len(targets), bool)
+        fails[moved] = move(moved, trial)
+        bad[moved & fails] = trial[moved & fails]
+        good[moved & ~fails] = trial[moved & ~fails]
+    back = (bad >= 0) & ~edge
+    if back.any():  # the last halving may have failed: every moved target ends at a pull that works
+        move(back, good)
     return targets, rays, pts, s
 
 
