@@ -46,6 +46,15 @@ in its checker thread, ~0.1 s of CPU each at 4K H.265; bench_rtsp_chain.py's
 flight ran beside it): 465 / 465 frames, 0 lost, 0 dropped, 0 corrupt, clock
 rtcp, CPU 15.4 % of one core, RSS 239 MB, 1.35 MB/s, stamp - send -0.005 ms
 constant.
+
+Again 2026-11-27 13:26 for issue 24 (``--seconds 20 --only 4k25-h265``,
+``--probe both``, load ~7): the marker probe decoding a 4K H.265 keyframe every
+second: 15.8 % of one core (15 probes; as issue 22's 15.4 %); within
+MarkerCheck's 3 % budget: 12.0 % (7 probes, 0.52 s of probe CPU, 0.074 s
+each): 0.76x. 472 / 486 frames, 0 lost, 0 dropped, RSS 235-239 MB. The other
+~9.5 % is the packet source and the writer; under 10 % is not reached yet.
+(At load ~25 the same pair measured 9.2 % / 8.5 %: the old mode then made only
+6 probes, each keyframe decode taking seconds of wall time.)
 """
 
 from __future__ import annotations
