@@ -265,10 +265,10 @@ def test_reached_for_a_waypoint_with_a_hold_comes_when_the_hold_ends(flight):
         reached_s = next(tt for tt, m in rec.of("MISSION_ITEM_REACHED") if m.seq == seq)
         at_point = (np.linalg.norm(enu - np.array(target), axis=1) < 0.1) & still & (t > reached_s - 10)
         arrived_s = t[np.argmax(at_point)]
-        # the hold timer starts as the S-curve target reaches the point; the vehicle comes to rest on it within
-        # half a second of that (ArduCopter 4.7 SITL: at rest 0.5 s before, its S-curve's tail is that slow;
-        # the simulator's follower 0.3 s after), so the hold ends HOLD_S +- 0.5 s after it stands still
-        assert reached_s - arrived_s == pytest.approx(HOLD_S + FAST_PARAMS.wp_settle_s, abs=0.5)
+        # the hold timer starts as the S-curve target reaches the point; the vehicle comes to rest on it up to a
+        # second before that (ArduCopter 4.7 SITL: 0.5-0.8 s before, its S-curve's tail is that slow) or, lagging,
+        # up to half a second after: the hold ends HOLD_S -0.5..+1 s after it stands still
+        assert -0.5 <= reached_s - arrived_s - (HOLD_S + FAST_PARAMS.wp_settle_s) <= 1.0
 
 
 def test_do_set_roi_points_the_nose_within_1_degree_during_holds(flight):
