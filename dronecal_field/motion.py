@@ -38,7 +38,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-GRAVITY_MPS2 = 9.80665
 LOOP_DT_S = 0.0025  # ArduCopter's main loop (400 Hz): the fly-through test runs once a tick
 
 _SEG_ACCEL_END = 7
@@ -462,14 +461,6 @@ def turn_start_s(this: SCurve, nxt: SCurve, p: WpnavParams) -> float | None:
     )
     idx = np.flatnonzero(ok)
     return float(t[idx[0]]) if len(idx) else None
-
-
-def leg_time_s(length_m: float, speed_mps: float, p: WpnavParams, climb_m: float = 0.0) -> float:
-    """Duration (s) of a rest-to-rest leg of ``length_m`` (its vertical part ``climb_m``) at horizontal ``speed_mps``."""
-    if length_m <= 1e-9:
-        return 0.0
-    h = math.sqrt(max(length_m * length_m - climb_m * climb_m, 0.0))
-    return SCurve.track(np.zeros(3), np.array([h, 0.0, climb_m]), speed_mps, p).end_s
 
 
 class WaypointTracker:
