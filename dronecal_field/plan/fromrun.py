@@ -109,7 +109,7 @@ def _scout_options(trials: int):
 
 def estimate_from_run(path: str | Path, trials: int = 0) -> CameraEstimate:
     """Calibrate the scout run with calibrate's pipeline and read the camera and its sigmas."""
-    from dronecal_field.pipeline.run import CalibrateOptions, calibrate_run
+    from dronecal_field.pipeline.run import calibrate_run
 
     path = Path(path)
     if not path.is_file():

@@ -198,8 +198,6 @@ def _scout_route(site: CameraSite, spec: ScoutSpec, limits: Limits, flight: Flig
 def make_scout(site: CameraSite, spec: ScoutSpec, limits: Limits, flight: FlightModel, azimuth_known: bool = True,
                takeoff_site: np.ndarray | None = None) -> Scout:
     """The scout for a camera at ``site`` (its azimuth only orients the rows when ``azimuth_known``)."""
-    from dronecal_field.sampling.lattice import _facing_vehicle
-
     # the finest depression step whose scout still fits the two minutes: a low pole reaches few levels (the rest of the
     # view is ground inside the keep-out), so it gets more rows across the part it can reach; a tall pole's rows come
     # nearer (shorter) until the coarsest step fits
@@ -209,6 +207,7 @@ def make_scout(site: CameraSite, spec: ScoutSpec, limits: Limits, flight: Flight
                                                                       takeoff_site, step)
         if route.flight_time_s <= MAX_SCOUT_S:
             break
+    spec = replace(spec, far_m=far)
     if route.flight_time_s > MAX_SCOUT_S * 1.25:
         notes.append(f"the scout takes {route.flight_time_s:.0f} s, more than the {MAX_SCOUT_S:.0f} s aimed at: give --azimuth (rows instead of rings)")
     mission = msn.build_mission(route, site.R_enu_from_site, site.origin, site.mount_height_m, spec.speed_m_s,
