@@ -45,12 +45,16 @@ def uncertainty(camera, points: list[WaypointPoint], result, options: CalibrateO
     X = np.array([p.marker_enu_m for p in used])
     s3 = np.array([p.sigma_enu_m for p in used])
     s2 = np.array([p.sigma_px for p in used])
-    lin = linearised(camera, X, sigma_3d=s3, sigma_2d=s2, model=result.model)
+    # the pixels the camera was fitted to let the model term add the richer model's departure (its bias),
+    # not only its extra covariance; only when they are the same points as X
+    fitted = result.pixels if result.points_world.shape == X.shape and np.allclose(result.points_world, X) else None
+    lin = linearised(camera, X, sigma_3d=s3, sigma_2d=s2, model=result.model, fitted_pixels=fitted)
     scale = sigma_scale(result, lin.rms_mean)
     if scale > 1.0:
         s3, s2 = scale * s3, scale * s2
-        lin = linearised(camera, X, sigma_3d=s3, sigma_2d=s2, model=result.model)
-    mc = monte_carlo(camera, X, trials=options.trials, sigma_3d=s3, sigma_2d=s2, seed=options.seed, model=result.model) if options.trials >= 2 else None
+        lin = linearised(camera, X, sigma_3d=s3, sigma_2d=s2, model=result.model, fitted_pixels=fitted)
+    mc = monte_carlo(camera, X, trials=options.trials, sigma_3d=s3, sigma_2d=s2, seed=options.seed, model=result.model,
+                     fitted_pixels=fitted) if options.trials >= 2 else None
     cov = parameter_covariance(camera, X, s3, s2, result.model)
     region = assess_validity(result, cov, s3, s2, origin=origin, roi=plan_roi, loss_scale_px=options.loss_scale_px)
     return Uncertainty(
