@@ -362,7 +362,7 @@ def test_committed_mission_folders_are_current(tmp_path, site):
         assert (f["command"], f["frame"]) == (g["command"], g["frame"])
         assert f["params"] == pytest.approx(g["params"], abs=2e-6)
     assert set(p.name for p in (MISSIONS / site).iterdir()) == {
-        "mission.plan", "mission.waypoints", "mission.geojson", "preview.png", "plan.json", "camera_guess.yaml"}
+        "mission.plan", "mission-px4.plan", "mission.waypoints", "mission.geojson", "preview.png", "plan.json", "camera_guess.yaml"}
 
 
 # ---------------------------------------------------------------------------
