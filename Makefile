@@ -37,7 +37,7 @@ rtsp-deps:
 	     || { tail -n 5 $(APT_LOG); echo "make test: apt-get could not install the RTSP test packages (above; full log $(APT_LOG)). If another apt holds the lock, let it finish and run make test again."; exit 1; }; }
 
 test: install rtsp-deps
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile  # two workers, a test module each: most of the suite waits on real-time simulators and firmware
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder --durations=25  # two workers, a module each, longest first (tests/conftest.py): most of the suite waits on real-time simulators and firmware
 
 clean:
 	rm -rf $(VENV) demo-output

@@ -83,6 +83,9 @@ class CameraProcess:
              "--marker-size", "0.4", "--marker-offset", ",".join(map(str, OFFSET)), *extra],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, start_new_session=True,
             env={**os.environ, "PYTHONPATH": str(REPO)},
+            # a suite started in the background (CI under nohup, `make test &`) hands its children SIGINT ignored:
+            # stop() is Ctrl-C, so the camera must hear it to say how many frames it made
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
         )
         self.name = name
         self.url = ""
