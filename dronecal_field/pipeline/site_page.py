@@ -155,7 +155,8 @@ def site_html(site, data: dict) -> str:
     return (
         "<!doctype html><html><head><meta charset='utf-8'><title>dronecal-field site</title>"
         "<style>body{font-family:sans-serif;margin:2em}td,th{padding:3px 8px;border-bottom:1px solid #ddd}</style></head><body>"
-        f"<h1>Site: {len(site.cameras)} cameras from {runs}</h1>"
+        f"<h1>Site: {len(data['cameras'])} cameras from {runs}"
+        + (f", {len(site.cameras)} calibrated" if len(site.cameras) != len(data["cameras"]) else "") + "</h1>"
         f"<p>Every camera is in one ENU frame (origin {data['enu_origin']}). Top view: each camera's ground footprint "
         f"{GROUND_RANGE_M[0]:g}-{GROUND_RANGE_M[1]:g} m from its pole, the pole and viewing direction, the flight track.</p>"
         + top_view_svg(site)
