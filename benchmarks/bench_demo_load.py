@@ -80,7 +80,8 @@ def _one_run(out: Path, speedup: float) -> dict:
     row["refly"] = len(refly)
     m = re.search(r"ground 3-30 m from the pole \(where users measure\): ([0-9.]+) px RMS", proc.stdout)
     row["ground_px"] = float(m.group(1)) if m else None
-    row["met_targets"] = "demo met its targets" in proc.stdout
+    # "met its targets" or "met its accuracy targets, but its logs ask for more" (a re-fly the verdict asked for)
+    row["met_targets"] = "demo met its" in proc.stdout and "demo MISSED" not in proc.stdout
     return row
 
 
