@@ -257,7 +257,8 @@ def test_a_server_restart_mid_stream_is_one_gap_event_and_the_stamps_stay_on_one
         server("--port", str(port), "--gop", "25")  # ... and comes back: a new RTSP session, its pts and RTCP start again
         before = recorder.frames_written
         assert _wait_for(lambda: recorder.frames_written >= before + 60, 30.0), "the recorder did not reconnect"
-        assert _wait_for(lambda: source.bridge_errors_ns, 12.0), "no RTCP sender report in the new session"
+        # the server sends its first sender report ~5 s into a session; a loaded machine (CI beside a demo) took over 12 s
+        assert _wait_for(lambda: source.bridge_errors_ns, 40.0), "no RTCP sender report in the new session"
         time.sleep(0.5)
         report = recorder.stop()
     finally:
