@@ -188,3 +188,57 @@ def test_unknown_model_name():
     truth, X, uv = _xu()
     with pytest.raises(InputError, match="unknown distortion model"):
         calibrate(X, uv, 1280, 960, model="fisheye")
+
+
+# --------------------------------------------------------------------------
+# A weight per point (pooled runs of different noise, pipeline/joint.py)
+
+
+def test_equal_sigmas_give_the_unweighted_solution():
+    truth, Q, q = _noisy_table1()
+    plain = calibrate(Q, q, truth.width, truth.height, model="default")
+    same = calibrate(Q, q, truth.width, truth.height, model="default", sigma_px=np.full(len(Q), 3.0))
+    assert _rel(same.camera.intrinsics.as_array(), plain.camera.intrinsics.as_array()) < 1e-7
+    assert np.max(np.abs(same.camera.distortion.as_array() - plain.camera.distortion.as_array())) < 1e-7
+    assert abs(same.rms_px - plain.rms_px) < 1e-9
+    # one point scale: the covariance does not depend on the sigmas' unit
+    assert _rel(np.diag(same.camera.covariance)[:4], np.diag(plain.camera.covariance)[:4]) < 1e-5
+
+
+def test_weighted_fit_is_the_whitened_least_squares_minimum():
+    """Two runs, 0.3 px and 6 px: our weighted fit equals scipy's least_squares on the whitened residuals."""
+    from scipy.optimize import least_squares
+
+    from dronecal_field.core.camera import Camera
+
+    truth = paper_camera(distorted=True)
+    X = paper_grid(truth)
+    rng = np.random.default_rng(7)
+    sigma = np.where(np.arange(len(X)) % 2 == 0, 0.3, 6.0)
+    q = truth.project(X) + rng.normal(size=(len(X), 2)) * sigma[:, None]
+    res = calibrate(X, q, truth.width, truth.height, model="k1", sigma_px=sigma)
+    plain = calibrate(X, q, truth.width, truth.height, model="k1")
+
+    c0 = res.camera
+    rvec0 = cv2.Rodrigues(c0.pose.R_cam_from_world)[0].ravel()
+
+    def whitened(p):
+        R = cv2.Rodrigues(p[5:8])[0]
+        cam = Camera.from_arrays(p[:4], np.r_[p[4], 0, 0, 0, 0], R, p[8:11], truth.width, truth.height)
+        return ((q - cam.project(X)) / sigma[:, None]).ravel()
+
+    i = c0.intrinsics
+    p0 = np.r_[i.fx * 1.01, i.fy * 0.99, i.cx + 3, i.cy - 2, c0.distortion.k1, rvec0, c0.pose.t_cam_from_world]
+    ref = least_squares(whitened, p0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=20000)
+    assert _rel([i.fx, i.fy, i.cx, i.cy], ref.x[:4]) < 1e-6
+    assert abs(c0.distortion.k1 - ref.x[4]) < 1e-6
+    # the weights matter here: the quiet half alone sets the focal length far better than all points alike
+    err_w = abs(res.camera.intrinsics.fx - truth.intrinsics.fx)
+    err_u = abs(plain.camera.intrinsics.fx - truth.intrinsics.fx)
+    assert err_w < 0.5 * err_u, (err_w, err_u)
+
+
+def test_bad_sigmas_are_refused():
+    truth, X, uv = _xu()
+    with pytest.raises(InputError, match="sigma_px must be a positive"):
+        calibrate(X, uv, 1280, 960, sigma_px=np.r_[np.ones(len(X) - 1), 0.0])

@@ -354,6 +354,98 @@ def levenberg_marquardt(
     return out, cost, int(iterations.max(initial=0))
 
 
+def _loss_weight(sq: np.ndarray, loss: str, scale: float) -> np.ndarray:
+    """The robust loss's IRLS weight of each squared residual (kernels._weight, vectorised)."""
+    if loss == "linear":
+        return np.ones_like(sq)
+    r = np.sqrt(sq) / scale
+    if loss == "huber":
+        return np.where(r <= 1.0, 1.0, 1.0 / np.maximum(r, 1e-12))
+    return 1.0 / (1.0 + r * r)
+
+
+def weighted_levenberg_marquardt(
+    state: BatchState,
+    points: np.ndarray,  # (N, 3)
+    pixels: np.ndarray,  # (N, 2)
+    prior: np.ndarray,  # (N,) 1 / sigma^2 of each point, mean 1 (pixels of the typical point)
+    A: np.ndarray,  # (15, m)
+    max_iterations: int = 50,
+    tolerance: float = 1e-12,
+    loss: str = "linear",
+    loss_scale: float = 2.0,
+) -> tuple[BatchState, float, int]:
+    """One problem's Levenberg-Marquardt with a weight per point (numpy; the compiled kernel has none).
+
+    The same iteration as kernels._solve_one (Marquardt's diagonal scaling, a
+    step judged with the weights it was computed with, four failures in a row
+    at a minimum): only calibrations of pooled runs come here, once each, so
+    the Python loop costs milliseconds; the unweighted path stays compiled.
+    The robust loss sees the whitened residual (prior * squared residual), so a
+    noisier run's points are not taken for outliers of a quieter one.
+    Returns the refined state, the unweighted cost and the iteration count.
+    """
+    if loss not in ("linear", "huber", "cauchy"):
+        raise InputError(f"unknown loss {loss!r}: use linear, huber or cauchy")
+    out = state.copy()
+    X = points[None]
+
+    def residuals(s: BatchState) -> np.ndarray:
+        return pixels - project_batch(s.intrinsics, s.distortion, s.R, s.t, X)[0]
+
+    def normal(s: BatchState, w: np.ndarray):
+        uv, J, _ = project_batch_jacobians(s.intrinsics, s.distortion, s.R, s.t, X, with_points=False)
+        r = pixels - uv[0]
+        Jm = J[0] @ A  # (N, 2, m)
+        sw = np.sqrt(w)[:, None, None]
+        Jw = (Jm * sw).reshape(-1, A.shape[1])
+        rw = (r * sw[:, :, 0]).reshape(-1)
+        return Jw.T @ Jw, Jw.T @ rw, np.sum(r * r, axis=1)
+
+    sq = np.sum(residuals(out) ** 2, axis=1)
+    w = prior * _loss_weight(prior * sq, loss, loss_scale)
+    JtJ, g, sq = normal(out, w)
+    cost = float(np.sum(w * sq))
+    lam, fails, it = 1e-3, 0, 0
+    for it in range(1, max_iterations + 1):
+        H = JtJ + lam * np.diag(np.maximum(np.diag(JtJ), 1e-12))
+        cost_t = np.inf
+        try:
+            delta = np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            delta = None
+        if delta is not None and np.all(np.isfinite(delta)):
+            trial = out.stepped((A @ delta)[None])
+            sq_t = np.sum(residuals(trial) ** 2, axis=1)
+            cost_t = float(np.sum(w * sq_t))
+        if np.isfinite(cost_t) and cost_t < cost:
+            rel = (cost - cost_t) / max(cost, 1e-300)
+            out, sq, cost = trial, sq_t, cost_t
+            lam, fails = max(lam / 10.0, 1e-9), 0
+            if rel < tolerance or cost <= 1e-24:
+                break
+            w = prior * _loss_weight(prior * sq, loss, loss_scale)
+            JtJ, g, sq = normal(out, w)
+            cost = float(np.sum(w * sq))
+        else:
+            lam *= 10.0
+            fails += 1
+            if fails >= 4 or lam > 1e10:
+                break
+    return out, float(np.sum(sq)), it
+
+
+def _prior_weights(sigma_px, n: int) -> np.ndarray | None:
+    """1 / sigma^2 per point scaled to mean 1 (None: every point alike), or InputError naming the problem."""
+    if sigma_px is None:
+        return None
+    s = np.broadcast_to(np.asarray(sigma_px, dtype=float), (n,))
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise InputError("every point's sigma_px must be a positive finite number of pixels: drop the point or give its noise")
+    p = 1.0 / (s * s)
+    return p / p.mean()
+
+
 # --------------------------------------------------------------------------
 # Single calibration
 
@@ -388,6 +480,7 @@ def calibrate(
     initial: Camera | None = None,
     min_thickness_m: float = 0.05,
     max_iterations: int = 200,
+    sigma_px: "np.ndarray | None" = None,
 ) -> CalibrationResult:
     """Calibrate a camera from non-coplanar 3D-2D pairs; no initial guess needed.
 
@@ -400,6 +493,8 @@ def calibrate(
     loss : 'linear', 'huber' or 'cauchy'; robust losses downweight outliers beyond ``loss_scale_px``
     initial : start from this camera instead of the DLT (fixed parameters keep its values)
     min_thickness_m : RMS distance from the best plane below which the points count as coplanar
+    sigma_px : (N,) each point's noise, pixels (pooled runs of different noise): the fit weights each point by
+        1 / sigma^2 and the covariance follows; None (the default) weights every point alike (the compiled path)
 
     Raises
     ------
@@ -413,6 +508,9 @@ def calibrate(
     n = np.asarray(points_world).shape[0] if np.ndim(points_world) == 2 else 0
     mdl = resolve_model(model, n)
     X, uv = check_correspondences(points_world, pixels, mdl.n_free, min_thickness_m)
+    prior = _prior_weights(sigma_px, X.shape[0])
+    if prior is not None:
+        return _calibrate_weighted(X, uv, width, height, mdl, loss, loss_scale_px, initial, max_iterations, prior)
     if initial is None:
         cam0 = initial_camera(X, uv, width, height)
         i = cam0.intrinsics
@@ -434,7 +532,20 @@ def calibrate(
     return _result_from_state(state, X, uv, width, height, mdl, A, iters, loss, loss_scale_px, initial)
 
 
-def _result_from_state(state, X, uv, width, height, mdl, A, iters, loss, loss_scale_px, initial) -> CalibrationResult:
+def _calibrate_weighted(X, uv, width, height, mdl, loss, loss_scale_px, initial, max_iterations, prior) -> CalibrationResult:
+    """``calibrate`` with a weight per point: the unweighted compiled solve starts it, the weighted one finishes."""
+    start = initial
+    if start is None:  # DLT + unweighted fit (the compiled path) is a start near the weighted minimum
+        start = calibrate(X, uv, width, height, model=mdl, loss=loss, loss_scale_px=loss_scale_px, min_thickness_m=0.0,
+                          max_iterations=max_iterations).camera
+    state = BatchState.from_camera(start)
+    aspect = float(state.intrinsics[0, 1] / state.intrinsics[0, 0])
+    A = mdl.parameter_map(aspect)
+    state, _, iters = weighted_levenberg_marquardt(state, X, uv, prior, A, max_iterations=max_iterations, loss=loss, loss_scale=loss_scale_px)
+    return _result_from_state(state, X, uv, width, height, mdl, A, iters, loss, loss_scale_px, initial, prior)
+
+
+def _result_from_state(state, X, uv, width, height, mdl, A, iters, loss, loss_scale_px, initial, prior=None) -> CalibrationResult:
     uv_hat, J, _ = project_batch_jacobians(state.intrinsics, state.distortion, state.R, state.t, X[None])
     depth = np.einsum("ij,nj->ni", state.R[0], X) + state.t[0]
     if np.any(depth[:, 2] <= 0) or not np.all(np.isfinite(uv_hat)):
@@ -448,14 +559,18 @@ def _result_from_state(state, X, uv, width, height, mdl, A, iters, loss, loss_sc
     outliers: tuple[int, ...] = ()
     inlier = np.ones(n, dtype=bool)
     if loss != "linear":
-        norm = np.sqrt(sq)
+        norm = np.sqrt(sq if prior is None else prior * sq)  # weighted: outliers of their own run's noise
         robust_sigma = 1.4826 * np.median(norm) + 1e-12
         out = (norm > 3.0 * robust_sigma) & (norm > loss_scale_px)
         outliers = tuple(int(i) for i in np.flatnonzero(out))
         inlier = ~out
     dof = max(2 * int(inlier.sum()) - m, 1)
-    sigma2 = float(np.sum(sq[inlier]) / dof)
-    Jm = (J[0][inlier] @ A).reshape(-1, m)
+    if prior is None:
+        sigma2 = float(np.sum(sq[inlier]) / dof)
+        Jm = (J[0][inlier] @ A).reshape(-1, m)
+    else:  # the typical point's variance (prior has mean 1) and J^T W J: cov = sigma2 (J^T W J)^-1
+        sigma2 = float(np.sum((prior * sq)[inlier]) / dof)
+        Jm = ((J[0][inlier] @ A) * np.sqrt(prior[inlier])[:, None, None]).reshape(-1, m)
     JtJ = Jm.T @ Jm
     try:
         cov_free = sigma2 * np.linalg.inv(JtJ)
