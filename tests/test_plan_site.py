@@ -179,3 +179,23 @@ def test_marker_seen_needs_view_size_and_facing():
     assert px[0] == pytest.approx(1110 * 0.3 / math.hypot(6.0, 2.0), rel=1e-6)  # 52.7 px face-on
     assert px[2] == pytest.approx(px[0] * math.cos(math.radians(50)), rel=1e-6)
     assert uv[0, 0] == pytest.approx(640.0, abs=1e-6)
+
+
+def test_the_goal_site_gives_every_camera_holds_at_two_depths():
+    """missions/site-two-poles (the issue's one-battery goal, one flight <= 15 min): the holds each camera sees pass
+    calibrate's own geometry check (not collinear, not coplanar, enough points off the main plane), so no camera of the
+    site is refused as coplanar, and they reach at least two distances along the camera's rays."""
+    from dronecal_field.core.calibrate import check_correspondences
+
+    s = json.loads(open("missions/site-two-poles/plan.json").read())
+    assert s["flight"]["n_flights"] == 1 and s["flight"]["flight_time_s"] <= 900.0
+    R = np.asarray(s["site_frame"]["R_enu_from_site"], float)
+    for entry in s["cameras"]:
+        name = entry["name"]
+        seen = [g for g in s["grid"] if name in g["seen_by"]]
+        X = np.array([g["marker_site_m"] for g in seen]) @ R.T  # ENU at the site origin
+        uv = np.array([g["seen_by"][name]["pixel"] for g in seen])
+        check_correspondences(X, uv, 9, 0.05)  # raises DegenerateGeometryError as calibrate would
+        centre = np.asarray(entry["position_site_enu_m"], float)
+        depth = np.linalg.norm(X - centre, axis=1)
+        assert depth.max() / depth.min() > 1.5, (name, depth.min(), depth.max())

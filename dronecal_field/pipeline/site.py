@@ -188,10 +188,14 @@ def hull_xy(points: np.ndarray) -> np.ndarray:
         return pts
     pts = pts[np.lexsort((pts[:, 1], pts[:, 0]))]
 
+    def turn(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+        # z of the 2D cross product (a - o) x (b - o): np.cross of 2-vectors is deprecated
+        return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
+
     def half(seq):
         out: list[np.ndarray] = []
         for p in seq:
-            while len(out) >= 2 and np.cross(out[-1] - out[-2], p - out[-2]) <= 0:
+            while len(out) >= 2 and turn(out[-2], out[-1], p) <= 0:
                 out.pop()
             out.append(p)
         return out
