@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import sys
 import tempfile
 import time
@@ -191,9 +192,27 @@ def run_case(name: str, perturbation: str, scale4k: float, seed: int, workdir: P
         row.update(refused=str(exc).splitlines()[0], calibrate_s=time.perf_counter() - t)
     else:
         row.update(refused=None, calibrate_s=time.perf_counter() - t, **errors(report, truth))
-    if not keep:
+    if keep:  # the fit, for benchmarks/bench_uncertainty_cover.py --rescore
+        fit = {"refused": row["refused"]} if row["refused"] else fit_record(report, truth)
+        path.with_suffix(".fit.pkl").write_bytes(pickle.dumps(fit))
+    else:
         path.unlink()
     return row
+
+
+def fit_record(report, truth) -> dict:
+    """What benchmarks/bench_uncertainty_cover.py rescores: the fit, its points and the sigmas the uncertainty stage
+    starts from (after the sigma scale; before confidence.leg_sigma_factors), each point's time and leg (-1: a hold)."""
+    used = report.used_points
+    scale = float(report.sigma_scale)
+    return {
+        "refused": None, "truth": truth, "result": report.result,
+        "X": np.array([p.marker_enu_m for p in used]),
+        "s3": scale * np.array([p.sigma_enu_m for p in used]),
+        "s2": scale * np.array([p.sigma_px for p in used]),
+        "t_s": np.array([p.window.start_ns * 1e-9 for p in used]),
+        "leg": np.array([p.window.seq if p.window.source == "leg" else -1 for p in used]),
+    }
 
 
 def verdict(row: dict, base: dict | None) -> str:

@@ -51,7 +51,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_perturbation import LOOK, make_case  # noqa: E402
+from bench_perturbation import LOOK, fit_record, make_case  # noqa: E402
 from contract_writer import write_run  # noqa: E402
 
 TERMS = {"noise": (False, False), "covariance": (True, False), "full": (True, True)}
@@ -77,15 +77,7 @@ def fit_case(name: str, perturbation: str, scale4k: float, scale: float, seed: i
     except DronecalError as exc:
         fit = {"refused": str(exc).splitlines()[0]}
     else:
-        used = report.used_points
-        scale_s = float(report.sigma_scale)
-        fit = {
-            "refused": None, "truth": truth, "result": report.result,
-            "X": np.array([p.marker_enu_m for p in used]),
-            "s3": scale_s * np.array([p.sigma_enu_m for p in used]),
-            "s2": scale_s * np.array([p.sigma_px for p in used]),
-            "calibrate_s": time.perf_counter() - t,
-        }
+        fit = dict(fit_record(report, truth), calibrate_s=time.perf_counter() - t)
     cache.write_bytes(pickle.dumps(fit))
     return fit
 
@@ -128,11 +120,16 @@ def ring_figures(truth, est, region, covariance) -> tuple[float, float, float]:
     return true_rms, pred, float(np.mean(inside))
 
 
-def score(fit: dict, terms: str = "full") -> dict:
+def score(fit: dict, terms: str = "full", legs: bool = True) -> dict:
     from dronecal_field.core.uncertainty import linearised, parameter_covariance
     from dronecal_field.pipeline.validity import assess_validity
 
+    from dronecal_field.pipeline.confidence import leg_sigma_factors
+
     truth, result, X, s3, s2 = fit["truth"], fit["result"], fit["X"], fit["s3"], fit["s2"]
+    if legs and "leg" in fit:  # what the uncertainty stage does after the sigma scale
+        f = leg_sigma_factors(fit["t_s"], fit["leg"])
+        s3, s2 = s3 * f[:, None], s2 * f
     est = result.camera
     t = time.perf_counter()
     term, bias = TERMS[terms]
@@ -174,6 +171,8 @@ def main() -> None:
     parser.add_argument("--terms", choices=tuple(TERMS), default="full",
                         help="reported std: noise only (before issue 20), + the richer model's covariance (what calibrate "
                              "reports without the fitted pixels), full: + the richer fit's departure (default)")
+    parser.add_argument("--independent-legs", action="store_true",
+                        help="take a leg's points as independent (before confidence.leg_sigma_factors)")
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -189,7 +188,7 @@ def main() -> None:
                 if fit.get("refused"):
                     print(f"{name:6s} {p:13s} refused: {fit['refused']}")
                     continue
-                row = score(fit, args.terms)
+                row = score(fit, args.terms, legs=not args.independent_legs)
                 row.update(camera=name, perturbation=p, seed=seed)
                 rows.append(row)
                 parts = "  ".join(f"{k} {row[k][0]:.3g}/{row[k][1]:.3g}={row[k][0] / max(row[k][1], 1e-12):.2f}" for k in FIGURES)

@@ -202,3 +202,29 @@ def test_linearised_rss_moments_match_the_dense_formula(table1):
     mean, var = _ssr_moments(Jm, blocks, G)
     assert mean == pytest.approx(np.trace(M), rel=1e-10)
     assert var == pytest.approx(2.0 * np.trace(M @ M), rel=1e-8)
+
+
+def test_a_legs_points_count_for_its_duration_over_the_pairing_correlation_not_their_number():
+    """Issue 20: fly-through leg points share the detector's error over the pairing cubic's span (0.4 s): at 10 Hz
+    fixes each counts as 1/4 of an independent point (sigmas x2), at 5 Hz as 1/2 (x1.41); holds are left alone; a
+    leg shorter than the span counts as one point. Taken as independent, the 4K fly-through run's principal point
+    and position std were 2.0x too tight (benchmarks/bench_uncertainty_cover.py)."""
+    from dronecal_field.pipeline.confidence import PAIRING_CORRELATION_S, leg_sigma_factors
+
+    t = np.r_[0.0, 5.0, 10.0 + 0.1 * np.arange(100), 30.0 + 0.2 * np.arange(40), 50.0, 50.1, 50.2]
+    leg = np.r_[-1, -1, np.full(100, 3), np.full(40, 7), np.full(3, 9)]
+    f = leg_sigma_factors(t, leg)
+    assert PAIRING_CORRELATION_S == 0.4
+    assert np.all(f[:2] == 1.0)
+    assert f[2:102] == pytest.approx(2.0)
+    assert f[102:142] == pytest.approx(np.sqrt(2.0))
+    assert f[142:] == pytest.approx(np.sqrt(3.0))  # g = 0.4 / 0.1 = 4, clipped to the leg's 3 points
+
+    # the linearised std of a camera fitted to such points doubles when every point is on a 10 Hz leg
+    cam = paper_camera(False)
+    X = paper_grid(cam)
+    s3, s2 = np.full((len(X), 3), 0.01), np.full(len(X), 0.5)
+    f = leg_sigma_factors(0.1 * np.arange(len(X)), np.zeros(len(X), int))
+    one = linearised(cam, X, sigma_3d=s3, sigma_2d=s2).param_std["fx"]
+    legs = linearised(cam, X, sigma_3d=s3 * f[:, None], sigma_2d=s2 * f).param_std["fx"]
+    assert legs / one == pytest.approx(2.0, rel=1e-6)

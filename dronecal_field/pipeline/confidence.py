@@ -11,6 +11,13 @@ from dronecal_field.geodesy import EnuOrigin
 from dronecal_field.pipeline.points import WaypointPoint
 from dronecal_field.pipeline.results import CalibrateOptions, Uncertainty
 
+# A leg point's pixel is a cubic through the 4 detections around its fix (pipeline.legs): at 10 fps they span 0.3 s,
+# and a fix 0.1 s on shares 3 of them, so the detector's error (inside the measured "white" noise) is common to the
+# fixes of about 0.4 s. Measured on the 4K fly-through run (bench_uncertainty_cover, 960x540): leg points taken as
+# independent reported the principal point and position 2.0x too tight; their sigmas x2 (= sqrt(0.4 s / 0.1 s)) gave
+# 1.00 and 1.03.
+PAIRING_CORRELATION_S = 0.4
+
 
 def sigma_scale(result, expected_rms_px: float) -> float:
     """The factor (>= 1) the points' measured sigmas are scaled by so that they explain the fit's inlier RMS.
@@ -34,6 +41,40 @@ def sigma_scale(result, expected_rms_px: float) -> float:
     return max(1.0, inlier_rms / expected_rms_px)
 
 
+def leg_sigma_factors(t_s: np.ndarray, leg: np.ndarray, correlation_s: float = PAIRING_CORRELATION_S) -> np.ndarray:
+    """(N,) factors on the sigmas (3D and 2D) of fly-through leg points so that, taken as independent, a leg carries
+    the information it really holds: sqrt(N / N_eff), N_eff = the leg's duration / ``correlation_s``.
+
+    t_s (N,) fix times, seconds; leg (N,) the leg of each point, -1 for a hold (factor 1). A leg's N points,
+    ``dt`` apart, share each error with ``g = min(N, correlation_s / dt)`` of their neighbours, so their mean has the
+    variance of N / g independent points.
+
+    Two shared errors are left to others: a GNSS error correlated over seconds was already inflated by
+    pipeline.legs with the measured noise (``FixNoise.rho``); and the time offset's error, common to every leg, is
+    not a per-leg inflation: measured on the 4K fly-through runs (960x540), treating a 0.02 s offset std as common to
+    each leg's points reported the principal point 10-25x too loose (true/reported 0.08-0.11), as alternating legs'
+    shifts cancel in the fit.
+    """
+    t = np.asarray(t_s, float)
+    leg = np.asarray(leg)
+    f = np.ones(len(t))
+    for k in np.unique(leg[leg >= 0]):
+        idx = np.flatnonzero(leg == k)
+        if len(idx) < 2:
+            continue
+        dt = float(np.median(np.diff(np.sort(t[idx]))))
+        g = float(np.clip(correlation_s / dt, 1.0, len(idx))) if dt > 0 else float(len(idx))
+        f[idx] = np.sqrt(g)
+    return f
+
+
+def _leg_factors(points: list[WaypointPoint]) -> np.ndarray:
+    """leg_sigma_factors for the used points (a leg point's window is one instant of source "leg", seq its leg)."""
+    t = np.array([p.window.start_ns * 1e-9 for p in points])
+    leg = np.array([p.window.seq if p.window.source == "leg" else -1 for p in points])
+    return leg_sigma_factors(t, leg)
+
+
 def uncertainty(camera, points: list[WaypointPoint], result, options: CalibrateOptions, origin: EnuOrigin | None = None,
                  plan_roi=None) -> Uncertainty:
     """Stage 7: Monte-Carlo and linearised uncertainty, the region of validity, the maps and the ground homography."""
@@ -49,9 +90,12 @@ def uncertainty(camera, points: list[WaypointPoint], result, options: CalibrateO
     # not only its extra covariance; only when they are the same points as X
     fitted = result.pixels if result.points_world.shape == X.shape and np.allclose(result.points_world, X) else None
     lin = linearised(camera, X, sigma_3d=s3, sigma_2d=s2, model=result.model, fitted_pixels=fitted)
+    # the scale explains the fit's residuals, which each point's own sigma predicts; the legs' factors come after it
+    # (they say how many of the points' errors are shared, not how large each is)
     scale = sigma_scale(result, lin.rms_mean)
-    if scale > 1.0:
-        s3, s2 = scale * s3, scale * s2
+    legs = _leg_factors(used)
+    if scale > 1.0 or np.any(legs != 1.0):
+        s3, s2 = scale * legs[:, None] * s3, scale * legs * s2
         lin = linearised(camera, X, sigma_3d=s3, sigma_2d=s2, model=result.model, fitted_pixels=fitted)
     mc = monte_carlo(camera, X, trials=options.trials, sigma_3d=s3, sigma_2d=s2, seed=options.seed, model=result.model,
                      fitted_pixels=fitted) if options.trials >= 2 else None
