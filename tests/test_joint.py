@@ -214,3 +214,46 @@ def test_joint_needs_two_different_runs(flights, tmp_path, case):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
     assert ("two or more run files" if case == "one run" else "are the same run file") in lines[0]
+
+
+@pytest.mark.slow  # ~25 s: two runs written, calibrated alone and pooled
+def test_a_noisy_run_pooled_with_a_quiet_one_is_weighted_by_its_own_noise(tmp_path):
+    """Issue 23: a scout-like run whose GNSS wanders by decimetres pooled with a quiet RTK run.
+
+    Weighted alike, the noisy run's points pull the camera off; weighted by each run's own
+    measured noise, the pooled camera is as good as the quiet run alone (or better).
+    """
+    from dronecal_field.core.calibrate import calibrate
+    from dronecal_field.pipeline.run import CalibrateOptions, calibrate_runs
+
+    quiet_wps = grid_waypoints(east_m=(-2.4, -0.8, 0.8, 2.4), north_m=(6.0, 10.0), up_m=(0.8, 3.3))
+    noisy_wps = grid_waypoints(east_m=(-2.0, 0.0, 2.0), north_m=(5.5, 9.0), up_m=(1.2, 2.8))
+    paths = []
+    for name, wps, spec, seed in (
+        ("quiet", quiet_wps, RunSpec(fps=6.0, site_origin=ORIGIN, seed=51), 61),
+        ("noisy", noisy_wps, RunSpec(fps=6.0, site_origin=ORIGIN, seed=52, gnss_sigma_m=(0.12, 0.12, 0.15), gnss_noise_tau_s=3.0), 62),
+    ):
+        path = tmp_path / f"{name}.mcap"
+        write_run(path, TRUTH, make_flight(TRUTH, wps, hold_s=2.0, move_s=1.2, seed=seed), MarkerLook(), spec)
+        paths.append(path)
+    alone = calibrate_runs(paths[:1], CalibrateOptions(trials=0)).cameras[None]
+    report = calibrate_runs(paths, CalibrateOptions(trials=0)).cameras[None]
+
+    def ground(camera):
+        return compare_cameras(TRUTH, in_enu_frame_of(camera, TRUTH.enu_origin), ground_step_m=0.5).ground.rms_px
+
+    quiet, noisy = report.runs
+    assert set(quiet.noise_px) == {"holds"} and set(noisy.noise_px) == {"holds"}, (quiet.noise_px, noisy.noise_px)
+    # each run's noise as measured about the pooled camera: the noisy run's several times the quiet one's
+    assert noisy.noise_px["holds"] > 4.0 * quiet.noise_px["holds"], (quiet.noise_px, noisy.noise_px)
+    used = report.used_points
+    X = np.array([p.marker_enu_m for p in used])
+    uv = np.array([p.uv_px for p in used])
+    alike = calibrate(X, uv, TRUTH.width, TRUTH.height, model=report.result.model).camera.with_(enu_origin=report.result.camera.enu_origin)
+    g_alone, g_pooled, g_alike = ground(alone.result.camera), ground(report.result.camera), ground(alike)
+    print(f"ground 3-30 m RMS: quiet run alone {g_alone:.3f} px ({alone.result.model.name}), pooled weighted {g_pooled:.3f} ({report.result.model.name}), pooled alike {g_alike:.3f}; "
+          f"noise {quiet.noise_px} / {noisy.noise_px}")
+    # measured (load 10): quiet alone 1.50 px, pooled weighted 1.51, pooled alike 10.9; noise 0.28 / 8.7 px
+    assert g_pooled < 1.1 * g_alone, (g_pooled, g_alone)
+    assert g_pooled < 0.8 * g_alike, (g_pooled, g_alike)
+    assert "weighted by their own noise" in report.model_reason

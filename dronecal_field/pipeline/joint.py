@@ -181,6 +181,7 @@ class JointRun:
     origin: EnuOrigin
     origin_moved_m: float  # how far this run's ENU origin lies from the joint one (0: same frame, no transform)
     alone_rms_px: float | None = None
+    noise_px: dict = field(default_factory=dict)  # {"holds": px, "legs": px}: the noise its points were weighted by
 
     @property
     def used(self) -> int:
@@ -195,6 +196,7 @@ class JointRun:
             "calibrated_alone_first": self.alone,
             "why_not_alone": self.alone_reason,
             "rms_px_alone": self.alone_rms_px,
+            "noise_px_weighted_by": self.noise_px or None,
             "points_used": self.used,
             "hover_points_used": sum(1 for p in hover if p.used),
             "hover_windows": len(self.windows),
@@ -262,6 +264,12 @@ def pool_runs(stages: list[RunStages], plans: list[PlanOfRun], options: Calibrat
         parts = [p if p[0] is not None else _paired_at_motion(st, options, K_dist, reason=p[3]) for st, p in zip(stages, parts)]
         points, runs, tracks = _pool(stages, parts, plans, origin)
         result, reason = clock("calibration_s", solve_points, points, md, options, (result, reason))
+    run_of_point = [i for i, r in enumerate(runs) for p in r.points if p.used]  # _pool: runs' points one after another
+    alone_models = [s.result.model for s, _, _, _ in parts if s is not None]
+    result, noise = clock("calibration_s", noise_weighted, points, result, md, options, run_of_point, alone_models)
+    if noise is not None:
+        runs = [replace(r, noise_px=noise.get(i, {})) for i, r in enumerate(runs)]
+        reason += f" (each run's holds and legs weighted by their own noise: {_noise_text(noise, runs)})"
     camera = result.camera.with_(enu_origin=tuple(origin.as_list()))
     result = with_camera(result, camera)
     unc = clock("uncertainty_s", uncertainty, camera, points, result, options, origin, stages[0].read.plan_roi)
@@ -292,6 +300,95 @@ def pool_runs(stages: list[RunStages], plans: list[PlanOfRun], options: Calibrat
 
         report.outputs.update(clock("outputs_s", write_outputs, report, Path(options.out_dir)))
     return report
+
+
+# --------------------------------------------------------------------------
+# Each run's points weighted by that run's own noise
+
+MIN_GROUP_POINTS = 6  # fewer points than this give no noise of their own: they take their run's (or the pool's)
+EQUAL_NOISE_RATIO = 1.25  # noises this close are one noise: the plain (unweighted, compiled) fit stands
+NOISE_FLOOR_PX = 0.05  # no group is trusted beyond this (a near-perfect group would take every weight)
+MAX_REWEIGHTS = 6
+
+
+def noise_weighted(points: list, result, md, options: CalibrateOptions, run_of_point: list[int], alone_models: list = ()):
+    """The pooled camera with each run's holds and each run's legs weighted by their own measured noise.
+
+    Runs flown differently do not share one noise: a scout's fast legs (motion
+    blur, rolling shutter, timing) scatter by pixels where a main flight's
+    holds scatter by tenths, and the same weight for both lets the noisy run
+    pull the camera away from what the quiet run alone would give. Each group's
+    noise is its robust residual scale about the pooled camera (median of the
+    squared residuals over that of chi-square with 2 degrees of freedom, so a few
+    bad points do not set it), every point is weighted by 1 / noise^2 and the
+    camera solved again, until the noises settle (variance components). The
+    pixel residual carries every noise of a point: the detector's, the GNSS
+    fixes' seen through the camera, and the timing's along a leg.
+
+    The model is the richest of the pooled one and those the runs chose alone
+    (``alone_models``): a term a quiet run's points support alone, the pool
+    supports once the noisy run's points stop swamping it (the model ladder ran
+    on the unweighted pool, where they did).
+
+    ``run_of_point``: the run (0-based) of each used point, in order.
+    Returns (result, {run: {"holds"|"legs": noise px}}), or (result, None) when
+    the groups' noises are one noise (within EQUAL_NOISE_RATIO): then nothing changes.
+    """
+    from dronecal_field.core.calibrate import calibrate
+
+    used = [p for p in points if p.used]
+    groups = [(r, "legs" if p.window.source == "leg" else "holds") for p, r in zip(used, run_of_point)]
+    X = np.array([p.marker_enu_m for p in used])
+    uv = np.array([p.uv_px for p in used])
+    noise = _group_noise(result.residuals_px, groups)
+    if noise is None or max(noise.values()) < EQUAL_NOISE_RATIO * min(noise.values()):
+        return result, None
+    model = result.model
+    if options.model == "auto":
+        model = max([model, *alone_models], key=lambda m: m.n_free)
+    for _ in range(MAX_REWEIGHTS):
+        sigma = np.array([noise[g] for g in groups])
+        result = calibrate(X, uv, md.width, md.height, model=model, loss=options.loss, loss_scale_px=options.loss_scale_px,
+                           initial=result.camera, sigma_px=sigma)
+        new = _group_noise(result.residuals_px, groups)
+        settled = all(abs(new[g] / noise[g] - 1.0) < 0.02 for g in noise)
+        noise = new
+        if settled:
+            break
+    out: dict[int, dict[str, float]] = {}
+    for (r, kind), v in noise.items():
+        out.setdefault(r, {})[kind] = round(float(v), 3)
+    return result, out
+
+
+def _group_noise(residuals: np.ndarray, groups: list[tuple[int, str]]) -> dict | None:
+    """Each group's per-axis noise (px) from its residuals; a group under MIN_GROUP_POINTS takes its run's, or the pool's."""
+    sq = np.sum(np.asarray(residuals, float) ** 2, axis=1)
+    chi2_median = 2.0 * np.log(2.0)  # median of chi-square, 2 degrees of freedom
+
+    def scale(mask: np.ndarray) -> float:
+        return max(float(np.sqrt(np.median(sq[mask]) / chi2_median)), NOISE_FLOOR_PX)
+
+    keys = list(dict.fromkeys(groups))
+    if len(keys) < 2:
+        return None
+    run_arr = np.array([g[0] for g in groups])
+    kind_arr = np.array([g[1] for g in groups])
+    pool = scale(np.ones(len(sq), bool))
+    out = {}
+    for r, kind in keys:
+        mask = (run_arr == r) & (kind_arr == kind)
+        if mask.sum() >= MIN_GROUP_POINTS:
+            out[(r, kind)] = scale(mask)
+        elif (run_arr == r).sum() >= MIN_GROUP_POINTS:
+            out[(r, kind)] = scale(run_arr == r)
+        else:
+            out[(r, kind)] = pool
+    return out
+
+
+def _noise_text(noise: dict, runs: list) -> str:
+    return "; ".join(f"{Path(runs[i].path).name} " + ", ".join(f"{k} {v:.2f} px" for k, v in sorted(d.items())) for i, d in sorted(noise.items()))
 
 
 def _alone(st: RunStages, options: CalibrateOptions):
