@@ -104,3 +104,35 @@ def test_batch_input_errors(tmp_path):
     assert [t.options.out_dir.name for t in tasks] == ["flight", "other"] and tasks[1].options.trials == 7
     proc = run_cli("calibrate", str(a), str(b))
     assert proc.returncode == 2 and "need --out DIR" in proc.stderr and proc.stderr.count("\n") == 1
+
+
+def test_a_several_camera_run_in_a_batch_calibrates_every_camera(tmp_path):
+    """Batch mode (issue 24): a two-camera run beside a one-camera run gives a row per camera of the site run, each
+    camera in its own folder with the run's site.json beside them, not only the first camera."""
+    from contract_writer import SiteCamera, facing_point, site_waypoints, write_site_run
+    from dronecal_field.pipeline.batch import calibrate_many
+    from dronecal_field.sim.compare import compare_cameras
+
+    a = pole_camera(azimuth_deg=-20, position_enu=(0.0, 0.0, 5.0), tilt_deg=18)
+    b = pole_camera(azimuth_deg=20, position_enu=(0.0, 0.0, 5.0), tilt_deg=14, f_px=600, principal_offset_px=(-5.0, 3.0))
+    flight = make_flight(facing_point([a, b]), site_waypoints([a, b], lateral_m=(-2.5, 0.0, 2.5), ahead_m=(5.5, 8.5), up_m=(1.5, 3.5)),
+                         hold_s=2.2, move_s=1.3, seed=0)
+    site = tmp_path / "site.mcap"
+    write_site_run(site, [SiteCamera("west", a, latency_s=0.12), SiteCamera("east", b, latency_s=-0.08)], flight, MarkerLook(),
+                   RunSpec(fps=6.0, seed=5, site_origin=ORIGIN))
+    one = tmp_path / "one.mcap"
+    write_run(one, a, flight, MarkerLook(), RunSpec(fps=6.0, seed=5, site_origin=ORIGIN, latency_s=0.12))
+    out = tmp_path / "out"
+    report = calibrate_many([site, one], out, CalibrateOptions(trials=0))
+    assert [(r.run, r.camera, r.status) for r in report.rows] == [("site", "west", "ok"), ("site", "east", "ok"), ("one", None, "ok")], \
+        [(r.run, r.camera, r.status, r.message) for r in report.rows]
+    for row, truth in zip(report.rows, (a, b, a)):
+        c = compare_cameras(truth, read_camera(f"{row.out_dir}/camera.yaml"))
+        assert c.focal_error_pct < 1.5 and c.position_error_cm < 5.0, (row.run, row.camera, c)
+        assert abs(row.fx_px / truth.intrinsics.fx - 1) < 0.015 and row.waypoints_used >= 8
+    assert abs(report.rows[0].time_offset_s - 0.12) < 0.02 and abs(report.rows[1].time_offset_s + 0.08) < 0.02
+    assert (out / "site" / "site.json").is_file() and (out / "site" / "east" / "camera.yaml").is_file()
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert [(r["run"], r["camera"]) for r in rows] == [("site", "west"), ("site", "east"), ("one", "")]
+    doc = json.loads((out / "summary.json").read_text())
+    assert doc["counts"] == {"ok": 3} and [r["camera"] for r in doc["rows"]] == ["west", "east", None]

@@ -7,10 +7,15 @@ whole report (that stays on disk, in the run's own folder). A run that fails
 is a row with its error message, never an exception, so one bad file does
 not stop the campus.
 
+A several-camera run (``/cameras/<name>/...``, issue 24) is calibrated as
+``calibrate run.mcap`` does it (``pipeline.run.calibrate_runs``): every camera,
+one row each, and the run's site.json beside their folders.
+
 Layout of ``out_dir``::
 
     <run-stem>/      camera.yaml, report.json, report.html, ... of that run
-    summary.csv      one line per run (the order given)
+    <run-stem>/<camera>/  the same per camera of a several-camera run (site.json, report.html in <run-stem>/)
+    summary.csv      one line per run, or per camera of a several-camera run (the order given)
     summary.json     the same rows plus counts, workers, timings and options
 
 Workers read the run files and write the run folders themselves: with a
@@ -61,6 +66,7 @@ class BatchRow:
     run_path: str
     status: str
     out_dir: str
+    camera: str | None = None  # the camera of a several-camera run (its folder under the run's); None: a one-camera run
     waypoints_used: int | None = None
     waypoints: int | None = None  # hover windows found
     model: str | None = None
@@ -142,24 +148,40 @@ def plan_tasks(runs: list[str | os.PathLike], out_dir: str | os.PathLike, option
     ]
 
 
-def calibrate_one(task: BatchTask) -> BatchRow:
-    """Calibrate one run and summarise it; failures become a row with the message (never raised).
+def calibrate_one(task: BatchTask) -> tuple[BatchRow, ...]:
+    """Calibrate one run and summarise it: one row, or one per camera of a several-camera run (every camera, not
+    only the first). Failures become rows with the message (never raised): a camera the run could not calibrate is
+    its own failed row beside the others.
 
     Runs in a Dask worker (or in this process): module-level and
     self-contained, it returns only the summary numbers.
     """
-    from dronecal_field.pipeline.run import calibrate_run
+    from dronecal_field.pipeline.run import calibrate_run, calibrate_runs
+    from dronecal_field.runfile.reader import open_run
 
     t0 = time.perf_counter()
     stem = Path(task.run_path).stem
     base = dict(run=stem, run_path=task.run_path, out_dir=task.out_dir)
     try:
+        with open_run(task.run_path) as run:
+            names = tuple(run.cameras)  # () for a one-camera run
+        if names:
+            site = calibrate_runs([task.run_path], task.options)
+            rows = []
+            for name in names:
+                where = dict(base, out_dir=str(Path(task.out_dir) / name), camera=name)
+                if name in site.cameras:
+                    report = site.cameras[name]
+                    rows.append(_row_of(report, where, float(sum(report.timings_s.values()))))
+                else:  # this camera alone could not be calibrated; the others still are
+                    rows.append(BatchRow(**where, status=STATUS_FAILED, message=_one_line(site.failed.get(name, "not calibrated"))))
+            return tuple(rows)
         report = calibrate_run(task.run_path, task.options)
-        return _row_of(report, base, time.perf_counter() - t0)
+        return (_row_of(report, base, time.perf_counter() - t0),)
     except DronecalError as exc:
-        return BatchRow(**base, status=STATUS_FAILED, wall_s=time.perf_counter() - t0, message=_one_line(str(exc)))
+        return (BatchRow(**base, status=STATUS_FAILED, wall_s=time.perf_counter() - t0, message=_one_line(str(exc))),)
     except Exception as exc:  # noqa: BLE001 - one broken run must not stop the campus; the row names the exception
-        return BatchRow(**base, status=STATUS_ERROR, wall_s=time.perf_counter() - t0, message=_one_line(f"{type(exc).__name__}: {exc}"))
+        return (BatchRow(**base, status=STATUS_ERROR, wall_s=time.perf_counter() - t0, message=_one_line(f"{type(exc).__name__}: {exc}")),)
 
 
 def _row_of(report: Any, base: dict, wall_s: float) -> BatchRow:
@@ -220,7 +242,7 @@ def calibrate_many(
 
     Returns
     -------
-    BatchReport with one row per run in the order given. Failed runs are
+    BatchReport with one row per run in the order given (one per camera of a several-camera run). Failed runs are
     rows (``status`` 'failed' or 'error', ``message``); a worker lost
     mid-way marks the runs it left unfinished as 'error' and the summary is
     still written.
@@ -233,20 +255,20 @@ def calibrate_many(
     tasks = plan_tasks(runs, out_dir, options)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rows: list[BatchRow | None] = [None] * len(tasks)
+    rows: list[tuple[BatchRow, ...] | None] = [None] * len(tasks)
     try:
-        for index, row in map_with_progress(client, calibrate_one, tasks, desc="calibrate", unit="run", progress=progress):
-            rows[index] = row
+        for index, done in map_with_progress(client, calibrate_one, tasks, desc="calibrate", unit="run", progress=progress):
+            rows[index] = done
     except Exception as exc:  # noqa: BLE001 - a lost worker (KilledWorker, connection) stops the map: keep what finished
         if isinstance(exc, DronecalError):
             raise
         reason = _one_line(f"not finished: {type(exc).__name__}: {exc}")
         for k, task in enumerate(tasks):
             if rows[k] is None:
-                rows[k] = BatchRow(run=Path(task.run_path).stem, run_path=task.run_path, out_dir=task.out_dir, status=STATUS_ERROR, message=reason)
+                rows[k] = (BatchRow(run=Path(task.run_path).stem, run_path=task.run_path, out_dir=task.out_dir, status=STATUS_ERROR, message=reason),)
     report = BatchReport(
         out_dir=str(out),
-        rows=tuple(r for r in rows if r is not None),
+        rows=tuple(r for done in rows if done is not None for r in done),
         workers=worker_count(client),
         scheduler=scheduler,
         wall_s=time.perf_counter() - t0,
@@ -276,7 +298,7 @@ def write_summary(report: BatchReport, options: CalibrateOptions) -> None:
             "trials": options.trials, "seed": options.seed, "hover_source": options.hover_source, "annotate": options.annotate,
             "settle_s": options.points.settle_s, "max_frames_per_window": options.sampling.max_frames_per_window,
         },
-        "text": "one row per run in the order given; position_enu_m is in each run's own ENU frame, lat/lon/h place the camera; "
+        "text": "one row per run in the order given (per camera of a several-camera run, its name in camera); position_enu_m is in each run's own ENU frame, lat/lon/h place the camera; "
                 "status failed = the run cannot be calibrated (message says why), error = an unexpected exception",
     }
     _atomic_write(out / SUMMARY_JSON, json.dumps(doc, indent=2, allow_nan=False) + "\n")
@@ -294,7 +316,10 @@ def summary_table(report: BatchReport) -> str:
     def num(v: float | None, f: str) -> str:
         return format("-", f">{f.split('.')[0]}") if v is None else format(v, f)
 
-    width = max([len("run")] + [len(r.run) for r in report.rows])
+    def label(r: BatchRow) -> str:
+        return r.run if r.camera is None else f"{r.run}/{r.camera}"
+
+    width = max([len("run")] + [len(label(r)) for r in report.rows])
     lines = [
         f"{'run':<{width}} {'status':<7} {'used':>7} {'RMS px':>7} {'fx px':>9} {'fy px':>9} "
         f"{'E m':>8} {'N m':>8} {'U m':>7} {'gnd@15m cm':>10}",
@@ -302,7 +327,7 @@ def summary_table(report: BatchReport) -> str:
     for r in report.rows:
         used = "-" if r.waypoints_used is None else f"{r.waypoints_used}/{r.waypoints}"
         line = (
-            f"{r.run:<{width}} {r.status:<7} {used:>7} {num(r.rms_px, '7.3f')} {num(r.fx_px, '9.2f')} {num(r.fy_px, '9.2f')} "
+            f"{label(r):<{width}} {r.status:<7} {used:>7} {num(r.rms_px, '7.3f')} {num(r.fx_px, '9.2f')} {num(r.fy_px, '9.2f')} "
             f"{num(r.position_e_m, '8.3f')} {num(r.position_n_m, '8.3f')} {num(r.position_u_m, '7.3f')} {num(r.ground_error_15m_cm, '10.1f')}"
         )
         if r.message:
