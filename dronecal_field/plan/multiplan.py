@@ -53,6 +53,7 @@ from dronecal_field.plan.stage import (
     PlanRequest,
     _check_sees_ground,
 )
+from dronecal_field.sampling.band import screen_cameras
 
 # Candidate layouts of a site: lattices down to 3x3 (a site shares one battery), two depths per ray as far apart as the
 # ray allows, none nearer than 4 m where it allows (the single-camera plans' usual pick). Few: each is timed by the route.
@@ -177,15 +178,6 @@ def _guess_cameras(req: PlanRequest, distortion) -> tuple[Camera, Camera]:
     return cam_site, cam_enu
 
 
-def _screen_cameras(cam_site: Camera, band) -> tuple:
-    """The guess band's cameras a point must be in view of (as ``stage.make_plan`` screens a single camera)."""
-    from dronecal_field.sampling import band as band_mod
-
-    if hasattr(band_mod, "screen_cameras"):
-        return band_mod.screen_cameras(cam_site, band)
-    return band_mod.corner_cameras(cam_site, band, narrow_only=True)
-
-
 def prepare_camera(name: str, pole: str, req: PlanRequest, ref: PlanRequest, distortion=None) -> SiteCamera:
     """The camera's guess in its own and the site's frames, its ROI, and its scored candidate layouts."""
     from dronecal_field.plan.strategies import image_candidate_params, score_image_candidates
@@ -204,7 +196,9 @@ def prepare_camera(name: str, pole: str, req: PlanRequest, ref: PlanRequest, dis
     t_ref = ref.site.R_enu_from_site.T @ t_enu
     R_cam_ref = np.asarray(cam_site.pose.R_cam_from_world) @ R_ref_from_own.T
     cam_ref = cam_site.with_(pose=CameraPose.from_position(R_cam_ref, R_ref_from_own @ cam_site.pose.position_world + t_ref))
-    req = replace(req, limits=replace(req.limits, band=_screen_cameras(cam_site, req.band)))
+    # the guess band's cameras a point must be in view of, as ``stage.make_plan`` screens a single camera: each factor
+    # at its tolerance alone; points lost only at the band's combined extremes are kept (sampling.band.screen_cameras)
+    req = replace(req, limits=replace(req.limits, band=screen_cameras(cam_site, req.band)))
     roi = build_roi(cam_site, req.roi)
     roi_pts, _ = evaluation_points(roi)
     draws = lens_draws(cam_site, cam_site.distortion.as_array(), float(normalised_radius(cam_site, roi_pts).max()), seed=req.evaluation.seed)
