@@ -60,18 +60,24 @@ def main() -> int:
     print(f"calibrate exit {rc}: {wall:.0f} s wall, {cpu:.0f} s CPU for {len(names)} cameras"
           + (f"; run {flight_s:.0f} s (calibrate wall / recording {wall / flight_s:.2f}, CPU / recording {cpu / flight_s:.2f})" if flight_s else ""))
     truths, ests = {}, {}
-    print(f"{'camera':10s} {'focal %':>8s} {'pp px':>6s} {'pos cm':>7s} {'rot deg':>7s} {'ground 3-30 m RMS / max px':>27s}")
+    print(f"{'camera':10s} {'focal %':>8s} {'pp px':>6s} {'pos cm':>7s} {'rot deg':>7s} {'ground 3-30 m RMS / max px':>27s}  "
+          "points, model, fit RMS px, time offset s, holds used/windows")
     for name in names:
         truth = read_camera(args.work / f"truth-{name}.yaml")
         path = out / name / "camera.yaml"
         if not path.exists():
-            print(f"{name:10s} no camera written")
+            refused = {c.get("name"): c.get("error") for c in json.loads((out / "site.json").read_text()).get("cameras", [])} \
+                if (out / "site.json").exists() else {}
+            print(f"{name:10s} no camera written: {refused.get(name) or 'see calibrate on stderr'}")
             continue
         est = in_enu_frame_of(read_camera(path), truth.enu_origin)
         c = compare_cameras(truth, est, ground_step_m=0.5)
         truths[name], ests[name] = truth, est
+        rep = json.loads((out / name / "report.json").read_text()) if (out / name / "report.json").exists() else {}
+        cal, off, hw = rep.get("calibration", {}), rep.get("time_offset", {}), rep.get("hover_windows", {})
         print(f"{name:10s} {c.focal_error_pct:8.2f} {c.principal_point_error_px:6.1f} {c.position_error_cm:7.1f} {c.rotation_error_deg:7.3f} "
-              f"{c.ground.rms_px:13.2f} / {c.ground.max_px:.1f}")
+              f"{c.ground.rms_px:13.2f} / {c.ground.max_px:.1f}  {cal.get('n_points')}, {cal.get('model')}, "
+              f"{cal.get('rms_px', float('nan')):.2f}, {off.get('offset_s', float('nan')):+.3f}, {hw.get('used')}/{hw.get('count')}")
     site = out / "site.json"
     if site.exists():
         pairs = json.loads(site.read_text()).get("pairs", [])

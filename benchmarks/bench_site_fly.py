@@ -90,8 +90,8 @@ SITE_TOML = ROOT / "missions" / "site-two-poles.toml"
 RTSP_CAMERA = "a-4k"
 
 
-def site_cameras(scale: float):
-    """(name, truth Camera, marker dict) of the site file's cameras, images scaled by ``scale``."""
+def site_cameras(scale: float, per_camera: dict[str, float] | None = None):
+    """(name, truth Camera, marker dict) of the site file's cameras, images scaled by ``scale`` (or ``per_camera[name]``)."""
     from dronecal_field.core.camera import Distortion
     from dronecal_field.geodesy import EnuOrigin
     from dronecal_field.plan.site import DISTORTION_LEVELS
@@ -103,7 +103,8 @@ def site_cameras(scale: float):
     for cam in site["camera"]:
         pole = poles[cam["pole"]]
         w, h = (int(v) for v in cam["image_size"].split("x"))
-        w, h = int(round(w * scale / 4) * 4), int(round(h * scale / 4) * 4)
+        k = (per_camera or {}).get(cam["name"], scale)
+        w, h = int(round(w * k / 4) * 4), int(round(h * k / 4) * 4)
         dist = cam.get("distortion", "none")
         d = DISTORTION_LEVELS[dist] if isinstance(dist, str) else Distortion(*[float(v) for v in dist])
         origin = EnuOrigin(pole["lat"], pole["lon"], pole["ground_amsl"])
@@ -156,7 +157,7 @@ def fly_once(mission: Path, cameras, marker_args: list, args, work: Path, logs: 
             write_camera(truth_path, truth, comment=f"bench_site_fly: simulator truth of {name}")
             link = _free_port()
             port = _free_port(socket.SOCK_STREAM)
-            url = f"rtsp://127.0.0.1:{port}/cam" if name == RTSP_CAMERA else f"http://127.0.0.1:{port}/stream.mjpg"
+            url = f"rtsp://127.0.0.1:{port}/cam" if name == args.rtsp_camera else f"http://127.0.0.1:{port}/stream.mjpg"
             log = logs / f"{tag}-sim-camera-{name}.log"
             proc = _start(cli_argv("sim", "camera", "--connect", f"udpin:127.0.0.1:{link}", "--camera", truth_path, "--serve", url,
                                    "--fps", args.fps, *marker_args, "--seed", len(sims)),
@@ -224,6 +225,11 @@ def main() -> int:
     p.add_argument("--speedup", type=float, default=4.0, help="sim vehicle speed-up (default %(default)s)")
     p.add_argument("--fps", type=float, default=10.0, help="each simulated camera's frame rate (default %(default)s)")
     p.add_argument("--scale", type=float, default=0.5, help="the site cameras' image sizes times this (default %(default)s)")
+    p.add_argument("--camera-scale", action="append", default=[], metavar="NAME=S",
+                   help="one camera's image size times S instead of --scale (repeatable): the Python renderer takes ~1-5 s a 4K frame "
+                        "while the drone fills part of it, so a-4k=0.5 keeps the 4K camera's holds in frames on 2 loaded cores")
+    p.add_argument("--rtsp-camera", default=RTSP_CAMERA, help="the camera served over RTSP H.264, the others MJPEG (default %(default)s; "
+                   "a full-size 4K x264 encode does not keep up on the loaded 2-core machine: give b-table1 with --scale 1)")
     p.add_argument("--live", action="store_true", help="with the live check per camera (default: --no-live, the recorder alone)")
     p.add_argument("--no-baseline", action="store_true", help="skip the single-camera flight")
     p.add_argument("--out", default=None, help="work folder (default: a temporary one)")
@@ -231,21 +237,22 @@ def main() -> int:
     work = Path(args.out) if args.out else Path(os.environ.get("TMPDIR", "/tmp")) / f"bench-site-fly-{int(time.time())}"
     logs = work / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    cameras, marker = site_cameras(args.scale)
+    scales = {k: float(v) for k, v in (a.split("=", 1) for a in args.camera_scale)}
+    cameras, marker = site_cameras(args.scale, scales)
     if args.site_plan:
         mission = Path(args.site_plan) / "mission.plan"
     else:
         mission = None if args.no_site_plan else site_plan(work, logs)
     mission = mission or Path(args.mission or ROOT / "missions" / "security-4k" / "mission.plan")
     marker_args = marker_flags(mission, marker)
-    if args.scale != 1.0 and (mission.parent / "plan.json").exists():
+    if (args.scale != 1.0 or any(v != 1.0 for v in scales.values())) and (mission.parent / "plan.json").exists():
         # plan.json's camera sizes are the full ones: fly would refuse the scaled streams. The mission alone, the marker as flags.
         alone = work / "mission-only"
         alone.mkdir(exist_ok=True)
         (alone / "mission.plan").write_bytes(mission.read_bytes())
         mission = alone / "mission.plan"
         print(f"--scale {args.scale:g}: flying the mission without its plan.json (no per-camera plan for the live check)", flush=True)
-    print(f"mission {mission}; cameras " + ", ".join(f"{n} {c.intrinsics.width}x{c.intrinsics.height}{' RTSP' if n == RTSP_CAMERA else ''}"
+    print(f"mission {mission}; cameras " + ", ".join(f"{n} {c.intrinsics.width}x{c.intrinsics.height}{' RTSP' if n == args.rtsp_camera else ''}"
                                                    for n, c in cameras) + f" at {args.fps:g} fps; vehicle x{args.speedup:g}", flush=True)
     runs = [("site", False)] + ([] if args.no_baseline else [("one", True)])
     results = {}
