@@ -92,8 +92,11 @@ def flight(tmp_path_factory):
     with (logs / "calibrate.log").open("w") as f:
         calib_rc = subprocess.run(cli_argv("calibrate", out / "run.mcap", "--out", out / "calibration", "--trials", 30, "--min-fix", "3d"),
                                   stdout=f, stderr=subprocess.STDOUT, timeout=300).returncode  # fmt: skip
-    assert calib_rc == 0, (logs / "calibrate.log").read_text()[-3000:]
-    return dict(out=out, mission=mf.read_mission(mission_path), truth=truth, fly_log=(logs / "fly.log").read_text())
+    calib_log = (logs / "calibrate.log").read_text()
+    # 17 holds through GNSS noise of ~0.5 m either calibrate or are refused in one line: never a camera 'calibrated' at random
+    assert calib_rc in (0, 2) and "Traceback" not in calib_log, calib_log[-3000:]
+    return dict(out=out, mission=mf.read_mission(mission_path), truth=truth, fly_log=(logs / "fly.log").read_text(),
+                calibrated=calib_rc == 0, calib_log=calib_log)
 
 
 def _track(run) -> np.ndarray:
@@ -173,11 +176,23 @@ def test_px4_upload_read_back_and_flight_to_landing(flight):
     assert np.median(report["yaw_err_deg"]) < 10.0  # DO_SET_ROI_LOCATION honoured: the camera-facing yaw
 
 
+def _f(value, spec: str = ".0f") -> str:
+    return "-" if value is None else format(value, spec)
+
+
 def test_calibration_of_the_px4_flight_against_the_truth(flight):
     """As good as PX4 SITL's GNSS allows, and the report says so: calibrate measures that noise from its own residuals
     (0.5-0.6 m in all, split between white and correlated differently in each run), and its predicted errors (focal, ground at 15 m)
     are not tighter than the true ones. The holds themselves are all used: the marker faces the camera (ROI honoured)."""
     truth = flight["truth"]
+    if not flight["calibrated"]:
+        # refused: one line naming why (the camera the noise left unpinned, or the Monte-Carlo's spread) and nothing written
+        # that could be taken for a calibration (seen: fx 1117 px and principal point (1821, -180) px for 1280x720)
+        errors = [line for line in flight["calib_log"].splitlines() if line.startswith("dronecal-field calibrate: error:")]
+        print("PX4 flight refused by calibrate:", errors)
+        assert len(errors) == 1 and ("GNSS noise" in errors[0] or "not physical" in errors[0]), flight["calib_log"][-2000:]
+        assert not (flight["out"] / "calibration" / "camera.yaml").exists()
+        return
     est = in_enu_frame_of(read_camera(flight["out"] / "calibration" / "camera.yaml"), truth.enu_origin)
     report = json.loads((flight["out"] / "calibration" / "report.json").read_text())
     sampled = used_marker_points(report, est.enu_origin, truth.enu_origin)
@@ -186,10 +201,10 @@ def test_calibration_of_the_px4_flight_against_the_truth(flight):
     noise = report["gnss"]["fix_times"]["noise"]
     true_15m = cmp.ground_error_cm_at.get(15.0)
     print(f"PX4 flight, calibration against the truth: focal {cmp.focal_error_pct:.1f} % ({cmp.focal_error_px:.0f} px; report's std "
-          f"{mc['param_std']['fx']:.0f} px), camera position {cmp.position_error_cm:.0f} cm, ground at 15 m {true_15m} cm "
-          f"(report {mc['ground_error_15m_cm']:.0f} cm, p95 {mc['ground_error_15m_cm_p95']:.0f}), sampled volume {cmp.sampled.rms_px:.1f} px "
+          f"{_f(mc['param_std']['fx'])} px), camera position {cmp.position_error_cm:.0f} cm, ground at 15 m {true_15m} cm "
+          f"(report {_f(mc['ground_error_15m_cm'])} cm, p95 {_f(mc['ground_error_15m_cm_p95'])}), sampled volume {cmp.sampled.rms_px:.1f} px "
           f"({len(sampled)} points), calibration rms {report['calibration']['rms_px']:.1f} px; GNSS noise seen by calibrate "
-          f"{noise['sigma_white_m']:.2f} m white, {noise['sigma_corr_m']:.2f} m correlated over {noise['tau_s']:.1f} s; "
+          f"{noise['sigma_white_m']:.2f} m white, {noise['sigma_corr_m']:.2f} m correlated over {_f(noise['tau_s'], '.1f')} s; "
           f"report: {' '.join(report['gnss'].get('quality') or [])}")  # fmt: skip
     holds = sum(1 for it in flight["mission"].items[1:] if it.hold_s > 0)
     # the holds are used (the marker faced the camera): PX4's heading at a hold wanders 1-11 deg, one may be lost; a camera

@@ -144,6 +144,37 @@ def solve_points(points: list[WaypointPoint], md, options: CalibrateOptions, pre
     return result, "--model given"
 
 
+MAX_PRINCIPAL_OFFSET = 0.5  # principal point this far outside the image centre, in image sizes: no lens does that
+MIN_FOCAL_PER_SIDE, MAX_FOCAL_PER_SIDE = 0.05, 25.0
+NOISY_GNSS_M = 0.1  # fixes this noisy are no RTK's: the likely reason few points could not pin a camera  # fx / image width: a 169-2.3 degree horizontal field of view
+
+
+def check_physical(result, points: list[WaypointPoint], md, noise: FixNoise | None = None) -> None:
+    """Refuse a final camera whose intrinsics are no camera's: a fit that wandered off because the points did not pin it.
+
+    Intermediate solves may wander and be pulled back by the refined timing; only the camera to be written is checked.
+
+    Such a camera reprojects the sampled points well and everything else absurdly (seen: fx 78006, principal
+    point (54914, -37649) px for a 1280x720 image from a PX4 flight whose holds lay in a strip of the image).
+    """
+    i = result.camera.intrinsics
+    w, h = md.width, md.height
+    off_x, off_y = abs(i.cx - 0.5 * w) / w, abs(i.cy - 0.5 * h) / h
+    fov_ok = MIN_FOCAL_PER_SIDE * w <= min(i.fx, i.fy) and max(i.fx, i.fy) <= MAX_FOCAL_PER_SIDE * w
+    if fov_ok and off_x <= MAX_PRINCIPAL_OFFSET and off_y <= MAX_PRINCIPAL_OFFSET:
+        return
+    uv = np.array([p.uv_px for p in points if p.used]).reshape(-1, 2)
+    lo, hi = np.min(uv, axis=0), np.max(uv, axis=0)
+    span = 100.0 * max(0.0, min(hi[0], w) - max(lo[0], 0)) * max(0.0, min(hi[1], h) - max(lo[1], 0)) / (w * h)
+    gnss = 0.0 if noise is None else math.hypot(noise.sigma_white_m, noise.sigma_corr_m)
+    noisy = f" with GNSS noise of {gnss:.2f} m per fix" if gnss > NOISY_GNSS_M else ""
+    raise DegenerateGeometryError(
+        f"the solved camera is not physical (fx {i.fx:.0f}, fy {i.fy:.0f} px, principal point ({i.cx:.0f}, {i.cy:.0f}) px "
+        f"for a {w}x{h} image): its {len(uv)} points span {span:.0f} % of the image{noisy}, too little to pin the intrinsics; "
+        "re-fly so the marker is seen across the whole image" + (", with RTK GNSS" if noisy else "")
+    )
+
+
 LEG_PAIRS_PER_EFFECTIVE_POINT = 10  # pairs along a leg worth one independent point (1 s of 10 Hz fixes)
 
 
