@@ -220,6 +220,7 @@ class LiveCalibration:
         self.view_errors: dict[str, int] = {}  # live view publish failures by kind (live.json)
         self._video: Any = None  # H.264/H.265: the zone pass's decoder (video.decode.VideoFrameDecoder), fed in stream order
         self._video_last_ns: int | None = None  # the last access unit pushed to it
+        self._keyframes_ns: list[int] = []  # keyframes pushed to it, in order (a covered span must hold one: _cover)
         self._last_det: Any = None  # tracking in the zone pass (calibrate's search box)
         self._before_det: Any = None
         self._batch_track: FixTrack | None = None  # after landing every fix is in: the track is made once, not per waypoint
@@ -635,8 +636,11 @@ class LiveCalibration:
             return 0  # pushed already
         if self._video is None or (self._video_last_ns is not None and self._evicted_ns > self._video_last_ns):
             self._video = VideoFrameDecoder(unit.format, threads=1)  # the ring let units go unpushed: start again at a keyframe
-        self._video.push(video_frame_of(unit))
+        unit = video_frame_of(unit)
+        self._video.push(unit)
         self._video_last_ns = t
+        if unit.keyframe:
+            self._keyframes_ns.append(t)
         if t in self._outcomes or not any(a <= t <= b for a, b in self._zones):
             return 0
         image = self._video.gray()
@@ -650,6 +654,13 @@ class LiveCalibration:
     def _cover(self, a: int, b: int) -> None:
         """[a, b] had every ring frame detected, except those the ring evicted first: covered after the last of them."""
         start = a if self._evicted_undone_ns < a else self._evicted_undone_ns + 1
+        if self._video is not None:
+            # H.264/H.265: calibrate reads the file around a covered span and decodes what follows it from the last
+            # keyframe the reader passed; a span with none inside leaves the next read window without its chain
+            # (measured: 164 of 547 wanted units undecodable, skipped as corrupt). Its outcomes still serve by stamp.
+            k = bisect.bisect_left(self._keyframes_ns, start)
+            if k >= len(self._keyframes_ns) or self._keyframes_ns[k] > b:
+                return
         if start <= b:
             with self._lock:
                 self._covered.append((start, b))

@@ -57,8 +57,9 @@ class VideoFrameDecoder:
                 self.errors += 1
                 frames = []
             self.decoded += 1
-            if frames:
-                last = frames[-1]
+            # Only the last unit's own picture (no B-frames: each unit gives its picture at once). A unit that
+            # gives none (damaged, cut) is None: never an earlier unit's picture under this unit's stamp.
+            last = frames[-1] if frames else None
         if last is None:
             return None
         import numpy as np
