@@ -246,7 +246,7 @@ def run_joint(args: argparse.Namespace) -> int:
 
 def _summary_lines(report, title: str, out: Path) -> list[str]:
     """What calibrate prints about a calibration (one run, or several pooled)."""
-    from dronecal_field.pipeline.report import all_warnings
+    from dronecal_field.pipeline.report import all_warnings, offset_text
 
     cam = report.camera
     i = cam.intrinsics
@@ -264,9 +264,7 @@ def _summary_lines(report, title: str, out: Path) -> list[str]:
         + " ".join(f"{v:.4g}" for v in cam.distortion.as_array()),
         "  camera at ENU " + " ".join(f"{v:.3f}" for v in cam.pose.position_world) + " m",
         f"  RMS reprojection {report.result.rms_px:.3f} px; {len(report.result.outliers)} outliers",
-        f"  camera time offset {off.offset_s:+.3f} s"
-        + (f" ± {off.std_s:.3f} s" if off.std_s is not None else "")
-        + f" ({off.method})" + (f", of {report.runs[0].path.name}" if getattr(report, "runs", None) else ""),
+        f"  camera time offset {offset_text(off.offset_s, off.std_s)} ({off.method})" + (f", of {report.runs[0].path.name}" if getattr(report, "runs", None) else ""),
         f"  confidence ({mc.method}): RMS mean {mc.rms_mean:.3f} px; at 15 m: {mc.ground_error_15m_cm:.1f} cm, "
         f"{mc.speed_error_15m_kmh:.2f} km/h at 50 km/h",
     ]

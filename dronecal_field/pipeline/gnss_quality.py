@@ -124,7 +124,7 @@ def gnss_quality(
     e = h_acc_m if rtk else h_acc_m * DRIFTING_SHARE  # RTK noise is white over a hold; a drifting receiver's only partly differs between holds
     focal = 100.0 * e / (max(median_range_m, 1.0) * spread_rad * math.sqrt(max(holds_used, 1)))
     position = h_acc_m if not rtk else h_acc_m / math.sqrt(max(holds_used, 1))
-    vertical = "" if v_acc_m is None else f" / {v_acc_m:.2g} m vertical"
+    vertical = "" if v_acc_m is None else f" / {_m(v_acc_m)} vertical"
     kind = fix_name if rtk else f"{fix_name}, no RTK"
     flight = ""
     if focal_std_pct is not None and math.isfinite(focal_std_pct):
@@ -133,7 +133,7 @@ def gnss_quality(
         floor = 100.0 * e / (max(median_range_m, 1.0) * spread_rad * math.sqrt(max(holds_used, 1)))
     else:
         floor = focal
-    head = (f"GNSS reported {h_acc_m:.2g} m{vertical} ({kind}): from the GNSS alone the camera position is known to ~{_m(position)} "
+    head = (f"GNSS reported {_m(h_acc_m)}{vertical} ({kind}): from the GNSS alone the camera position is known to ~{_m(position)} "
             f"and focal to ~{_pct(floor)} %{flight}")  # fmt: skip
     if rtk:
         # no advice: receivers report RTK fixed conservatively (ArduPilot's u-blox driver says 0.3 m whatever the scatter)
@@ -146,7 +146,8 @@ def _pct(v: float) -> str:
 
 
 def _m(v: float) -> str:
-    return f"{v * 100:.2g} cm" if v < 0.1 else f"{v:.2g} m"
+    """Centimetres below half a metre (the RTK scale), metres above: an RTK sentence reads in one unit."""
+    return f"{v * 100:.2g} cm" if v < 0.5 else f"{v:.2g} m"
 
 
 def gnss_quality_of_report(report: object) -> GnssQuality:

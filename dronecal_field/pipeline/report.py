@@ -15,6 +15,7 @@ import io
 import json
 import math
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -458,7 +459,7 @@ def report_html(report, data: dict) -> str:
         ("camera position ENU", " ".join(f"{v:.3f}" for v in cam.pose.position_world) + " m"),
         ("ENU origin", f"{report.origin.lat_deg:.8f}, {report.origin.lon_deg:.8f}, {report.origin.h_m:.3f} m ({report.altitude_datum}; {report.origin_source})"),
         ("camera time offset", "; ".join(f"{Path(r.path).name} {_fmt(r.offset.offset_s, '+.3f', ' s')}" for r in runs) if runs
-         else f"{_fmt(off['offset_s'], '+.3f', ' s')} ± {_fmt(off['std_s'], '.3f', ' s')} ({off['method']})"),
+         else f"{offset_text(off['offset_s'], off['std_s'])} ({off['method']})"),
         ("fit vs measured sigmas", (unc.get("consistency") or {}).get("note", "-")),
         ("MC RMS mean / p95", f"{_fmt(mc.get('rms_mean'), '.3f')} / {_fmt((mc.get('rms_percentiles') or {}).get('95'), '.3f')} px ({mc.get('trials', 0)} trials)"),
         ("ground position error at 15 m", f"{_fmt(at15.get('ground_position_error_cm'), '.2f', ' cm')} RMS, p95 {_fmt(at15.get('ground_position_error_cm_p95'), '.2f', ' cm')}"),
@@ -472,8 +473,8 @@ def report_html(report, data: dict) -> str:
     mc_std = mc.get("param_std") or {}
     mc_rows = [(k, f"{v:.4g}") for k, v in mc_std.items() if v is not None]
     dropped = "".join(
-        f"<tr><td>{p.window.index}</td><td>{'' if p.window.seq is None else p.window.seq}</td><td>{html.escape(p.dropped)}</td></tr>"
-        for p in getattr(report, "hover_points", report.points) if not p.used
+        f"<tr><td>{', '.join(windows)}</td><td>{', '.join(seqs)}</td><td>{html.escape(reason)}</td></tr>"
+        for reason, (windows, seqs) in _dropped_groups(getattr(report, "hover_points", report.points)).items()
     ) or "<tr><td colspan=3>none</td></tr>"
     warning_list = data["warnings"]
     warnings = "".join(f"<li>{html.escape(w)}</li>" for w in warning_list) or "<li>none</li>"
@@ -507,6 +508,32 @@ def report_html(report, data: dict) -> str:
         "<h2>Figures</h2>" + "".join(figs)
         + "<p style='font-size:12px;color:#777'>All numbers are in report.json.</p></body></html>"
     )
+
+
+def offset_text(offset_s: float | None, std_s: float | None) -> str:
+    """'+0.143 ± 0.016 s'; a std under a millisecond in microseconds ('± 0.000 s' read as exact)."""
+    if offset_s is None:
+        return "-"
+    if std_s is None or not math.isfinite(std_s):
+        return f"{offset_s:+.3f} s"
+    return f"{offset_s:+.3f} s ± " + (f"{std_s:.3f} s" if std_s >= 0.001 else f"{1e6 * std_s:.0f} µs")
+
+
+def _dropped_groups(points) -> dict[str, tuple[list[str], list[str]]]:
+    """Dropped hover windows by reason, one row each: a fly-through plan's 24 leg-end holds are one line, not 24."""
+    groups: dict[str, tuple[list[str], list[str]]] = {}
+    for p in points:
+        if p.used:
+            continue
+        reason = p.dropped
+        leg_end = re.search(r"an? [\d.]+ s hold \(a leg's end\).*", reason)
+        if leg_end:  # the count of detections differs per hold; the cause does not
+            reason = "too few settled detections: " + leg_end.group(0)
+        windows, seqs = groups.setdefault(reason, ([], []))
+        windows.append(str(p.window.index))
+        if p.window.seq is not None:
+            seqs.append(str(p.window.seq))
+    return groups
 
 
 def _validity_rows(validity, region: dict) -> list[tuple[str, str]]:
