@@ -104,6 +104,8 @@ def main() -> int:
     p.add_argument("--pause-for", type=float, default=0.0, metavar="S")
     p.add_argument("--drop-every", type=int, default=0, metavar="N")
     p.add_argument("--log", default=None)
+    p.add_argument("--rtcp-interval", type=float, default=None, metavar="S",
+                   help="the sessions' minimum RTCP interval, seconds (GStreamer's default 5; the first report comes after a random 0.25-0.75 of it)")
     p.add_argument("--file", default=None, help="stream this Matroska file (H.264/H.265, encoded beforehand) in real time instead of encoding live")
     args = p.parse_args()
 
@@ -141,6 +143,8 @@ def main() -> int:
         if factory_name == "rtpbin":
             element.set_property("ntp-time-source", "ntp")
             element.set_property("rtcp-sync-send-time", False)
+        elif factory_name == "rtpsession" and args.rtcp_interval is not None:
+            element.set_property("rtcp-min-interval", int(args.rtcp_interval * 1e9))
 
     def configure(_factory, media):
         pipeline = media.get_element()
