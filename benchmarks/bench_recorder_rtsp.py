@@ -104,11 +104,12 @@ def _split(pipeline: str) -> list[str]:
     return shlex.split(pipeline)
 
 
-def record(url: str, seconds: float, out: str, args_budget: float | None = 0.03) -> None:
+def record(url: str, seconds: float, out: str, args_budget: float | None = 0.03, share: bool = True) -> None:
     """The recorder process: fly's video path for ``seconds``; prints one JSON line."""
     import threading
 
     from dronecal_field.recording.marker_check import MarkerCheck
+    from dronecal_field.recording.recorder import CHECKED_FRESH_NS
     from dronecal_field.runfile.records import FORMAT_VERSION, GnssFix, MarkerSpec, RunMetadata
     from dronecal_field.runfile.writer import RunWriter
     from dronecal_field.video.packets import open_packet_source
@@ -138,8 +139,11 @@ def record(url: str, seconds: float, out: str, args_budget: float | None = 0.03)
                             probe_state["last"] = time.monotonic()
                             check.seen(latest["key"].data, latest["key"].format)
                             probe_state["n"] += 1
-                    else:
-                        check.probe(latest["key"], now=time.monotonic() + 0.05)
+                    else:  # as Recorder._monitor_loop: the keyframe check's picture when it is fresh, else a decode
+                        frame, image, checked = latest["key"], None, source.last_checked
+                        if share and checked is not None and frame.timestamp_ns - checked[0].timestamp_ns < CHECKED_FRESH_NS:
+                            frame, image = checked
+                        check.probe(frame, now=time.monotonic() + 0.05, image=image)
 
         thread = threading.Thread(target=probe, daemon=True)
         thread.start()
@@ -239,12 +243,13 @@ def main() -> int:
     p.add_argument("--workdir", default=None, help="keep clips here between runs (default: a temporary folder)")
     p.add_argument("--record", help=argparse.SUPPRESS)
     p.add_argument("--out", help=argparse.SUPPRESS)
-    p.add_argument("--probe", choices=("budget", "every-second", "both"), default="both",
+    p.add_argument("--probe", choices=("budget", "budget-decode", "every-second", "both"), default="both",
                    help="the marker probe: budget (MarkerCheck.probe, as the recorder since issue 24), every-second (a keyframe "
-                        "decoded each second, as before), both (each stream twice, the ratio printed; default)")
+                        "decoded each second, as before), budget-decode (the budget, each probe decoding its keyframe again instead "
+                        "of taking the keyframe check's picture: before 2026-11-27 15:40), both (each stream twice, the ratio printed; default)")
     args = p.parse_args()
     if args.record:
-        record(args.record, args.seconds, args.out, None if args.probe == "every-second" else 0.03)
+        record(args.record, args.seconds, args.out, None if args.probe == "every-second" else 0.03, share=args.probe != "budget-decode")
         return 0
     workdir = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="bench-rtsp-"))
     workdir.mkdir(parents=True, exist_ok=True)

@@ -54,9 +54,10 @@ class MarkerCheck:
         """True when the budget allows the next probe at monotonic ``now``."""
         return now >= self.next_due
 
-    def probe(self, frame: Any, key: int = 0, now: float | None = None) -> bool | None:
+    def probe(self, frame: Any, key: int = 0, now: float | None = None, image: Any = None) -> bool | None:
         """The marker in ``frame`` (a Frame), or None when not due yet; the frame probed last for ``key`` (one per
-        camera) is answered from memory, without decoding it again."""
+        camera) is answered from memory, without decoding it again. ``image``: ``frame``'s (H, W) uint8 picture
+        decoded already (an RTSP source's keyframe check), so only the detector runs."""
         now = time.monotonic() if now is None else now
         last = self._seen.get(key)
         if last is not None and last[0] is frame:
@@ -65,7 +66,7 @@ class MarkerCheck:
             return None
         t0 = time.thread_time()
         try:
-            result = self.seen(frame.data, frame.format)
+            result = self.seen(frame.data, frame.format) if image is None else self.seen_in(image)
         finally:
             cost = time.thread_time() - t0
             self.cpu_s += cost
@@ -89,6 +90,11 @@ class MarkerCheck:
             image = decode_keyframe_gray(data, format)
         else:
             image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+        return self.seen_in(image)
+
+    def seen_in(self, image: Any) -> bool:
+        """True if the marker is found in a decoded (H, W) uint8 ``image`` (False for None)."""
+        cv2 = self._cv2
         if image is None:
             return False
         if image.shape[1] > self.max_width:

@@ -68,6 +68,10 @@ from dronecal_field.recording.status import (
 )
 from dronecal_field.runfile.records import Frame, RunEvent
 
+# The marker probe takes an RTSP source's keyframe-check picture (every 5 s) while it is this close to the
+# latest keyframe, instead of decoding that keyframe again: "marker yes/no" then follows the check's pace.
+CHECKED_FRESH_NS = 6_000_000_000
+
 
 class RecordingObserver(Protocol):
     """What the recorder tells a live consumer; every call must return at once (queue, never wait)."""
@@ -660,8 +664,12 @@ class Recorder:
             frame = feed.latest_keyframe
             if frame is None:
                 continue
+            image = None
+            checked = getattr(feed.video, "last_checked", None)  # an RTSP source's keyframe check decoded this picture
+            if checked is not None and frame.timestamp_ns - checked[0].timestamp_ns < CHECKED_FRESH_NS:
+                frame, image = checked  # the probe then only detects: a 4K H.265 keyframe decode is ~130 ms of CPU
             try:
-                seen = self.marker_check.probe(frame, key=id(feed), now=now)
+                seen = self.marker_check.probe(frame, key=id(feed), now=now, image=image)
             except Exception:  # noqa: BLE001 - the probe is cosmetic; never stop recording for it
                 feed.marker_seen = None
                 self.marker_check.next_due = now + 1.0

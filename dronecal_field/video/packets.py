@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Iterator
 
 from dronecal_field.errors import VideoError
-from dronecal_field.video.decode import keyframe_error
+from dronecal_field.video.decode import check_keyframe
 from dronecal_field.video.monitor import StreamIncident, StreamMonitor
 from dronecal_field.video.nal import VideoFrame, access_unit, is_keyframe, join_annexb, merge_parts, parameter_sets, starts_picture, video_format
 from dronecal_field.video.source import VideoSource
@@ -120,6 +120,7 @@ class PacketSource(VideoSource):
         self.keyframes_unchecked = 0
         self.units_undecodable = 0
         self.last_decode_error: str | None = None
+        self.last_checked: tuple[VideoFrame, object] | None = None  # (keyframe, its luma) the checker decoded last
         self._start_ns = time.time_ns() if start_ns is None else int(start_ns)
         self._clock_locked = False
         self._await_keyframe = False
@@ -438,7 +439,9 @@ class PacketSource(VideoSource):
             frame = self._check_queue.get()
             if frame is None:
                 return
-            error = keyframe_error(frame.data, frame.format)
+            error, gray = check_keyframe(frame.data, frame.format)
+            if gray is not None:
+                self.last_checked = (frame, gray)  # one assignment: the recorder's marker probe reads it from another thread
             self.keyframes_checked += 1
             if error is not None:
                 self.units_undecodable += 1
