@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_4k_full.py --workdir /tmp/h20_4k             # write once (kept), calibrate, score
     .venv/bin/python benchmarks/bench_4k_full.py --workdir /tmp/h20_4k --scale4k 0.25
+    .venv/bin/python benchmarks/bench_4k_full.py --workdir /tmp/h20_4k --k3     # the cached fit against k3
 
 The camera and plan are bench_perturbation.py's ``4k`` row (3840x2160, f 2600,
 k1 -0.32, k2 0.12, k3 -0.02, p1 4e-4, p2 -3e-4, 4.5 m pole, tilt 35; legs
@@ -58,18 +59,40 @@ def cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
+def k3_check(fit: dict) -> str:
+    """The chosen model against the same points fitted with k3 ("full"): ground 3-30 m, principal point, F-test p."""
+    from dronecal_field.core.calibrate import calibrate
+    from dronecal_field.pipeline.maps import _f_test
+    from dronecal_field.sim.compare import compare_cameras
+
+    result, truth = fit["result"], fit["truth"]
+    if result.model.distortion == "full":
+        return "k3 chosen"
+    full = calibrate(result.points_world, result.pixels, truth.width, truth.height, model=replace(result.model, distortion="full"),
+                     loss="huber", initial=result.camera)
+    a, b = compare_cameras(truth, result.camera), compare_cameras(truth, full.camera)
+    return (f"{result.model.name}: ground {a.ground.rms_px:.2f} px (max {a.ground.max_px:.1f}), pp {a.principal_point_error_px:.1f} px, "
+            f"rms {result.rms_px:.3f}; with k3: ground {b.ground.rms_px:.2f} px (max {b.ground.max_px:.1f}), "
+            f"pp {b.principal_point_error_px:.1f} px, rms {full.rms_px:.3f}, k3 {full.camera.distortion.k3:+.4f} "
+            f"(truth {truth.distortion.k3:+.4f}); F-test p {_f_test(result, full, len(result.pixels)):.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workdir", type=Path, required=True, help="the run is written here once and reused")
     parser.add_argument("--scale4k", type=float, default=1.0, help="render scale (default 1: 3840x2160)")
     parser.add_argument("--perturbation", default="base", help="a bench_perturbation.py perturbation (default base)")
     parser.add_argument("--trials", type=int, default=0, help="Monte-Carlo trials of calibrate (default 0: linearised)")
+    parser.add_argument("--k3", action="store_true", help="only compare the cached fit with the same points fitted with k3")
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     truth, flight, spec, planned = make_case("4k", args.perturbation, args.scale4k, 0)
     if args.perturbation != "latency1":
         spec = replace(spec, latency_s=LATENCY_S)
     path = args.workdir / f"4k-{args.perturbation}-{truth.width}-lat{spec.latency_s:.2f}.mcap"
+    if args.k3:
+        print(k3_check(pickle.loads(path.with_suffix(".fit.pkl").read_bytes())))
+        return
     if not path.exists():
         t, c = time.perf_counter(), cpu_s()
         tmp = path.with_suffix(".part")
@@ -101,6 +124,7 @@ def main() -> None:
           f"offset {e['offset_s']:+.3f} s (truth {spec.latency_s:+.3f}), sigma scale {report.sigma_scale:.2f}")
     for w in report.warnings:
         print(f"  warning: {w}")
+    print(f"  {k3_check(fit)}")
 
 
 if __name__ == "__main__":
