@@ -98,7 +98,8 @@ def test_a_sped_up_simulators_holds_and_legs_are_measured_on_the_vehicle_clock()
     from dronecal_field.pipeline.legs import Leg
 
     t = np.arange(0, 10_000_000_000, 100_000_000, dtype=np.int64)
-    track = SimpleNamespace(t_ns=t, velocity_enu_mps=np.tile([1.59, 0.0, 0.0], (len(t), 1)))  # 0.53 m/s at 3x
+    track = SimpleNamespace(t_ns=t, velocity_enu_mps=np.tile([1.59, 0.0, 0.0], (len(t), 1)),  # 0.53 m/s at 3x
+                            marker_enu_m=np.outer(t * 1e-9, [1.59, 0.0, 0.0]))
     windows = [HoverWindow(index=k, start_ns=0, end_ns=333_333_333, source="event", seq=4 + k) for k in range(3)]  # 1 s at 3x
     legs = [Leg(index=0, start_ns=0, end_ns=9_000_000_000, source="event")]
 
