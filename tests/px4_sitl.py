@@ -22,21 +22,18 @@ PX4 runs in real time only.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import shutil
-import signal
 import subprocess
 import tempfile
-import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
 
-from sitl import REPO, _setns, _unshare_works
+from sitl import REPO, SitlProcess, _unshare_works
 
 
 def _px4_dir() -> Path:
@@ -89,7 +86,7 @@ def _private_bin(workdir: Path) -> Path:
 
 
 @dataclass
-class Px4Sitl:
+class Px4Sitl(SitlProcess):
     """A running PX4 SITL with SIH, its links and its working directory.
 
     Attributes
@@ -173,37 +170,3 @@ class Px4Sitl:
     def argv(self, argv: Sequence[str]) -> list[str]:
         """``argv`` run inside PX4's network namespace (the host's /tmp and files stay visible)."""
         return ["nsenter", f"--net=/proc/{self.proc.pid}/ns/net", "--", *argv]
-
-    @contextlib.contextmanager
-    def netns(self) -> Iterator[None]:
-        """Sockets this thread creates inside the block live in PX4's network namespace."""
-        own = os.open(f"/proc/self/task/{threading.get_native_id()}/ns/net", os.O_RDONLY)
-        target = os.open(f"/proc/{self.proc.pid}/ns/net", os.O_RDONLY)
-        try:
-            _setns(target)
-            try:
-                yield
-            finally:
-                _setns(own)
-        finally:
-            os.close(own)
-            os.close(target)
-
-    def stop(self) -> None:
-        """SIGTERM PX4 (this pid only), SIGKILL if it lingers; remove its working directory."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        if self._tmp is not None:
-            self._tmp.cleanup()
-            self._tmp = None
-
-    def __enter__(self) -> Px4Sitl:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()

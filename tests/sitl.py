@@ -32,7 +32,9 @@ import socket
 import subprocess
 import tempfile
 import threading
+import time
 from collections.abc import Iterator, Mapping, Sequence
+from typing import Self
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -113,8 +115,59 @@ def _setns(fd: int) -> None:
         raise OSError(err, f"setns: {os.strerror(err)}")
 
 
+class SitlProcess:
+    """What every firmware SITL here shares: reaching its loopback, stopping it. Needs ``proc``, ``private_net``, ``_tmp``."""
+
+    proc: subprocess.Popen
+    private_net: bool
+    _tmp: tempfile.TemporaryDirectory | None
+
+    def argv(self, argv: Sequence[str]) -> list[str]:
+        """``argv`` run where it reaches SITL's loopback (inside its namespace when it has one)."""
+        if not self.private_net:
+            return list(argv)
+        return ["nsenter", f"--net=/proc/{self.proc.pid}/ns/net", "--", *argv]
+
+    @contextlib.contextmanager
+    def netns(self) -> Iterator[None]:
+        """Sockets this thread creates inside the block live in SITL's namespace (no-op without one)."""
+        if not self.private_net:
+            yield
+            return
+        own = os.open(f"/proc/self/task/{threading.get_native_id()}/ns/net", os.O_RDONLY)
+        target = os.open(f"/proc/{self.proc.pid}/ns/net", os.O_RDONLY)
+        try:
+            _setns(target)
+            try:
+                yield
+            finally:
+                _setns(own)
+        finally:
+            os.close(own)
+            os.close(target)
+
+    def stop(self) -> None:
+        """SIGTERM the firmware (this pid only), SIGKILL if it lingers; remove its working directory."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
 @dataclass
-class ArduCopterSitl:
+class ArduCopterSitl(SitlProcess):
     """A running ArduCopter SITL (one process), its two links and its working directory.
 
     Attributes
@@ -212,45 +265,17 @@ class ArduCopterSitl:
         except OSError:
             return "(no log)"
 
-    def argv(self, argv: Sequence[str]) -> list[str]:
-        """``argv`` run where it reaches SITL's loopback (inside its namespace when it has one)."""
-        if not self.private_net:
-            return list(argv)
-        return ["nsenter", f"--net=/proc/{self.proc.pid}/ns/net", "--", *argv]
 
-    @contextlib.contextmanager
-    def netns(self) -> Iterator[None]:
-        """Sockets this thread creates inside the block live in SITL's namespace (no-op without one)."""
-        if not self.private_net:
-            yield
-            return
-        own = os.open(f"/proc/self/task/{threading.get_native_id()}/ns/net", os.O_RDONLY)
-        target = os.open(f"/proc/{self.proc.pid}/ns/net", os.O_RDONLY)
+def wait_for_http(sitl: SitlProcess, port: int, proc: subprocess.Popen, timeout_s: float = 60.0) -> None:
+    """Until ``proc`` (a sim camera) serves on ``port`` inside the SITL's namespace."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, "sim camera exited early"
         try:
-            _setns(target)
-            try:
-                yield
-            finally:
-                _setns(own)
-        finally:
-            os.close(own)
-            os.close(target)
-
-    def stop(self) -> None:
-        """SIGTERM the SITL (this pid only), SIGKILL if it lingers; remove its working directory."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        if self._tmp is not None:
-            self._tmp.cleanup()
-            self._tmp = None
-
-    def __enter__(self) -> ArduCopterSitl:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
+            with sitl.netns():
+                s = socket.create_connection(("127.0.0.1", port), timeout=0.5)
+            s.close()
+            return
+        except OSError:
+            time.sleep(0.2)
+    raise AssertionError(f"sim camera did not serve on {port} within {timeout_s:.0f} s")

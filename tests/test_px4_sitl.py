@@ -22,9 +22,7 @@ from __future__ import annotations
 
 import json
 import math
-import socket
 import subprocess
-import time
 
 import numpy as np
 import pytest
@@ -36,25 +34,12 @@ from dronecal_field.mavlink import missionfile as mf
 from dronecal_field.runfile.reader import open_run
 from dronecal_field.sim.compare import compare_cameras
 from px4_sitl import Px4Sitl, needs_px4
+from sitl import wait_for_http
 from test_px4_sim_flight import plan_for_px4
 from test_mavlink_support import HOME
 
 pytestmark = [needs_px4, pytest.mark.slow, pytest.mark.timeout(420)]
 
-
-
-def _wait_for_http(sitl: Px4Sitl, port: int, proc: subprocess.Popen, timeout_s: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, "sim camera exited early"
-        try:
-            with sitl.netns():
-                s = socket.create_connection(("127.0.0.1", port), timeout=0.5)
-            s.close()
-            return
-        except OSError:
-            time.sleep(0.2)
-    raise AssertionError(f"sim camera did not serve on {port} within {timeout_s:.0f} s")
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +61,7 @@ def flight(tmp_path_factory):
             "--marker-size", MARKER["size_m"], "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]),
         )), stdout=(logs / "sim-camera.log").open("w"), stderr=subprocess.STDOUT)  # fmt: skip
         try:
-            _wait_for_http(sitl, 8554, camera)
+            wait_for_http(sitl, 8554, camera)
             with (logs / "fly.log").open("w") as f:
                 fly_rc = subprocess.run(sitl.argv(cli_argv(
                     "fly", "--connect", sitl.gcs_url, "--mission", mission_path, "--video", video_url, "--out", out / "run.mcap",

@@ -36,7 +36,7 @@ from dronecal_field.mavlink import missionfile as mf
 from dronecal_field.runfile.reader import open_run
 from dronecal_field.sim.compare import compare_cameras
 from dronecal_field.sim.scene import make_truth_camera
-from sitl import ArduCopterSitl, needs_sitl
+from sitl import ArduCopterSitl, needs_sitl, wait_for_http
 from test_mavlink_support import HOME
 
 pytestmark = [needs_sitl, pytest.mark.slow, pytest.mark.timeout(400)]
@@ -50,20 +50,6 @@ SITL_PARAMS = {"GPS1_RATE_MS": 100, "SIM_GPS1_HZ": 10}
 def _run(sitl: ArduCopterSitl, argv: list[str], log: Path, timeout_s: float) -> int:
     with log.open("w") as f:
         return subprocess.run(sitl.argv(argv), stdout=f, stderr=subprocess.STDOUT, timeout=timeout_s).returncode
-
-
-def _wait_for_http(sitl: ArduCopterSitl, port: int, proc: subprocess.Popen, timeout_s: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, "sim camera exited early"
-        try:
-            with sitl.netns():
-                s = socket.create_connection(("127.0.0.1", port), timeout=0.5)
-            s.close()
-            return
-        except OSError:
-            time.sleep(0.2)
-    raise AssertionError(f"sim camera did not serve on {port} within {timeout_s:.0f} s")
 
 
 @pytest.fixture(scope="module")
@@ -98,7 +84,7 @@ def flight(tmp_path_factory):
             "--marker-size", MARKER["size_m"], "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]),
         )), stdout=(logs / "sim-camera.log").open("w"), stderr=subprocess.STDOUT)  # fmt: skip
         try:
-            _wait_for_http(sitl, http_port, camera)
+            wait_for_http(sitl, http_port, camera)
             t0 = time.monotonic()
             fly_rc = _run(sitl, cli_argv(
                 "fly", "--connect", sitl.gcs_url, "--mission", mission_path, "--video", video_url, "--out", out / "run.mcap",
