@@ -96,6 +96,7 @@ def calibrate_after_landing(run_path: Path, min_fix: str, closed_mono: float, li
     calibrate_cmd.register(sub)
     args = parser.parse_args(["calibrate", str(run_path), "--min-fix", min_fix])
     frames = live.frame_results() if live is not None else None
+    t0, cpu0 = time.monotonic(), time.process_time()
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         if live is None:
@@ -103,5 +104,11 @@ def calibrate_after_landing(run_path: Path, min_fix: str, closed_mono: float, li
         else:
             calibrate_cmd.run_single(args, run_path, live=frames)
     lines = out.getvalue().rstrip().splitlines()
-    lines.append(f"calibration ready {time.monotonic() - closed_mono:.1f} s after the run file was closed")
+    ready = f"calibration ready {time.monotonic() - closed_mono:.1f} s after the run file was closed"
+    # Where the time went, wall and this process's CPU (a loaded machine stretches the wall, not the CPU).
+    parts = [f"calibrate {time.monotonic() - t0:.1f} s, {time.process_time() - cpu0:.1f} s CPU"]
+    started = getattr(live, "finish_started", None)
+    if started is not None:
+        parts.insert(0, f"the live pass's last checks and verdict {t0 - started[0]:.1f} s, {cpu0 - started[1]:.1f} s CPU")
+    lines.append(f"{ready} ({'; '.join(parts)})")
     return lines

@@ -223,6 +223,7 @@ class LiveCalibration:
         self._keyframes_ns: list[int] = []  # keyframes pushed to it, in order (a covered span must hold one: _cover)
         self._last_det: Any = None  # tracking in the zone pass (calibrate's search box)
         self._before_det: Any = None
+        self.finish_started: tuple[float, float] | None = None  # (monotonic, process CPU) s when finish() began
         self._batch_track: FixTrack | None = None  # after landing every fix is in: the track is made once, not per waypoint
 
     # ----- observer (recorder threads): O(1), never waits -----
@@ -287,6 +288,7 @@ class LiveCalibration:
         ``run_path`` (the closed run file), from the recording, so the verdict
         never calls "missed" a waypoint whose frames nobody looked at.
         """
+        self.finish_started = (time.monotonic(), time.process_time())  # for fly's "calibration ready" breakdown
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=timeout_s)
