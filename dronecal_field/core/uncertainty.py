@@ -428,7 +428,7 @@ def linearised(
     points about equally, which is what an unmodelled lens term does to the
     focal length and to the ground beyond the points.
     """
-    from scipy import stats
+    from scipy import special, stats
 
     P = np.asarray(points_world, float)
     n = P.shape[0]
@@ -444,7 +444,9 @@ def linearised(
     a = ssr_var / (2.0 * ssr_mean)
     nu = 2.0 * ssr_mean**2 / ssr_var
     dist = stats.chi2(nu, scale=a)
-    rms_mean = float(dist.expect(lambda s: np.sqrt(s / n)))
+    # E[sqrt(S/n)] in closed form (sqrt(2a/n) G((nu+1)/2) / G(nu/2)): dist.expect integrates numerically and warned
+    # "the integral is probably divergent" on a PX4 flight's noisy points
+    rms_mean = float(np.sqrt(2.0 * a / n) * np.exp(special.gammaln(0.5 * (nu + 1.0)) - special.gammaln(0.5 * nu)))
     rms_sq_mean = ssr_mean / n
     rms_var = max(rms_sq_mean - rms_mean**2, 0.0)
     percentiles = {p: float(np.sqrt(dist.ppf(p / 100.0) / n)) for p in PERCENTILES}
