@@ -219,6 +219,11 @@ def main() -> int:
     ready = re.search(r"calibration ready ([0-9.]+) s after the run file was closed", fly_text)
     print(f"fly: exit {fly.returncode}, {fly_wall:.0f} s wall, CPU {cpu:.1f} s = {100 * cpu / fly_wall:.1f} % of one core (with the live pass)")
     print(f"fly --calibrate: {ready.group(0) if ready else 'no calibration-ready line (see ' + str(logs / 'fly.log') + ')'}")
+    calib = out / "run-calibration"
+    if run_path.exists() and (calib / "camera.yaml").exists():
+        closed = run_path.stat().st_mtime  # the run file's last write: its close
+        written = {name: (calib / name).stat().st_mtime - closed for name in ("camera.yaml", "report.html") if (calib / name).exists()}
+        print("fly --calibrate, by the files' times: " + ", ".join(f"{n} written {dt:.1f} s after run.mcap closed" for n, dt in written.items()))
     for line in fly_text.splitlines():
         if re.search(r"frames \(|video|corrupt|lost", line) and "live:" not in line:
             print("  fly:", line.strip()[:200])

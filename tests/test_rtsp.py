@@ -94,6 +94,15 @@ def test_rtsp_stream_is_recorded_as_access_units_stamped_through_rtcp(server, co
     steps = {b.pts_ns - a.pts_ns for a, b in zip(frames, frames[1:])}
     assert steps == {40_000_000}
     assert source.monitor.frames_lost == 0 and source.monitor.corrupt == 0 and not source.b_frames
+    # The keyframe check hands its picture on (the recorder's marker probe takes it instead of decoding again):
+    # the same luma as that keyframe decoded on its own.
+    import numpy as np
+
+    from dronecal_field.video.decode import decode_keyframe_gray
+
+    checked, gray = source.last_checked
+    assert source.keyframes_checked >= 1 and checked.keyframe and gray.shape == (240, 320)
+    assert np.array_equal(gray, decode_keyframe_gray(checked.data, codec))
     # The camera's (here the server's) clock through RTCP: frames are stamped when the server
     # captured them, which its log says; loopback delivery adds well under a frame.
     assert source.clock == "rtcp"
