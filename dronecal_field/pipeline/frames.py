@@ -75,6 +75,8 @@ def detect_frames(run, windows: list[HoverWindow], legs: list[Leg], md, sampling
         stored = isinstance(frame, _CachedFrame)
         if not stored:
             decoder.push(frame)
+            if live is not None and live.covered_at(frame.timestamp_ns):
+                continue  # a keyframe run-up unit inside a covered span: the cache's own frame was chosen or not (never twice)
         # Decisions use what was detected so far (a transition is decoded once its hold showed the marker).
         decode, group = selector.wants(frame.timestamp_ns, keyframe=bool(getattr(frame, "keyframe", False)))
         if not decode:
