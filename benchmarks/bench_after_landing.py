@@ -14,6 +14,19 @@ verdict) and ``session.calibrate_after_landing`` (``calibrate`` taking the
 frame cache). Printed: the CPU seconds (this process, all threads) and wall
 of each, the load, and calibrate's own line of frames taken from the cache.
 Speed claims use the CPU seconds: the machine is shared.
+
+Measured 2026-11-27 on /tmp/h22/b7/run.mcap (bench_rtsp_chain's 720p10 H.265
+run of 13:03, 1621 frames, 77 hover/leg events; load 10-15), each line one
+step of this round's change to the live worker:
+
+- before: conclude 25.9 s CPU (every waypoint's frames decoded from its
+  keyframe, the fix track made per waypoint: 6.7 s of it) + calibrate 24.0 s
+  CPU taking no frame from the cache = 49.9 s;
+- decoded outcomes kept in the frame cache, holds on calibrate's keyframe
+  bursts, the track made once: 24.2 + 16.1 = 40.3 s; calibrate takes 342 of
+  its 681 frames from the cache;
+- legs on calibrate's leg_period grid: 23.0 + 11.9 = 34.8 s; 506 of 681 from
+  the cache. The same calibration (fx 1000.08 px) and verdict throughout.
 """
 
 from __future__ import annotations

@@ -55,6 +55,15 @@ each): 0.76x. 472 / 486 frames, 0 lost, 0 dropped, RSS 235-239 MB. The other
 ~9.5 % is the packet source and the writer; under 10 % is not reached yet.
 (At load ~25 the same pair measured 9.2 % / 8.5 %: the old mode then made only
 6 probes, each keyframe decode taking seconds of wall time.)
+
+Again 2026-11-27 15:37 (py-spy on the recorder process first: the packet
+source's checker thread decoded a keyframe every 5 s, ~130 ms of CPU each at
+4K H.265, and the marker probe decoded keyframes again, ~127 ms + 31 ms of
+detection): the probe now takes the check's picture (``--probe budget``);
+``--probe budget-decode`` is the way before. ``--seconds 20 --only
+4k25-h265``, alternated twice, load 10-11.5: budget-decode 11.0 / 11.1 % of
+one core (7 / 6 probes, 0.53 / 0.51 s), budget 7.1 / 7.5 % (4 probes,
+0.15 / 0.20 s): 0.66x; 456-496 frames, 0 lost, 0 dropped, 0 corrupt.
 """
 
 from __future__ import annotations

@@ -66,6 +66,34 @@ sessions' simulators, flights and tests):
   px (truth fx 1000): NOT the same camera: fly's calibrate skipped 6 frames
   as corrupt that the file decodes cleanly (495 vs 499 frames with the
   marker).
+
+Again 2026-11-27 15:30-16:15 (issue 22, after landing): the live pass's
+after-landing checks decode their frames once, in stream order, into the
+frame cache (holds: calibrate's keyframe bursts; legs: calibrate's
+leg_period grid), so calibrate takes them instead of decoding them again; a
+covered span must hold a keyframe; a unit that does not decode is left out
+of the cache (never "corrupt"); calibrate never takes a cached frame twice.
+The same ``--size 1280x720 --fps 10 --codec h265 --plan-dir`` 5.9-minute plan
+(the camera now delivered 9.7 of the 10 fps asked):
+
+- run 1 (load 10-15): fly 434 s wall, 108.2 s CPU = 24.9 % of one core with
+  the live pass (2974 frames; the worker 41.6 s of it); calibration ready
+  **44.9 s** after the run file closed (was 155.2 s), 11 waypoints checked
+  after landing, 992 of 1124 frames from the live pass, 0 corrupt; fly's
+  calibration = ``calibrate`` on the file alone to the printed digits
+  (fx 999.88 px, principal point (637.94, 361.14) px; file alone 151.9 s);
+- run 2 (load 11-14): fly 446 s, 97.6 s CPU = 21.9 %; ready **57.5 s** after
+  close: the live pass's last checks 13.6 s (3.6 s CPU), calibrate 43.1 s
+  (12.9 s CPU); by the files' times camera.yaml 36.7 s, report.html 57.5 s
+  after run.mcap closed; 1009 of 1104 frames from the live pass; fly fx
+  1000.39 (639.41, 358.84) vs the file alone 1000.44 (639.39, 358.79) in
+  159.0 s: every detection identical (to 1e-4 px) but 3 counted twice in
+  fly's (a keyframe run-up unit inside a covered span: fixed since).
+
+30 s is not met at load 11-14: after landing ``fly`` spends ~16.5 s of CPU
+(checks 3.6, calibrate 12.9, of which the report's figures ~6), and a
+process gets ~0.3 of a core at that load. 4K H.264 was not run (x264 needs
+~1 core for 4K25 before anything else; the machine had none free).
 """
 
 from __future__ import annotations
