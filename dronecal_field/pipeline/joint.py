@@ -265,7 +265,7 @@ def pool_runs(stages: list[RunStages], plans: list[PlanOfRun], options: Calibrat
         points, runs, tracks = _pool(stages, parts, plans, origin)
         result, reason = clock("calibration_s", solve_points, points, md, options, (result, reason))
     run_of_point = [i for i, r in enumerate(runs) for p in r.points if p.used]  # _pool: runs' points one after another
-    alone_models = [s.result.model for s, _, _, _ in parts if s is not None]
+    alone_models = [None if s is None else s.result.model for s, _, _, _ in parts]
     result, noise = clock("calibration_s", noise_weighted, points, result, md, options, run_of_point, alone_models)
     if noise is not None:
         runs = [replace(r, noise_px=noise.get(i, {})) for i, r in enumerate(runs)]
@@ -311,7 +311,7 @@ NOISE_FLOOR_PX = 0.05  # no group is trusted beyond this (a near-perfect group w
 MAX_REWEIGHTS = 6
 
 
-def noise_weighted(points: list, result, md, options: CalibrateOptions, run_of_point: list[int], alone_models: list = ()):
+def noise_weighted(points: list, result, md, options: CalibrateOptions, run_of_point: list[int], alone_models: list | None = None):
     """The pooled camera with each run's holds and each run's legs weighted by their own measured noise.
 
     Runs flown differently do not share one noise: a scout's fast legs (motion
@@ -325,10 +325,13 @@ def noise_weighted(points: list, result, md, options: CalibrateOptions, run_of_p
     pixel residual carries every noise of a point: the detector's, the GNSS
     fixes' seen through the camera, and the timing's along a leg.
 
-    The model is the richest of the pooled one and those the runs chose alone
-    (``alone_models``): a term a quiet run's points support alone, the pool
-    supports once the noisy run's points stop swamping it (the model ladder ran
-    on the unweighted pool, where they did).
+    The model (``options.model`` auto) is the one the run carrying most of the
+    weight (sum of 1 / noise^2 over its points) chose alone (``alone_models``,
+    by run; None for a run paired at its motion offset): the model ladder ran
+    on the unweighted pool, where the noisy run's points decided it (the
+    Table 1 simulator: k1k2p1p2 from the pool where the main run alone
+    supports k1, 1.66 px on the ground against 0.67 alone), and the weighted
+    pool is that run's data to first order.
 
     ``run_of_point``: the run (0-based) of each used point, in order.
     Returns (result, {run: {"holds"|"legs": noise px}}), or (result, None) when
@@ -344,8 +347,13 @@ def noise_weighted(points: list, result, md, options: CalibrateOptions, run_of_p
     if noise is None or max(noise.values()) < EQUAL_NOISE_RATIO * min(noise.values()):
         return result, None
     model = result.model
-    if options.model == "auto":
-        model = max([model, *alone_models], key=lambda m: m.n_free)
+    if options.model == "auto" and alone_models:
+        share: dict[int, float] = {}
+        for g in groups:
+            share[g[0]] = share.get(g[0], 0.0) + 1.0 / noise[g] ** 2
+        heaviest = max(share, key=share.get)
+        if heaviest < len(alone_models) and alone_models[heaviest] is not None:
+            model = alone_models[heaviest]
     for _ in range(MAX_REWEIGHTS):
         sigma = np.array([noise[g] for g in groups])
         result = calibrate(X, uv, md.width, md.height, model=model, loss=options.loss, loss_scale_px=options.loss_scale_px,
