@@ -88,11 +88,19 @@ The same ``--size 1280x720 --fps 10 --codec h265 --plan-dir`` 5.9-minute plan
   after run.mcap closed; 1009 of 1104 frames from the live pass; fly fx
   1000.39 (639.41, 358.84) vs the file alone 1000.44 (639.39, 358.79) in
   159.0 s: every detection identical (to 1e-4 px) but 3 counted twice in
-  fly's (a keyframe run-up unit inside a covered span: fixed since).
+  fly's (a keyframe run-up unit inside a covered span: fixed since);
+- run 3 (load 11-16, with that fix): fly 453 s, 94.1 s CPU = 20.8 %; ready
+  **64.8 s** after close: the worker fell further behind (22 waypoints
+  checked after landing: 31.8 s, 9.4 s CPU), calibrate 32.9 s (12.5 s CPU);
+  camera.yaml 51.5 s, report.html 64.9 s after run.mcap closed; 930 of 996
+  frames from the live pass, 0 corrupt; fly's calibration = the file alone
+  (126.7 s) to the printed digits, fx 1002.09 px, principal point (638.65,
+  359.19) px: the same 689 detections, none twice, equal to 1e-4 px.
 
-30 s is not met at load 11-14: after landing ``fly`` spends ~16.5 s of CPU
-(checks 3.6, calibrate 12.9, of which the report's figures ~6), and a
-process gets ~0.3 of a core at that load. 4K H.264 was not run (x264 needs
+30 s is not met at load 11-16: after landing ``fly`` spends 16.5-22 s of CPU
+(the checks the starved worker left: 3.6-9.4 s; calibrate 12.5-12.9 s, of
+which the report's figures ~6), and a process gets ~0.3 of a core at that
+load. 4K H.264 was not run (x264 needs
 ~1 core for 4K25 before anything else; the machine had none free).
 """
 
