@@ -347,13 +347,12 @@ def noise_weighted(points: list, result, md, options: CalibrateOptions, run_of_p
     if noise is None or max(noise.values()) < EQUAL_NOISE_RATIO * min(noise.values()):
         return result, None
     model = result.model
-    if options.model == "auto" and alone_models:
-        share: dict[int, float] = {}
-        for g in groups:
-            share[g[0]] = share.get(g[0], 0.0) + 1.0 / noise[g] ** 2
-        heaviest = max(share, key=share.get)
-        if heaviest < len(alone_models) and alone_models[heaviest] is not None:
-            model = alone_models[heaviest]
+    share: dict[int, float] = {}
+    for g in groups:
+        share[g[0]] = share.get(g[0], 0.0) + 1.0 / noise[g] ** 2
+    heaviest = max(share, key=share.get)
+    if options.model == "auto" and alone_models and heaviest < len(alone_models) and alone_models[heaviest] is not None:
+        model = alone_models[heaviest]
     for _ in range(MAX_REWEIGHTS):
         sigma = np.array([noise[g] for g in groups])
         result = calibrate(X, uv, md.width, md.height, model=model, loss=options.loss, loss_scale_px=options.loss_scale_px,
@@ -363,10 +362,57 @@ def noise_weighted(points: list, result, md, options: CalibrateOptions, run_of_p
         noise = new
         if settled:
             break
+    result, noise = _consistent_with_heaviest(X, uv, md, model, options, result, groups, noise, heaviest)
     out: dict[int, dict[str, float]] = {}
     for (r, kind), v in noise.items():
         out.setdefault(r, {})[kind] = round(float(v), 3)
     return result, out
+
+
+CONSISTENCY_LEVEL = 0.999  # chi-square quantile the heaviest run's own fit may worsen by when the others join
+MAX_INFLATION = 1000.0  # beyond this the other runs weigh nothing: the heaviest run alone, in effect
+
+
+def _consistent_with_heaviest(X, uv, md, model, options: CalibrateOptions, result, groups, noise: dict, heaviest: int):
+    """(result, noise): the other runs' noise inflated until the heaviest run's own points agree with the pool.
+
+    A run whose points are biased (a scout's leg timing, its fast legs' rolling
+    shutter) and not only noisy is not cured by its noise weight: it pulls the
+    camera by its bias. Joined by consistent runs, the heaviest run's own
+    weighted cost rises by about a chi-square of the free parameters' count; a
+    larger rise (above its CONSISTENCY_LEVEL quantile) means the others
+    disagree, and their sigmas are multiplied by 3 until it does not: the pool
+    then never fits the heaviest run worse than chance allows, so it is no
+    worse than that run alone (the Table 1 and wide simulators' scouts, 13-19 px).
+    """
+    from scipy.stats import chi2
+
+    from dronecal_field.core.calibrate import calibrate
+    from dronecal_field.errors import DronecalError
+
+    mine = np.array([g[0] == heaviest for g in groups])
+    if mine.all() or mine.sum() < model.n_free:
+        return result, noise
+    sig = np.array([noise[g] for g in groups])
+    try:
+        own = calibrate(X[mine], uv[mine], md.width, md.height, model=model, loss=options.loss, loss_scale_px=options.loss_scale_px,
+                        initial=result.camera, sigma_px=sig[mine])
+    except DronecalError:
+        return result, noise
+
+    def chi(res) -> float:
+        return float(np.sum(np.sum(np.asarray(res) ** 2, axis=1) / sig[mine] ** 2))
+
+    bound = float(chi2.ppf(CONSISTENCY_LEVEL, model.n_free))
+    base = chi(own.residuals_px)
+    factor = 1.0
+    while chi(result.residuals_px[mine]) - base > bound and factor < MAX_INFLATION:
+        factor *= 3.0
+        noise = {g: (v if g[0] == heaviest else v * 3.0) for g, v in noise.items()}
+        sigma = np.array([noise[g] for g in groups])
+        result = calibrate(X, uv, md.width, md.height, model=model, loss=options.loss, loss_scale_px=options.loss_scale_px,
+                           initial=result.camera, sigma_px=sigma)
+    return result, noise
 
 
 def _group_noise(residuals: np.ndarray, groups: list[tuple[int, str]]) -> dict | None:
