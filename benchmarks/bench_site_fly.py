@@ -30,6 +30,22 @@ Measured (each a real process; fly's CPU from os.wait4, user + system):
   simulator made (``sim camera: N frames``);
 - the flight time: the recording's wall time, and in vehicle seconds (x ``--speedup``).
 
+Measured 2026-11-27 15:21-16:02, full-size cameras but the 4K one at half size (``--scale 1 --camera-scale
+a-4k=0.5 --fps 8 --rtsp-camera b-table1``; a full 4K camera gave no frame over RTSP and went silent for
+15-40 s at a time over MJPEG: the Python renderer), load average 10-17 (other sessions' tests and
+benchmarks), recorder alone (``--no-live --no-baseline``):
+
+- the site plan of 15:20 (min_agl 1 m, keep-out 2 m; 610.8 s planned, 55 holds), ``--speedup 1``: recorded
+  615.5 s, fly 60.4 s CPU in 660 s = 9.2 % of one core for the four streams; 16 510 frames, 29 video gaps
+  (a-wide 9, a-4k 7, b-table1 1, b-wide 12), b-table1 (RTSP) fell behind 35 times (up to 0.19 s), 5 frames
+  lost in the stream;
+- the site plan of 15:49 (min_agl 0.5 m, keep-out 1.5 m; 888 s planned, 60 holds), ``--speedup 1.5``: recorded
+  601.0 s wall = 901.5 s = 15.0 min of vehicle time, fly 69.0 s CPU in 631 s = 10.9 % of one core; 15 758
+  frames, 24 gaps (a-wide 5, a-4k 6, b-table1 1, b-wide 12), b-table1 fell behind 39 times (up to 0.44 s),
+  56 frames lost in the stream.
+
+The accuracy of these flights is bench_site_accuracy.py's docstring.
+
 Measured 2026-11-27 12:38-12:47 (2 cores shared with seven other sessions'
 tests and benchmarks: load average 25-28), ``--site-plan`` = ``plan --site
 missions/site-two-poles.toml`` (one flight, 891 s planned, 46 holds, 57 legs,
