@@ -328,9 +328,11 @@ def run_batch(args: argparse.Namespace) -> int:
         report = calibrate_many(args.run, args.out, options, client=client, scheduler=args.scheduler, progress=sys.stderr.isatty())
     print(summary_table(report))
     n_bad = len(report.failed)
-    print(f"{len(report.rows) - n_bad} of {len(report.rows)} runs calibrated on {report.workers} worker(s) in {report.wall_s:.1f} s; "
+    # a several-camera run gives a row per camera: count cameras then, runs otherwise
+    what = "cameras" if any(getattr(r, "camera", None) for r in report.rows) else "runs"
+    print(f"{len(report.rows) - n_bad} of {len(report.rows)} {what} calibrated on {report.workers} worker(s) in {report.wall_s:.1f} s; "
           f"wrote {', '.join(Path(p).name for p in report.outputs.values())} and one folder per run to {args.out}")
     if n_bad:
-        print(f"dronecal-field calibrate: {n_bad} of {len(report.rows)} runs failed (see {report.outputs['summary_csv']})", file=sys.stderr)
+        print(f"dronecal-field calibrate: {n_bad} of {len(report.rows)} {what} failed (see {report.outputs['summary_csv']})", file=sys.stderr)
         return 1
     return 0
