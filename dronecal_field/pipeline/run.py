@@ -24,7 +24,6 @@ legs and only the detections are kept.
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -42,7 +41,7 @@ from dronecal_field.pipeline.results import (  # noqa: F401 - the stage's public
     FrameStats,
     Track,
 )
-from dronecal_field.pipeline.solve import check_physical, clear_minimum, solve_at_offset  # noqa: F401
+from dronecal_field.pipeline.solve import check_physical, check_supported, clear_minimum, solve_at_offset  # noqa: F401
 from dronecal_field.pipeline.stages import (
     RunStages,
     StageClock,
@@ -258,7 +257,7 @@ def _finish(st: RunStages, options: CalibrateOptions, clock: StageClock) -> Cali
     camera = solved.result.camera.with_(enu_origin=tuple(read.origin.as_list()))
     result = with_camera(solved.result, camera)
     unc = clock("uncertainty_s", uncertainty, camera, solved.points, result, options, read.origin, read.plan_roi)
-    _supported(unc.monte_carlo, result, solved.noise, causes)
+    check_supported(unc.monte_carlo, result, solved.noise, causes)
     report = CalibrationReport(
         run_path=st.path, truncated=st.truncated, run_warnings=st.run_warnings, metadata=md,
         origin=read.origin, origin_source=read.origin_source, altitude_datum=md.altitude_datum,
@@ -277,25 +276,3 @@ def _finish(st: RunStages, options: CalibrateOptions, clock: StageClock) -> Cali
         report.outputs.update(clock("outputs_s", write_outputs, report, Path(options.out_dir)))
     return report
 
-
-UNSUPPORTED_FOCAL_STD = 0.5  # a focal length known no better than this fraction of itself is a guess, not a calibration
-
-
-def _supported(mc, result, noise, causes: list[str]) -> None:
-    """Refuse a camera the flight's own noise leaves undetermined: a written camera.yaml is taken for a calibration.
-
-    Seen on PX4 SITL (GNSS 0.65 m, 17 holds in a strip of the image): the fit landed 12 % off in focal and 5 m off
-    in position, and every Monte-Carlo trial ran off to the affine limit (focal std 10^8 px).
-    """
-    f = 0.5 * (result.camera.intrinsics.fx + result.camera.intrinsics.fy)
-    std = mc.param_std.get("fx") if mc is not None else None
-    if std is None or (math.isfinite(std) and std <= UNSUPPORTED_FOCAL_STD * f):  # NaN: no trial converged
-        return
-    spread = f"{100 * std / f:.0f} %" if math.isfinite(std) and std < 10 * f else "beyond 1000 %"
-    gnss = ("" if noise is None else
-            f" (GNSS noise measured through the fit: {math.hypot(noise.sigma_white_m, noise.sigma_corr_m):.2f} m per fix)")
-    flown = f"{'; '.join(causes)}; " if causes else ""
-    raise CalibrationError(
-        f"{flown}this flight cannot pin the camera: with the noise it carries{gnss} the Monte-Carlo spreads the focal length "
-        f"by {spread} over {mc.n_points} points; fly with RTK GNSS, and more holds across the whole image"
-    )

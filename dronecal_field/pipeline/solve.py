@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from dronecal_field.errors import DegenerateGeometryError, DronecalError
+from dronecal_field.errors import CalibrationError, DegenerateGeometryError, DronecalError
 from dronecal_field.pipeline.agreement import AGREES, merged
 from dronecal_field.pipeline.align import TimeOffset, Timing, refine_timing
 from dronecal_field.pipeline.detect import centres_under_distortion
@@ -172,6 +172,31 @@ def check_physical(result, points: list[WaypointPoint], md, noise: FixNoise | No
         f"the solved camera is not physical (fx {i.fx:.0f}, fy {i.fy:.0f} px, principal point ({i.cx:.0f}, {i.cy:.0f}) px "
         f"for a {w}x{h} image): its {len(uv)} points span {span:.0f} % of the image{noisy}, too little to pin the intrinsics; "
         "re-fly so the marker is seen across the whole image" + (", with RTK GNSS" if noisy else "")
+    )
+
+
+UNSUPPORTED_FOCAL_STD = 0.5  # a focal length known no better than this fraction of itself is a guess, not a calibration
+
+
+def check_supported(mc, result, noise: FixNoise | None, causes: list[str] | tuple[str, ...] = ()) -> None:
+    """Refuse a camera the flight's own noise leaves undetermined: a written camera.yaml is taken for a calibration.
+
+    Seen on PX4 SITL (GNSS 0.65 m, 17 holds in a strip of the image): the fit landed 12 % off in focal and 5 m off
+    in position, and every Monte-Carlo trial ran off to the affine limit (focal std 10^8 px).
+    """
+    f = 0.5 * (result.camera.intrinsics.fx + result.camera.intrinsics.fy)
+    std = mc.param_std.get("fx") if mc is not None else None
+    if std is None or (math.isfinite(std) and std <= UNSUPPORTED_FOCAL_STD * f):  # NaN: no trial converged
+        return
+    spread = f"{100 * std / f:.0f} %" if math.isfinite(std) and std < 10 * f else "beyond 1000 %"
+    sigma = None if noise is None else math.hypot(noise.sigma_white_m, noise.sigma_corr_m)
+    gnss = "" if sigma is None else f" (GNSS noise measured through the fit: {sigma:.2f} m per fix)"
+    advice = "fly with RTK GNSS, and more holds across the whole image" if sigma is None or sigma > NOISY_GNSS_M else \
+        "fly more holds across the whole image, at more heights"
+    flown = f"{'; '.join(causes)}; " if causes else ""
+    raise CalibrationError(
+        f"{flown}this flight cannot pin the camera: with the noise it carries{gnss} the Monte-Carlo spreads the focal length "
+        f"by {spread} over {mc.n_points} points; {advice}"
     )
 
 
