@@ -370,6 +370,7 @@ def noise_weighted(points: list, result, md, options: CalibrateOptions, run_of_p
 
 
 CONSISTENCY_LEVEL = 0.999  # chi-square quantile the heaviest run's own fit may worsen by when the others join
+ROBUST_SIGMAS = 2.0  # the consistency cost is quadratic to 2 sigmas of a point, then robust as the fit's loss
 MAX_INFLATION = 1000.0  # beyond this the other runs weigh nothing: the heaviest run alone, in effect
 
 
@@ -401,7 +402,14 @@ def _consistent_with_heaviest(X, uv, md, model, options: CalibrateOptions, resul
         return result, noise
 
     def chi(res) -> float:
-        return float(np.sum(np.sum(np.asarray(res) ** 2, axis=1) / sig[mine] ** 2))
+        """The heaviest run's cost in its own sigmas, robust as the fit's loss (outliers of a leg would swamp squares)."""
+        r2 = np.sum(np.asarray(res) ** 2, axis=1) / sig[mine] ** 2
+        if options.loss == "huber":
+            r = np.sqrt(r2)
+            r2 = np.where(r <= ROBUST_SIGMAS, r2, 2.0 * ROBUST_SIGMAS * r - ROBUST_SIGMAS ** 2)
+        elif options.loss == "cauchy":
+            r2 = ROBUST_SIGMAS ** 2 * np.log1p(r2 / ROBUST_SIGMAS ** 2)
+        return float(np.sum(r2))
 
     bound = float(chi2.ppf(CONSISTENCY_LEVEL, model.n_free))
     base = chi(own.residuals_px)
