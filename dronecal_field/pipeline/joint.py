@@ -36,7 +36,7 @@ from dronecal_field.errors import DegenerateGeometryError, InputError
 from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic, geodetic_to_enu
 from dronecal_field.pipeline.confidence import uncertainty
 from dronecal_field.pipeline.results import CalibrateOptions, CalibrationReport, FrameStats, Track
-from dronecal_field.pipeline.solve import pair_points, solve_at_offset, solve_points
+from dronecal_field.pipeline.solve import check_physical, check_supported, pair_points, solve_at_offset, solve_points
 from dronecal_field.pipeline.stages import RunStages, StageClock, clock_jump_cost, damage_cost, offset_with_timing, with_camera
 
 MAX_CAMERA_APART_M = 1.0  # plans whose cameras lie further apart are of different cameras
@@ -270,9 +270,12 @@ def pool_runs(stages: list[RunStages], plans: list[PlanOfRun], options: Calibrat
     if noise is not None:
         runs = [replace(r, noise_px=noise.get(i, {})) for i, r in enumerate(runs)]
         reason += f" (each run's holds and legs weighted by their own noise: {_noise_text(noise, runs)})"
+    noise0 = parts[0][0].noise if parts[0][0] is not None else None
+    check_physical(result, points, md, noise0)
     camera = result.camera.with_(enu_origin=tuple(origin.as_list()))
     result = with_camera(result, camera)
     unc = clock("uncertainty_s", uncertainty, camera, points, result, options, origin, stages[0].read.plan_roi)
+    check_supported(unc.monte_carlo, result, noise0)
     warnings = _warnings(stages, parts, runs)
     if options.annotate:
         warnings.append("--annotate is not done for a joint calibration (one annotated copy per run would need the camera "
@@ -293,7 +296,7 @@ def pool_runs(stages: list[RunStages], plans: list[PlanOfRun], options: Calibrat
         legs=[g for r in runs for g in r.legs], leg_source=", ".join(dict.fromkeys(r.leg_source for r in runs)),
         timing=parts[0][0].timing if parts[0][0] is not None else None, fix_identity=first.read.identity,
         gnss_latency_s=first.read.gnss_latency_s, validity=unc.validity,
-        noise=parts[0][0].noise if parts[0][0] is not None else None, sigma_scale=unc.sigma_scale, runs=tuple(runs),
+        noise=noise0, sigma_scale=unc.sigma_scale, runs=tuple(runs),
     )
     if options.out_dir is not None:
         from dronecal_field.pipeline.report import write_outputs
