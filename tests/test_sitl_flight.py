@@ -39,7 +39,7 @@ from dronecal_field.sim.scene import make_truth_camera
 from sitl import ArduCopterSitl, needs_sitl, wait_for_http
 from test_mavlink_support import HOME
 
-pytestmark = [needs_sitl, pytest.mark.slow, pytest.mark.timeout(400)]
+pytestmark = [needs_sitl, pytest.mark.slow, pytest.mark.timeout(720)]
 
 SPEEDUP = 2.0  # vehicle seconds per wall second: a 3 s hold is 1.5 s of video at 15 fps (at 4x, 0.75 s, two CI workers left 12 of 17 holds and focal 2.95 % off)
 CAMERA = dict(mount_height=4.0, azimuth=30.0, tilt=25.0)
