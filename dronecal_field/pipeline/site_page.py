@@ -110,14 +110,17 @@ def top_view_svg(site, size_px: int = 640) -> str:
     if len(track):
         step = max(1, len(track) // 2000)
         parts.append(f'<polyline points="{" ".join(pt(p) for p in track[::step])}" fill="none" stroke="#555" stroke-width="0.8"/>')
+    labelled: list[np.ndarray] = []
     for k, (name, cam) in enumerate(cams.items()):
         colour = COLOURS[k % len(COLOURS)]
         c = cam.pose.position_world
+        on_pole = sum(1 for q in labelled if np.hypot(*(q[:2] - c[:2])) < 1.0)  # cameras of one pole: labels stacked, not overprinted
+        labelled.append(np.asarray(c, float))
         f = cam.pose.R_cam_from_world[2]
         (x0, y0), (x1, y1) = xy_px(c), xy_px(c[:2] + 4.0 * f[:2] / max(np.hypot(f[0], f[1]), 1e-9))
         parts.append(f'<line x1="{x0:.1f}" y1="{y0:.1f}" x2="{x1:.1f}" y2="{y1:.1f}" stroke="{colour}" stroke-width="2"/>')
         parts.append(f'<circle cx="{x0:.1f}" cy="{y0:.1f}" r="4" fill="{colour}"/>')
-        parts.append(f'<text x="{x0 + 6:.1f}" y="{y0 - 6:.1f}" font-size="12" fill="{colour}">{html.escape(name)}</text>')
+        parts.append(f'<text x="{x0 + 6:.1f}" y="{y0 - 6 - 14 * on_pole:.1f}" font-size="12" fill="{colour}">{html.escape(name)}</text>')
     metres = 10.0 if max(hi - lo) > 25 else 5.0
     parts.append(f'<line x1="10" y1="{h_px - 5}" x2="{10 + metres * scale:.1f}" y2="{h_px - 5}" stroke="#000" stroke-width="2"/>')
     parts.append(f'<text x="{14 + metres * scale:.1f}" y="{h_px - 3}" font-size="11">{metres:g} m (north up)</text>')
@@ -157,14 +160,23 @@ def site_html(site, data: dict) -> str:
         "<style>body{font-family:sans-serif;margin:2em}td,th{padding:3px 8px;border-bottom:1px solid #ddd}</style></head><body>"
         f"<h1>Site: {len(data['cameras'])} cameras from {runs}"
         + (f", {len(site.cameras)} calibrated" if len(site.cameras) != len(data["cameras"]) else "") + "</h1>"
-        f"<p>Every camera is in one ENU frame (origin {data['enu_origin']}). Top view: each camera's ground footprint "
+        f"<p>Every camera is in one ENU frame (origin {_origin_text(data['enu_origin'])}). Top view: each camera's ground footprint "
         f"{GROUND_RANGE_M[0]:g}-{GROUND_RANGE_M[1]:g} m from its pole, the pole and viewing direction, the flight track.</p>"
         + top_view_svg(site)
-        + "<h2>Cameras</h2><table><tr><th>camera</th><th>image</th><th>position ENU m</th><th>model</th><th>RMS px</th>"
-          "<th>time offset s</th><th>ground error 15 m cm</th></tr>" + "".join(rows) + "</table>"
+        + "<h2>Cameras</h2><table><tr><th>camera</th><th>image</th><th>position ENU (m)</th><th>model</th><th>RMS (px)</th>"
+          "<th>time offset (s)</th><th>ground error at 15 m (cm)</th></tr>" + "".join(rows) + "</table>"
         + "<h2>Relative poses</h2><p>B's centre in A's camera frame (x right, y down, z forward) and the rotation from A's "
           "frame to B's, with 1-sigma uncertainties from each camera's pose covariance (the two taken as independent: their "
-          "shared GNSS noise cancels in the difference, so this leans towards over-stating the spread).</p><table><tr><th>pair</th><th>distance</th><th>B in A's frame m</th>"
+          "shared GNSS noise cancels in the difference, so this leans towards over-stating the spread).</p><table><tr><th>pair</th><th>distance</th><th>B in A's frame (m)</th>"
           "<th>rotation</th><th>ground both see</th></tr>" + "".join(pairs) + "</table>"
         + "</body></html>"
     )
+
+
+def _origin_text(origin) -> str:
+    """'-35.36326100, 149.16523000, 584.004 m' (lat, lon in degrees, height), not a list of 17-digit floats."""
+    try:
+        lat, lon, h = (float(v) for v in origin)
+    except (TypeError, ValueError):
+        return str(origin)
+    return f"{lat:.8f}, {lon:.8f}, {h:.3f} m"
