@@ -127,8 +127,8 @@ def test_sim_camera_refuses_bad_hide_marker_seqs_in_one_line(text, capsys):
     assert rc == 2 and "--hide-marker-at" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
-def moving_marker_h264(n: int, t0_ns: int, dt_ns: int) -> list:
-    """``n`` H.264 access units (GOP of 10, no B-frames, 640x480) of the marker moving 1 px a frame, stamped t0 + k dt."""
+def moving_marker_h264(n: int, t0_ns: int, dt_ns: int, gop: int = 10) -> list:
+    """``n`` H.264 access units (a keyframe exactly every ``gop``, no B-frames, 640x480) of the marker moving 1 px a frame, stamped t0 + k dt."""
     import av
     import cv2
 
@@ -137,8 +137,8 @@ def moving_marker_h264(n: int, t0_ns: int, dt_ns: int) -> list:
 
     gray = cv2.imdecode(np.frombuffer(marker_jpeg(640, 480), np.uint8), cv2.IMREAD_GRAYSCALE)
     enc = av.CodecContext.create("libx264", "w")
-    enc.width, enc.height, enc.pix_fmt, enc.gop_size = 640, 480, "yuv420p", 10
-    enc.options = {"bframes": "0", "repeat-headers": "1", "tune": "zerolatency"}
+    enc.width, enc.height, enc.pix_fmt, enc.gop_size = 640, 480, "yuv420p", gop
+    enc.options = {"bframes": "0", "repeat-headers": "1", "tune": "zerolatency", "keyint_min": str(gop), "scenecut": "0"}
     enc.time_base = Fraction(dt_ns, 1_000_000_000)
     data = []
     for k in range(n):

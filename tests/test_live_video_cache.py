@@ -9,16 +9,15 @@ from __future__ import annotations
 
 import json
 import time
-from fractions import Fraction
 
-import numpy as np
 import pytest
 
 from dronecal_field.live.worker import LiveCalibration
 from dronecal_field.mavlink.missionfile import parse_qgc_plan
 from dronecal_field.runfile.records import Frame, MarkerSpec, RunEvent
 from dronecal_field.video.decode import VideoFrameDecoder
-from dronecal_field.video.nal import VideoFrame, is_keyframe
+from dronecal_field.video.nal import VideoFrame
+from test_live_progress import moving_marker_h264
 from test_mavlink_support import marker_jpeg, plan_document
 
 T0, DT = 1_700_000_000_000_000_000, 66_666_667  # 15 fps
@@ -28,21 +27,7 @@ AUD_ONLY = b"\x00\x00\x00\x01\x09\xf0"  # an access unit delimiter and nothing e
 
 def h264_units(n: int, gop: int) -> list[VideoFrame]:
     """``n`` H.264 access units (no B-frames, 640x480) of the marker moving 1 px a frame, a keyframe every ``gop``."""
-    import av
-    import cv2
-
-    gray = cv2.imdecode(np.frombuffer(marker_jpeg(640, 480), np.uint8), cv2.IMREAD_GRAYSCALE)
-    enc = av.CodecContext.create("libx264", "w")
-    enc.width, enc.height, enc.pix_fmt, enc.gop_size = 640, 480, "yuv420p", gop
-    enc.options = {"bframes": "0", "repeat-headers": "1", "tune": "zerolatency", "keyint_min": str(gop), "scenecut": "0"}
-    enc.time_base = Fraction(DT, 1_000_000_000)
-    data = []
-    for k in range(n):
-        img = av.VideoFrame.from_ndarray(np.dstack([np.roll(gray, k, axis=1)] * 3), format="bgr24").reformat(format="yuv420p")
-        img.pts = k
-        data += [bytes(p) for p in enc.encode(img)]
-    data += [bytes(p) for p in enc.encode(None)]
-    return [VideoFrame(timestamp_ns=T0 + k * DT, format="h264", data=d, keyframe=is_keyframe(d, "h264")) for k, d in enumerate(data)]
+    return moving_marker_h264(n, T0, DT, gop)
 
 
 def jpeg_u_px() -> float:
