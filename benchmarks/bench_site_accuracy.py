@@ -35,6 +35,26 @@ at x1.5 and 8 frames a second (5.3 frames a vehicle second; x1 gave it 26 holds)
 1-2 settled detections where 3 are needed, leaving 11 (holds only, --leg-source none: 95 px). The relative
 poses are 0.02-0.36 of their reported 1 sigma: every camera's fit RMS is 3-5 px (likely the frame-time jitter
 of four renderers on the loaded machine, along the legs), which scales its covariance up.
+
+Measured 2026-11-27 16:40-17:03 on an idle machine (load ~1), the current site plan (min_agl 0.5 m, keep-out
+1.5 m; 888 s planned, 60 holds), ``bench_site_fly.py --speedup 1 --scale 1 --camera-scale a-4k=0.5 --fps 8
+--rtsp-camera b-table1 --no-baseline``: recorded 896 s = 14.9 min, fly 88.9 s CPU = 9.5 % of one core for the
+four streams; calibrate 329 s wall, 491 s CPU for 4 cameras (0.36 / 0.54 of the recording):
+
+==========  =======  =====  ======  =======  =====================  ===========================================
+camera      focal %  pp px  pos cm  rot deg  ground 3-30 m RMS/max  points, model, fit RMS, offset, holds used
+==========  =======  =====  ======  =======  =====================  ===========================================
+a-wide      0.04     2.9    0.8     0.166    0.59 / 7.3             110, k1k2, 3.39 px, +0.195 s, 17/60
+a-4k        0.11     4.5    0.5     0.192    0.53 / 3.2             42, k1, 2.28 px, +0.196 s, 25/60
+b-table1    0.11     2.4    0.7     0.147    0.44 / 0.7             897, k1, 4.61 px, +0.043 s, 3/60
+b-wide      0.14     2.8    0.6     0.198    **2.14** / 15.3        79, k1k2, 3.16 px, +0.195 s, 2/60
+==========  =======  =====  ======  =======  =====================  ===========================================
+
+Pairs (error, reported 1 sigma): a-wide/a-4k 5.3 mm (21.9), 0.156 deg (0.624); a-wide/b-table1 5.4 (323.3),
+0.103 (2.100); a-wide/b-wide 10.6 (319.1), 0.349 (0.739); a-4k/b-table1 3.5 (170.9), 0.149 (2.039); a-4k/b-wide
+8.1 (166.1), 0.294 (0.560); b-table1/b-wide 10.0 (63.8), 0.316 (2.061): every error inside 1 sigma, the sigmas
+cautious (the fits' 2-5 px RMS, against ~0.3 px for the renderer, inflate them: the MJPEG cameras' arrival
+stamps jitter on the legs). b-wide misses 1 px with 2 of its holds used (79 points, mostly legs).
 """
 
 from __future__ import annotations
