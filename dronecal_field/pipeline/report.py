@@ -300,7 +300,7 @@ def _joint_rows(report) -> str:
     rows = "".join(
         f"<tr><td>{html.escape(Path(r.path).name)}</td><td>{'' if r.flight is None else r.flight}</td><td>{r.used}</td>"
         f"<td>{len(r.windows)} / {len(r.legs)}</td>"
-        f"<td>{_fmt(r.offset.offset_s, '+.3f', ' s')} \u00b1 {_fmt(r.offset.std_s, '.3f', ' s')} ({html.escape(str(r.offset.method))})</td>"
+        f"<td>{offset_text(r.offset.offset_s, r.offset.std_s)} ({html.escape(str(r.offset.method))})</td>"
         f"<td>{'alone first, ' + _fmt(r.alone_rms_px, '.2f', ' px') if r.alone else html.escape('paired at its motion offset: ' + str(r.alone_reason))}</td></tr>"
         for r in runs
     )

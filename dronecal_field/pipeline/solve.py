@@ -30,6 +30,7 @@ from dronecal_field.pipeline.points import (
     window_point,
 )
 from dronecal_field.pipeline.results import CalibrateOptions, Detections, MIN_POINTS, Solved, Track, TrackRead
+from dronecal_field.pipeline.validity import convex_hull, polygon_area
 
 
 def pair_points(
@@ -164,8 +165,7 @@ def check_physical(result, points: list[WaypointPoint], md, noise: FixNoise | No
     if fov_ok and off_x <= MAX_PRINCIPAL_OFFSET and off_y <= MAX_PRINCIPAL_OFFSET:
         return
     uv = np.array([p.uv_px for p in points if p.used]).reshape(-1, 2)
-    lo, hi = np.min(uv, axis=0), np.max(uv, axis=0)
-    span = 100.0 * max(0.0, min(hi[0], w) - max(lo[0], 0)) * max(0.0, min(hi[1], h) - max(lo[1], 0)) / (w * h)
+    span = 100.0 * polygon_area(convex_hull(uv)) / float(w * h)  # as the report's geometry warning counts it
     gnss = 0.0 if noise is None else math.hypot(noise.sigma_white_m, noise.sigma_corr_m)
     noisy = f" with GNSS noise of {gnss:.2f} m per fix" if gnss > NOISY_GNSS_M else ""
     raise DegenerateGeometryError(
