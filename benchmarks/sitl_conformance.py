@@ -380,7 +380,9 @@ def conformance_rows(sim: Observation, fw: Observation, mission: list[MissionIte
     rows.append(Row(f"start -> wp seq {first_wp} reached (take-off, leg, hold), s", _fmt(a), _fmt(b), _rel(a, b) <= 0.05, "5 %"))
     last_wp = max(cyc_f) if cyc_f else first_wp
     a, b = sim.disarm_s - sim.reached.get(last_wp, math.nan), fw.disarm_s - fw.reached.get(last_wp, math.nan)
-    rows.append(Row("last wp reached -> disarmed (land), s", _fmt(a), _fmt(b), _rel(a, b) <= 0.10, "10 %"))
+    # the firmware's own landing varies run to run: 6.4 s idle, 7.5 s on a CI machine (same mission); its land detector
+    # needs its conditions held for LAND_DETECTOR_TRIGGER_SEC of main-loop counts over a 1 Hz filtered acceleration
+    rows.append(Row("last wp reached -> disarmed (land), s", _fmt(a), _fmt(b), _rel(a, b) <= 0.25, "25 %"))
     for seq in sorted(set(sim.still_s) | set(fw.still_s)):
         a, b = sim.still_s.get(seq, math.nan), fw.still_s.get(seq, math.nan)
         rows.append(Row(f"wp seq {seq} still (< 0.1 m/s) before reached, s", _fmt(a), _fmt(b), abs(a - b) <= 0.5, "0.5 s"))
