@@ -72,6 +72,9 @@ class SamplingOptions:
     video_settle_s: float = 1.0  # a hold's first second (PointOptions.settle_s): past its middle with no frame since, a burst anyway
 
 
+LEG_PERIOD_SLACK = 0.2  # of a frame interval: a leg frame this much early is on time (stamps jitter about the rate; 25 fps keeps every 7th)
+
+
 @dataclass
 class _Zone:
     start_ns: int
@@ -136,6 +139,7 @@ class FrameSelector:
         self._decided: set[int] = set()
         self.transitions_taken: list[int] = []
         self.n_decoded = 0
+        self._last_stamp_ns: int | None = None  # the frame before (decoded or not): the stream's frame interval
 
     def read_windows(self) -> list[tuple[int, int]]:
         """[start_ns, end_ns] frame-stamp ranges to read: every window with its margin and transitions."""
@@ -182,6 +186,8 @@ class FrameSelector:
         ``keyframe``: the frame starts a GOP (a ``/camera/video`` run; ignored otherwise).
         """
         in_burst = False  # /camera/video: this frame follows a burst's keyframe (whatever zone it is in now)
+        dt_ns = None if self._last_stamp_ns is None or t_ns <= self._last_stamp_ns else t_ns - self._last_stamp_ns
+        self._last_stamp_ns = t_ns
         if self.video:
             in_burst = not keyframe and self._burst_left > 0
             self._burst_left = max(0, self._burst_left - 1) if not keyframe else 0  # a burst never runs into the next GOP
@@ -201,7 +207,11 @@ class FrameSelector:
             return False, None
         if self.video and not every and not best.leg:
             return self._wants_video(best, t_ns, keyframe, in_burst)
-        if not every and best.last_ns is not None and t_ns - best.last_ns < best.period_ns:
+        # A leg takes a frame once it is within LEG_PERIOD_SLACK of a frame interval of its period: 'at least 0.25 s' on
+        # an 8 fps stream whose stamps come 0.1249 s apart skipped every other pair to 0.375 s, past the 0.35 s the legs'
+        # cubic may span (pipeline.legs): a wide camera's 31 s leg gave 10 pairs of its 101 detections.
+        slack = int(LEG_PERIOD_SLACK * min(dt_ns, best.period_ns)) if best.leg and dt_ns is not None else 0
+        if not every and best.last_ns is not None and t_ns - best.last_ns < best.period_ns - slack:
             return False, best.group
         best.last_ns = t_ns
         self.n_decoded += 1
