@@ -93,7 +93,9 @@ import argparse
 import json
 import os
 import re
+import signal
 import socket
+import subprocess
 import sys
 import time
 import tomllib
@@ -158,6 +160,19 @@ def marker_flags(mission: Path, marker: dict) -> list:
             "--marker-offset", ",".join(str(v) for v in marker.get("marker_offset", (0, 0, 0)))]
 
 
+def _stop_camera(proc, stop) -> None:
+    """SIGTERM first, then ``demo._stop``: a benchmark started in the background (nohup, ``&``) runs its children with
+    SIGINT ignored, so ``_stop``'s SIGINT left each ``sim camera`` to the SIGKILL, before it printed its frame count
+    (the 'frames made' column read None); every command treats SIGTERM as Ctrl-C."""
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(timeout=15)
+        except (ProcessLookupError, PermissionError, subprocess.TimeoutExpired):
+            pass
+    stop(proc)
+
+
 def fly_once(mission: Path, cameras, marker_args: list, args, work: Path, logs: Path, tag: str, only_first: bool = False) -> dict:
     """Start the simulators, fly the mission recording the cameras, stop them; what was measured."""
     from dronecal_field.camerafile import write_camera
@@ -200,7 +215,7 @@ def fly_once(mission: Path, cameras, marker_args: list, args, work: Path, logs: 
         _stop(vehicle)
     finally:
         for _name, proc, _log, _port in sims:
-            _stop(proc)
+            _stop_camera(proc, _stop)
     text = fly_log.read_text(errors="replace")
     made = {}
     for name, _proc, log, _port in sims:
