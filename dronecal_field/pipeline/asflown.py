@@ -15,7 +15,7 @@ import json
 import numpy as np
 
 from dronecal_field.pipeline.hover import HoverWindow
-from dronecal_field.pipeline.legs import Leg
+from dronecal_field.pipeline.legs import Leg, chord_speed
 from dronecal_field.pipeline.points import FixNoise
 
 
@@ -66,25 +66,14 @@ def flight_against_plan(read, windows: list[HoverWindow], legs: list[Leg]) -> li
     return out
 
 
-MIN_CHORD_FIXES = 3  # a leg needs this many fixes at each end to average the noise of its endpoints
-
-
 def _leg_speed(track, legs: list[Leg], clock_rate: float) -> float | None:
-    """Median over the legs of each leg's length over its duration (m/s on the vehicle's clock).
-
-    Not the fixes' own speed: a GNSS without RTK (PX4 SITL: 0.56 m per fix at 5 Hz) differentiates to 3 m/s on
-    legs flown at 1.3 m/s. A leg's ends, each averaged over a few fixes, are good to a fraction of its length.
-    """
+    """Median over the legs of each leg's chord speed (m/s on the vehicle's clock; legs.chord_speed says why)."""
     speeds = []
     for g in legs:
-        on = np.flatnonzero((track.t_ns >= g.start_ns) & (track.t_ns <= g.end_ns))
-        if len(on) < 2 * MIN_CHORD_FIXES:
-            continue
-        head, tail = on[:MIN_CHORD_FIXES], on[-MIN_CHORD_FIXES:]
-        dt = 1e-9 * float(np.mean(track.t_ns[tail]) - np.mean(track.t_ns[head]))
-        if dt > 0:
-            chord = np.linalg.norm(np.mean(track.marker_enu_m[tail], axis=0) - np.mean(track.marker_enu_m[head], axis=0))
-            speeds.append(chord / dt / clock_rate)
+        on = (track.t_ns >= g.start_ns) & (track.t_ns <= g.end_ns)
+        v = chord_speed(track.t_ns[on], track.marker_enu_m[on])
+        if v is not None:
+            speeds.append(v / clock_rate)
     return float(np.median(speeds)) if speeds else None
 
 
