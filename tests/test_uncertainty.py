@@ -138,7 +138,8 @@ def test_compiled_trial_scores_match_the_camera_model():
         np.testing.assert_allclose(hits, expected, rtol=1e-10, atol=1e-9, equal_nan=True)
 
     uv_ref = cam.project(X)
-    rms = [kernels._rms_projection_difference(s.intrinsics[i], s.distortion[i], s.R[i], s.t[i], X, uv_ref) for i in range(k)]
+    Xt, uvt = np.ascontiguousarray(X.T), np.ascontiguousarray(uv_ref.T)  # the kernels take one row per coordinate
+    rms = [kernels._rms_projection_difference(s.intrinsics[i], s.distortion[i], s.R[i], s.t[i], Xt, uvt) for i in range(k)]
     uv_est = project_batch(s.intrinsics, s.distortion, s.R, s.t, X[None])
     np.testing.assert_allclose(rms, np.sqrt(np.mean(np.sum((uv_est - uv_ref) ** 2, -1), -1)), rtol=1e-10)
     assert 0.5 < np.median(rms) < 50.0  # the perturbations move the projections by pixels, not by nothing
@@ -228,3 +229,17 @@ def test_a_legs_points_count_for_its_duration_over_the_pairing_correlation_not_t
     one = linearised(cam, X, sigma_3d=s3, sigma_2d=s2).param_std["fx"]
     legs = linearised(cam, X, sigma_3d=s3 * f[:, None], sigma_2d=s2 * f).param_std["fx"]
     assert legs / one == pytest.approx(2.0, rel=1e-6)
+
+
+def test_engine_figures_as_before_the_speed_work():
+    """Issue 20's speed work (fused normal equations, noise applied in the kernel) changed no figure: the values
+    of the engine before it (5b9947d..05ed969, same seed) to round-off, far inside the Monte-Carlo's own noise."""
+    cam = paper_camera(distorted=True)
+    mc = monte_carlo(cam, paper_grid(cam), trials=500, seed=1)
+    assert mc.rms_mean == pytest.approx(4.284632913, rel=1e-9)
+    assert mc.rms_var == pytest.approx(0.09582703429, rel=1e-8)
+    before = {"fx": 16.551814, "cx": 45.318764, "k1": 0.047671484, "pos_x": 0.041154065, "rot_y": 2.3556232}
+    for key, value in before.items():
+        assert mc.param_std[key] == pytest.approx(value, rel=1e-6), key
+    assert mc.ground_error_15m_cm == pytest.approx(14.47327371, rel=1e-8)
+    assert mc.failed_trials == 0

@@ -1,19 +1,21 @@
 """Compiled hot loop of the batched Levenberg-Marquardt (numba), and the Monte-Carlo's per-trial scores.
 
 Each problem (one Monte-Carlo trial, or one calibration) is solved to
-convergence inside compiled code, with no Python per iteration. A trial
-step is judged by one pass over the points that computes only the
-residuals. Where a step is accepted and the solve goes on, a second pass
-writes the weighted Jacobian, one contiguous row per parameter (u of every
-point, then v), into a workspace reused across problems. The normal
-equations J^T W J, J^T W r of the free parameters are then dot products of
-those rows, solved by Cholesky. Problems are independent and run in
-parallel (``prange``, blocks of BLOCK problems) over numba's threads.
-``monte_carlo_trials`` also scores each trial against the reference camera
-in the same pass: projection errors, and the ground rays of
-``core.camera.intersect_plane_z``. The algebra is the same as
-``core.camera.project_batch_jacobians`` and ``core.camera.project_batch``
-(the tests check they agree); conventions are in docs/conventions.md.
+convergence inside compiled code, with no Python per iteration. Points and
+pixels are held one row per coordinate ((3, N), (2, N)) so every point loop
+compiles to vector instructions (``error_model="numpy"``: numba's Python
+division check would stop that). A trial step is judged by one pass over the
+points that computes only the residuals. Where a step is accepted and the
+solve goes on, ``core.normal_kernel`` forms J^T W J and J^T W r of all 15
+parameters in one pass without storing the Jacobian; the free parameters are
+picked out of them and the step solved by Cholesky. Problems are independent
+and run in parallel (``prange``, blocks of BLOCK problems) over numba's
+threads. ``monte_carlo_trials`` also applies each trial's noise and scores
+the trial against the reference camera in the same pass: projection errors,
+the ground rays of ``core.camera.intersect_plane_z``, camera centre and
+rotation. The algebra is the same as ``core.camera.project_batch_jacobians``
+and ``core.camera.project_batch`` (the tests check they agree); conventions
+are in docs/conventions.md.
 """
 
 from __future__ import annotations
@@ -33,10 +35,12 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np  # noqa: E402
 from numba import njit, prange  # noqa: E402
 
+from dronecal_field.core.normal_kernel import normal_equations_15  # noqa: E402
+
 LOSS_CODES = {"linear": 0, "huber": 1, "cauchy": 2}
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
 def _weight(sq: float, loss: int, scale: float) -> float:
     if loss == 0:
         return 1.0
@@ -46,195 +50,107 @@ def _weight(sq: float, loss: int, scale: float) -> float:
     return 1.0 / (1.0 + r * r)
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
 def _squared_residuals(
     intr: np.ndarray,  # (4,)
     dist: np.ndarray,  # (5,)
     R: np.ndarray,  # (3, 3)
     t: np.ndarray,  # (3,)
-    X: np.ndarray,  # (N, 3)
-    y: np.ndarray,  # (N, 2)
+    X: np.ndarray,  # (3, N) world x, y, z of every point (one row per coordinate, so the point loop vectorises)
+    y: np.ndarray,  # (2, N) observed u, v
     sq: np.ndarray,  # (N,) out
 ) -> None:
     """Squared reprojection residual of every point: all a trial step needs to be judged."""
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
-    for n in range(y.shape[0]):
-        X0, X1, X2 = X[n, 0], X[n, 1], X[n, 2]
-        iz = 1.0 / (R[2, 0] * X0 + R[2, 1] * X1 + R[2, 2] * X2 + t[2])
-        xn = (R[0, 0] * X0 + R[0, 1] * X1 + R[0, 2] * X2 + t[0]) * iz
-        yn = (R[1, 0] * X0 + R[1, 1] * X1 + R[1, 2] * X2 + t[1]) * iz
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2]
+    t0, t1, t2 = t[0], t[1], t[2]
+    Xx, Xy, Xz, yu, yv = X[0], X[1], X[2], y[0], y[1]
+    for n in range(yu.shape[0]):
+        X0, X1, X2 = Xx[n], Xy[n], Xz[n]
+        iz = 1.0 / (r20 * X0 + r21 * X1 + r22 * X2 + t2)
+        xn = (r00 * X0 + r01 * X1 + r02 * X2 + t0) * iz
+        yn = (r10 * X0 + r11 * X1 + r12 * X2 + t1) * iz
         r2 = xn * xn + yn * yn
         radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
         xy2 = 2.0 * xn * yn
-        ru = y[n, 0] - (fx * (xn * radial + p1 * xy2 + p2 * (r2 + 2.0 * xn * xn)) + cx)
-        rv = y[n, 1] - (fy * (yn * radial + p1 * (r2 + 2.0 * yn * yn) + p2 * xy2) + cy)
+        ru = yu[n] - (fx * (xn * radial + p1 * xy2 + p2 * (r2 + 2.0 * xn * xn)) + cx)
+        rv = yv[n] - (fy * (yn * radial + p1 * (r2 + 2.0 * yn * yn) + p2 * xy2) + cy)
         sq[n] = ru * ru + rv * rv
 
 
-@njit(cache=True, fastmath=True, nogil=True)
-def _jacobian_rows(
-    intr: np.ndarray,  # (4,)
-    dist: np.ndarray,  # (5,)
-    R: np.ndarray,  # (3, 3)
-    t: np.ndarray,  # (3,)
-    X: np.ndarray,  # (N, 3)
-    y: np.ndarray,  # (N, 2)
-    w: np.ndarray,  # (N,)
-    fx_col: int,
-    aspect: float,
-    J: np.ndarray,  # (15, 2N) out: sqrt(w)-weighted Jacobian, row p = parameter p (u of point n at n, v at N + n)
-    r: np.ndarray,  # (2N,) out: sqrt(w)-weighted residuals, the same layout
-    sq: np.ndarray,  # (N,) out: unweighted squared residuals
-) -> None:
-    """The weighted Jacobian of one problem for all 15 parameters, one contiguous row per parameter.
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+def _free_normal(H15: np.ndarray, g15: np.ndarray, sel: np.ndarray, fx_col: int, aspect: float, JtJ: np.ndarray, g: np.ndarray) -> None:
+    """The normal equations (m, m), (m,) of the free parameters from those of all 15: A^T H15 A and A^T g15.
 
-    Rows are written at fixed indices (no selection inside the point loop, so
-    it vectorises); the free parameters are picked by row when the products
-    are formed. With a tied aspect ratio (``fx_col`` >= 0) row 0 becomes
-    d/dfx + aspect * d/dfy.
+    Column a of the parameter map is parameter sel[a]; with a tied aspect
+    ratio the fx column also moves fy by ``aspect``.
     """
-    N = y.shape[0]
-    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
-    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
-    for n in range(N):
-        X0, X1, X2 = X[n, 0], X[n, 1], X[n, 2]
-        ax = R[0, 0] * X0 + R[0, 1] * X1 + R[0, 2] * X2
-        ay = R[1, 0] * X0 + R[1, 1] * X1 + R[1, 2] * X2
-        az = R[2, 0] * X0 + R[2, 1] * X1 + R[2, 2] * X2
-        iz = 1.0 / (az + t[2])
-        xn = (ax + t[0]) * iz
-        yn = (ay + t[1]) * iz
-        r2 = xn * xn + yn * yn
-        r4 = r2 * r2
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xy2 = 2.0 * xn * yn
-        xd = xn * radial + p1 * xy2 + p2 * (r2 + 2.0 * xn * xn)
-        yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + p2 * xy2
-        ru = y[n, 0] - (fx * xd + cx)
-        rv = y[n, 1] - (fy * yd + cy)
-        sq[n] = ru * ru + rv * rv
-        sw = np.sqrt(w[n])
-        r[n] = sw * ru
-        r[N + n] = sw * rv
-        drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
-        dxd_dy = xy2 * drad + 2.0 * p1 * xn + 2.0 * p2 * yn
-        a00 = fx * (radial + 2.0 * xn * xn * drad + 2.0 * p1 * yn + 6.0 * p2 * xn) * iz
-        a01 = fx * dxd_dy * iz
-        a10 = fy * dxd_dy * iz
-        a11 = fy * (radial + 2.0 * yn * yn * drad + 6.0 * p1 * yn + 2.0 * p2 * xn) * iz
-        gu2 = -(a00 * xn + a01 * yn)
-        gv2 = -(a10 * xn + a11 * yn)
-        J[0, n] = sw * xd
-        J[1, n] = 0.0
-        J[2, n] = sw
-        J[3, n] = 0.0
-        J[4, n] = sw * fx * xn * r2
-        J[5, n] = sw * fx * xn * r4
-        J[6, n] = sw * fx * xy2
-        J[7, n] = sw * fx * (r2 + 2.0 * xn * xn)
-        J[8, n] = sw * fx * xn * r4 * r2
-        J[9, n] = sw * (ay * gu2 - az * a01)
-        J[10, n] = sw * (az * a00 - ax * gu2)
-        J[11, n] = sw * (ax * a01 - ay * a00)
-        J[12, n] = sw * a00
-        J[13, n] = sw * a01
-        J[14, n] = sw * gu2
-        J[0, N + n] = 0.0
-        J[1, N + n] = sw * yd
-        J[2, N + n] = 0.0
-        J[3, N + n] = sw
-        J[4, N + n] = sw * fy * yn * r2
-        J[5, N + n] = sw * fy * yn * r4
-        J[6, N + n] = sw * fy * (r2 + 2.0 * yn * yn)
-        J[7, N + n] = sw * fy * xy2
-        J[8, N + n] = sw * fy * yn * r4 * r2
-        J[9, N + n] = sw * (ay * gv2 - az * a11)
-        J[10, N + n] = sw * (az * a10 - ax * gv2)
-        J[11, N + n] = sw * (ax * a11 - ay * a10)
-        J[12, N + n] = sw * a10
-        J[13, N + n] = sw * a11
-        J[14, N + n] = sw * gv2
-    if fx_col >= 0:
-        for c in range(2 * N):
-            J[0, c] += aspect * J[1, c]
-
-
-@njit(cache=True, fastmath=True, nogil=True)
-def _normal_from_rows(J: np.ndarray, r: np.ndarray, sel: np.ndarray, JtJ: np.ndarray, g: np.ndarray) -> None:
-    """J^T J (m, m) and J^T r (m,) of the free parameters sel (m,) from the rows of J (15, 2N)."""
     m = sel.shape[0]
-    n2 = J.shape[1]
     for a in range(m):
-        ja = J[sel[a]]
-        s = 0.0
-        for c in range(n2):
-            s += ja[c] * r[c]
-        g[a] = s
+        pa = sel[a]
+        ga = g15[pa]
+        if a == fx_col:
+            ga += aspect * g15[1]
+        g[a] = ga
         for b in range(a, m):
-            jb = J[sel[b]]
-            s = 0.0
-            for c in range(n2):
-                s += ja[c] * jb[c]
-            JtJ[a, b] = s
-            JtJ[b, a] = s
+            pb = sel[b]
+            v = H15[pa, pb]
+            if a == fx_col:
+                v += aspect * H15[1, pb]
+            if b == fx_col:
+                v += aspect * H15[pa, 1]
+            if a == fx_col and b == fx_col:
+                v += aspect * aspect * H15[1, 1]
+            JtJ[a, b] = v
+            JtJ[b, a] = v
 
 
-@njit(cache=True, fastmath=True, nogil=True)
-def _accumulate(
-    intr: np.ndarray,  # (4,)
-    dist: np.ndarray,  # (5,)
-    R: np.ndarray,  # (3, 3)
-    t: np.ndarray,  # (3,)
-    X: np.ndarray,  # (N, 3)
-    y: np.ndarray,  # (N, 2)
-    w: np.ndarray,  # (N,)
-    sel: np.ndarray,  # (m,)
-    fx_col: int,
-    aspect: float,
-    JtJ: np.ndarray,  # (m, m) out
-    g: np.ndarray,  # (m,) out
-    sq: np.ndarray,  # (N,) out
-) -> None:
-    """Normal equations of one problem at one parameter value (allocates its Jacobian; the solver reuses one)."""
-    N = y.shape[0]
-    J = np.empty((15, 2 * N))
-    r = np.empty(2 * N)
-    _jacobian_rows(intr, dist, R, t, X, y, w, fx_col, aspect, J, r, sq)
-    _normal_from_rows(J, r, sel, JtJ, g)
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+def _cholesky_solve(H: np.ndarray, b: np.ndarray, U: np.ndarray, x: np.ndarray) -> bool:
+    """Solve H x = b for symmetric positive definite H (m, m) by Cholesky (H = U^T U); False if H is not positive definite.
 
-
-@njit(cache=True, fastmath=True, nogil=True)
-def _cholesky_solve(H: np.ndarray, b: np.ndarray, L: np.ndarray, x: np.ndarray) -> bool:
-    """Solve H x = b for symmetric positive definite H (m, m) by Cholesky; False if H is not positive definite."""
+    Right-looking: each finished row of U updates the rows below it by
+    contiguous, independent multiply-adds (the dot-product form chains every
+    entry on the one before and waits on it). U's diagonal holds the
+    reciprocals of the factor's diagonal.
+    """
     m = H.shape[0]
-    for j in range(m):
-        s = H[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not (s > 0.0) or not np.isfinite(s):
-            return False
-        d = np.sqrt(s)
-        L[j, j] = d
-        for i in range(j + 1, m):
-            s = H[i, j]
-            for k in range(j):
-                s -= L[i, k] * L[j, k]
-            L[i, j] = s / d
     for i in range(m):
-        s = b[i]
-        for k in range(i):
-            s -= L[i, k] * x[k]
-        x[i] = s / L[i, i]
-    for i in range(m - 1, -1, -1):
+        for k in range(i, m):
+            U[i, k] = H[i, k]
+    for j in range(m):
+        Uj = U[j]
+        d = Uj[j]
+        if not (d > 0.0) or not np.isfinite(d):
+            return False
+        inv = 1.0 / np.sqrt(d)
+        Uj[j] = inv
+        for k in range(j + 1, m):
+            Uj[k] *= inv
+        for k in range(j + 1, m):
+            f = Uj[k]
+            Uk = U[k]
+            for i in range(k, m):
+                Uk[i] -= f * Uj[i]
+    for i in range(m):
+        x[i] = b[i]
+    for j in range(m):  # U^T z = b
+        x[j] *= U[j, j]
+        f = x[j]
+        Uj = U[j]
+        for k in range(j + 1, m):
+            x[k] -= Uj[k] * f
+    for i in range(m - 1, -1, -1):  # U x = z
+        Ui = U[i]
         s = x[i]
         for k in range(i + 1, m):
-            s -= L[k, i] * x[k]
-        x[i] = s / L[i, i]
+            s -= Ui[k] * x[k]
+        x[i] = s * Ui[i]
     return True
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
 def _rodrigues(w0: float, w1: float, w2: float, out: np.ndarray) -> None:
     theta2 = w0 * w0 + w1 * w1 + w2 * w2
     if theta2 < 1e-16:
@@ -255,7 +171,7 @@ def _rodrigues(w0: float, w1: float, w2: float, out: np.ndarray) -> None:
     out[2, 2] = 1.0 - b * (w0 * w0 + w1 * w1)
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
 def _cost(w: np.ndarray, sq: np.ndarray) -> float:
     c = 0.0
     for n in range(sq.shape[0]):
@@ -263,33 +179,34 @@ def _cost(w: np.ndarray, sq: np.ndarray) -> float:
     return c
 
 
-@njit(cache=True, fastmath=True, nogil=True)
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
 def _solve_one(
     intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray,
     X: np.ndarray, y: np.ndarray, A: np.ndarray, sel: np.ndarray, fx_col: int, aspect: float,
     max_iterations: int, tolerance: float, loss: int, scale: float, damping: float,
-    J: np.ndarray, r: np.ndarray, w: np.ndarray, sq: np.ndarray, sq_t: np.ndarray,
+    H15: np.ndarray, g15: np.ndarray, w: np.ndarray, sq: np.ndarray, sq_t: np.ndarray,
     JtJ: np.ndarray, g: np.ndarray, H: np.ndarray, L: np.ndarray, delta: np.ndarray,
     intr_t: np.ndarray, dist_t: np.ndarray, R_t: np.ndarray, t_t: np.ndarray, dR: np.ndarray, full: np.ndarray,
 ) -> tuple[float, int]:
     """Levenberg-Marquardt for one problem, in place on intr, dist, R, t; returns (cost, iterations).
 
-    The arrays after ``damping`` are workspace (J (15, 2N), r (2N,), w, sq, sq_t (N,), JtJ, H, L (m, m),
-    g, delta (m,), intr_t (4,), dist_t (5,), R_t, dR (3, 3), t_t (3,), full (15,)), reused across
-    problems. A trial step is judged on its residuals alone; the Jacobian is formed only where a
-    step is accepted and the solve goes on.
+    X (3, N) world points and y (2, N) pixels, one row per coordinate. The
+    arrays after ``damping`` are workspace (H15 (15, 15), g15 (15,), w, sq,
+    sq_t (N,), JtJ, H, L (m, m), g, delta (m,), intr_t (4,), dist_t (5,),
+    R_t, dR (3, 3), t_t (3,), full (15,)), reused across problems. A trial
+    step is judged on its residuals alone; the normal equations are formed
+    only where a step is accepted and the solve goes on.
     """
-    N = y.shape[0]
+    N = y.shape[1]
     m = sel.shape[0]
     for n in range(N):
         w[n] = 1.0
-    _jacobian_rows(intr, dist, R, t, X, y, w, fx_col, aspect, J, r, sq)
+    cost = normal_equations_15(intr, dist, R, t, X, y, w, H15, g15, sq)
     if loss != 0:
         for n in range(N):
             w[n] = _weight(sq[n], loss, scale)
-        _jacobian_rows(intr, dist, R, t, X, y, w, fx_col, aspect, J, r, sq)
-    _normal_from_rows(J, r, sel, JtJ, g)
-    cost = _cost(w, sq)
+        cost = normal_equations_15(intr, dist, R, t, X, y, w, H15, g15, sq)
+    _free_normal(H15, g15, sel, fx_col, aspect, JtJ, g)
     lam = damping
     fails = 0
     it = 0
@@ -332,10 +249,10 @@ def _solve_one(
             if loss != 0:
                 for n in range(N):
                     w[n] = _weight(sq[n], loss, scale)
-            _jacobian_rows(intr, dist, R, t, X, y, w, fx_col, aspect, J, r, sq)
-            _normal_from_rows(J, r, sel, JtJ, g)
+            c = normal_equations_15(intr, dist, R, t, X, y, w, H15, g15, sq)
+            _free_normal(H15, g15, sel, fx_col, aspect, JtJ, g)
             if loss != 0:
-                cost = _cost(w, sq)
+                cost = c
         else:
             lam *= 10.0
             fails += 1
@@ -346,21 +263,6 @@ def _solve_one(
     for n in range(N):
         total += sq[n]
     return total, it
-
-
-@njit(cache=True, nogil=True)
-def _project_into(intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, X0: float, X1: float, X2: float) -> tuple[float, float]:
-    """Pixel (u, v) of one world point (the algebra of ``core.camera.project_batch``)."""
-    iz = 1.0 / (R[2, 0] * X0 + R[2, 1] * X1 + R[2, 2] * X2 + t[2])
-    xn = (R[0, 0] * X0 + R[0, 1] * X1 + R[0, 2] * X2 + t[0]) * iz
-    yn = (R[1, 0] * X0 + R[1, 1] * X1 + R[1, 2] * X2 + t[1]) * iz
-    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
-    r2 = xn * xn + yn * yn
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xy = xn * yn
-    xd = xn * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xn * xn)
-    yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xy
-    return intr[0] * xd + intr[2], intr[1] * yd + intr[3]
 
 
 @njit(cache=True, nogil=True)
@@ -381,7 +283,11 @@ def _undistort(xd: float, yd: float, dist: np.ndarray, iterations: int) -> tuple
         det = a * d - b * b
         if np.abs(det) < 1e-12:
             det = 1e-12
-        x, y = x - (d * ex - b * ey) / det, y - (a * ey - b * ex) / det
+        sx, sy = (d * ex - b * ey) / det, (a * ey - b * ex) / det
+        x, y = x - sx, y - sy
+        # Newton converges quadratically: after a step this small the next would change nothing
+        if np.abs(sx) + np.abs(sy) < 1e-12:
+            break
     return x, y
 
 
@@ -406,17 +312,30 @@ def _intersect_into(intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.nda
         out[p, 2] = c2 + s * d2
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
 def _rms_projection_difference(intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, uv_ref: np.ndarray) -> float:
-    """RMS over points X (M, 3) of the pixel distance between this camera's projection and uv_ref (M, 2); NaN for M = 0."""
-    if X.shape[0] == 0:
+    """RMS over points X (3, M) of the pixel distance between this camera's projection and uv_ref (2, M); NaN for M = 0."""
+    M = X.shape[1]
+    if M == 0:
         return np.nan
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2]
+    t0, t1, t2 = t[0], t[1], t[2]
+    Xx, Xy, Xz, uu, vv = X[0], X[1], X[2], uv_ref[0], uv_ref[1]
     s = 0.0
-    for n in range(X.shape[0]):
-        u, v = _project_into(intr, dist, R, t, X[n, 0], X[n, 1], X[n, 2])
-        du, dv = u - uv_ref[n, 0], v - uv_ref[n, 1]
+    for n in range(M):
+        X0, X1, X2 = Xx[n], Xy[n], Xz[n]
+        iz = 1.0 / (r20 * X0 + r21 * X1 + r22 * X2 + t2)
+        xn = (r00 * X0 + r01 * X1 + r02 * X2 + t0) * iz
+        yn = (r10 * X0 + r11 * X1 + r12 * X2 + t1) * iz
+        r2 = xn * xn + yn * yn
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xy = xn * yn
+        du = fx * (xn * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xn * xn)) + cx - uu[n]
+        dv = fy * (yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xy) + cy - vv[n]
         s += du * du + dv * dv
-    return np.sqrt(s / X.shape[0])
+    return np.sqrt(s / M)
 
 
 @njit(cache=True, nogil=True)
@@ -440,11 +359,12 @@ BLOCK = 8
 
 @njit(cache=True, nogil=True)
 def _workspace(m: int, N: int):
-    """The arrays _solve_one works in, for m free parameters and N points."""
+    """The arrays _solve_one works in, for m free parameters and N points (the last two: the points (3, N) and pixels (2, N))."""
     return (
-        np.empty((15, 2 * N)), np.empty(2 * N), np.empty(N), np.empty(N), np.empty(N),
+        np.empty((15, 15)), np.empty(15), np.empty(N), np.empty(N), np.empty(N),
         np.empty((m, m)), np.empty(m), np.empty((m, m)), np.empty((m, m)), np.empty(m),
         np.empty(4), np.empty(5), np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty(15),
+        np.empty((3, N)), np.empty((2, N)),
     )
 
 
@@ -469,18 +389,44 @@ def solve_batch(
 ) -> None:
     """Solve K independent calibration problems in place, in parallel (blocks of BLOCK problems per workspace)."""
     K = R.shape[0]
+    N = y.shape[1]
     shared = X.shape[0] == 1
     for block in prange((K + BLOCK - 1) // BLOCK):
-        J, r, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full = _workspace(sel.shape[0], y.shape[1])
+        H15, g15, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full, Xs, ys = _workspace(sel.shape[0], N)
         for k in range(block * BLOCK, min(K, (block + 1) * BLOCK)):
             Xk = X[0] if shared else X[k]
+            for n in range(N):
+                Xs[0, n] = Xk[n, 0]
+                Xs[1, n] = Xk[n, 1]
+                Xs[2, n] = Xk[n, 2]
+                ys[0, n] = y[k, n, 0]
+                ys[1, n] = y[k, n, 1]
             c, it = _solve_one(
-                intr[k], dist[k], R[k], t[k], Xk, y[k], A, sel, fx_col, aspect,
+                intr[k], dist[k], R[k], t[k], Xs, ys, A, sel, fx_col, aspect,
                 max_iterations, tolerance, loss, scale, 1e-3,
-                J, r, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full,
+                H15, g15, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full,
             )
             cost[k] = c
             iterations[k] = it
+
+
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+def _rotation_vector_between(R: np.ndarray, R0: np.ndarray, out: np.ndarray) -> None:
+    """Rotation vector (radians) of R R0^T, both (3, 3) rotations, into out (3,) (scipy's as_rotvec, angle in [0, pi])."""
+    d = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            d[i, j] = R[i, 0] * R0[j, 0] + R[i, 1] * R0[j, 1] + R[i, 2] * R0[j, 2]
+    v0 = 0.5 * (d[2, 1] - d[1, 2])
+    v1 = 0.5 * (d[0, 2] - d[2, 0])
+    v2 = 0.5 * (d[1, 0] - d[0, 1])
+    s = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    c = 0.5 * (d[0, 0] + d[1, 1] + d[2, 2] - 1.0)
+    # atan2 keeps small angles exact (arccos of the trace does not); |v| = sin(angle)
+    f = np.arctan2(s, c) / s if s > 1e-300 else 1.0
+    out[0] = v0 * f
+    out[1] = v1 * f
+    out[2] = v2 * f
 
 
 @njit(cache=True, parallel=True, nogil=True)
@@ -489,18 +435,22 @@ def monte_carlo_trials(
     dist: np.ndarray,  # (K, 5) in/out
     R: np.ndarray,  # (K, 3, 3) in/out
     t: np.ndarray,  # (K, 3) in/out
-    X: np.ndarray,  # (K, N, 3) perturbed world points, metres
-    y: np.ndarray,  # (K, N, 2) perturbed pixels
+    Z3: np.ndarray,  # (K, N, 3) standard normal draws for the world points
+    Z2: np.ndarray,  # (K, N, 2) standard normal draws for the pixels
+    points: np.ndarray,  # (N, 3) the sampled points P, metres
+    sigma_3d: np.ndarray,  # (N, 3) metres: trial k's points are P + Z3[k] * sigma_3d
+    pixels: np.ndarray,  # (N, 2) observed pixels p
+    sigma_2d: np.ndarray,  # (N,) pixels: trial k's pixels are p + Z2[k] * sigma_2d
     A: np.ndarray,  # (15, m)
     sel: np.ndarray,  # (m,)
     fx_col: int,
     aspect: float,
     max_iterations: int,
     tolerance: float,
-    points: np.ndarray,  # (N, 3) the unperturbed points, metres
-    uv_points: np.ndarray,  # (N, 2) the reference camera's pixels of points
-    ground: np.ndarray,  # (M, 3) ground points in view, metres
-    uv_ground: np.ndarray,  # (M, 2) the reference camera's pixels of ground
+    points_t: np.ndarray,  # (3, N) the unperturbed points, one row per coordinate
+    uv_points: np.ndarray,  # (2, N) the reference camera's pixels of points
+    ground: np.ndarray,  # (3, M) ground points in view, metres
+    uv_ground: np.ndarray,  # (2, M) the reference camera's pixels of ground
     uv_probe: np.ndarray,  # (P, 2) pixels whose rays are intersected with the ground plane
     z_plane: float,
     cost: np.ndarray,  # (K,) out: sum of squared residuals (px^2)
@@ -508,21 +458,40 @@ def monte_carlo_trials(
     proj: np.ndarray,  # (K,) out: RMS pixel difference to the reference over points (px)
     ground_proj: np.ndarray,  # (K,) out: the same over ground (NaN when M = 0)
     hits: np.ndarray,  # (K, P, 3) out: where each estimate's rays of uv_probe meet the ground
+    centre: np.ndarray,  # (K, 3) out: each estimate's camera centre, metres
+    rotation: np.ndarray,  # (K, 3) out: rotation vector (radians) of each estimate's R times the reference's R^T
 ) -> None:
-    """K Monte-Carlo trials in one parallel pass: each is calibrated (as solve_batch, linear loss) and scored against the reference."""
+    """K Monte-Carlo trials in one parallel pass: each trial's noise is applied, it is calibrated (as solve_batch, linear loss) and scored against the reference.
+
+    The perturbed points are built in the thread's workspace from the draws
+    (no (K, N) arrays of them), in the same arithmetic as P + Z * sigma.
+    """
     K = R.shape[0]
+    N = points.shape[0]
     for block in prange((K + BLOCK - 1) // BLOCK):
-        J, r, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full = _workspace(sel.shape[0], y.shape[1])
+        H15, g15, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full, Xs, ys = _workspace(sel.shape[0], N)
+        R0 = np.empty((3, 3))
         for k in range(block * BLOCK, min(K, (block + 1) * BLOCK)):
+            for i in range(3):
+                for n in range(N):
+                    Xs[i, n] = Z3[k, n, i] * sigma_3d[n, i] + points[n, i]
+            for i in range(2):
+                for n in range(N):
+                    ys[i, n] = Z2[k, n, i] * sigma_2d[n] + pixels[n, i]
+            R0[:, :] = R[k]
             c, it = _solve_one(
-                intr[k], dist[k], R[k], t[k], X[k], y[k], A, sel, fx_col, aspect, max_iterations, tolerance, 0, 1.0, 1e-3,
-                J, r, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full,
+                intr[k], dist[k], R[k], t[k], Xs, ys, A, sel, fx_col, aspect, max_iterations, tolerance, 0, 1.0, 1e-3,
+                H15, g15, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full,
             )
             cost[k] = c
             iterations[k] = it
-            proj[k] = _rms_projection_difference(intr[k], dist[k], R[k], t[k], points, uv_points)
+            proj[k] = _rms_projection_difference(intr[k], dist[k], R[k], t[k], points_t, uv_points)
             ground_proj[k] = _rms_projection_difference(intr[k], dist[k], R[k], t[k], ground, uv_ground)
             _intersect_into(intr[k], dist[k], R[k], t[k], uv_probe, z_plane, hits[k])
+            Rk, tk = R[k], t[k]
+            for i in range(3):
+                centre[k, i] = -(Rk[0, i] * tk[0] + Rk[1, i] * tk[1] + Rk[2, i] * tk[2])
+            _rotation_vector_between(Rk, R0, rotation[k])
 
 
 @njit(cache=True, nogil=True)
@@ -531,10 +500,17 @@ def normal_equations(
     X: np.ndarray, y: np.ndarray, w: np.ndarray, sel: np.ndarray, fx_col: int, aspect: float,
     JtJ: np.ndarray, g: np.ndarray, sq: np.ndarray,
 ) -> None:
-    """Normal equations of K problems (K, m, m), (K, m) and squared residuals (K, N); for tests and covariances."""
+    """Normal equations of K problems (K, m, m), (K, m) and squared residuals (K, N); for tests and covariances.
+
+    X (Kp, N, 3), Kp = 1 or K; y (K, N, 2).
+    """
     shared = X.shape[0] == 1
+    H15, g15 = np.empty((15, 15)), np.empty(15)
     for k in range(R.shape[0]):
-        _accumulate(intr[k], dist[k], R[k], t[k], X[0] if shared else X[k], y[k], w[k], sel, fx_col, aspect, JtJ[k], g[k], sq[k])
+        Xk = np.ascontiguousarray((X[0] if shared else X[k]).T)
+        yk = np.ascontiguousarray(y[k].T)
+        normal_equations_15(intr[k], dist[k], R[k], t[k], Xk, yk, w[k], H15, g15, sq[k])
+        _free_normal(H15, g15, sel, fx_col, aspect, JtJ[k], g[k])
 
 
 _compile_notice: "Callable[[], None] | None" = None

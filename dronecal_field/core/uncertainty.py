@@ -171,6 +171,10 @@ class _Probes:
     probe: GroundProbe
     uv_probe: np.ndarray  # (3, 2) pixels of the probe point and the two track points
 
+    def by_coordinate(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """points (3, N), their pixels (2, N), ground (3, M), its pixels (2, M): one row per coordinate, as the kernels take them."""
+        return tuple(np.ascontiguousarray(a.T) for a in (self.points_world, self.uv_ref_points, self.ground_world, self.uv_ref_ground))
+
 
 def _make_probes(camera: Camera, points: np.ndarray, ground_z: float) -> _Probes:
     uv_g, g = _ground_pixels(camera, ground_z)
@@ -179,8 +183,8 @@ def _make_probes(camera: Camera, points: np.ndarray, ground_z: float) -> _Probes
     return _Probes(
         points_world=np.ascontiguousarray(points, float),
         uv_ref_points=camera.project(points),
-        ground_world=g,
-        uv_ref_ground=uv_g,
+        ground_world=g.reshape(-1, 3),
+        uv_ref_ground=uv_g.reshape(-1, 2),
         probe=probe,
         uv_probe=camera.project(probe_pts),
     )
@@ -195,29 +199,42 @@ def _ground_metrics(hits: np.ndarray, probe: GroundProbe) -> dict[str, np.ndarra
     return {"pos15": pos_err_cm, "speed15": speed_err}
 
 
-def _solve_trials(camera: Camera, Q: np.ndarray, q: np.ndarray, A: np.ndarray, probes: _Probes, ground_z: float, max_iterations: int, tolerance: float) -> tuple[BatchState, np.ndarray, dict[str, np.ndarray]]:
-    """Calibrate every trial of a chunk from the reference camera and score it: (estimates, cost (K,) px^2, per-trial metrics).
+def _solve_trials(
+    camera: Camera, Z3: np.ndarray, Z2: np.ndarray, P: np.ndarray, s3: np.ndarray, pixels: np.ndarray, s2: np.ndarray,
+    A: np.ndarray, probes: _Probes, ground_z: float, max_iterations: int, tolerance: float,
+) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Calibrate every trial of a chunk from the reference camera and score it: (cost (K,) px^2, per-trial metrics, per-trial parameters).
 
-    Q (K, N, 3) perturbed world points, q (K, N, 2) perturbed pixels. One
-    compiled pass, parallel over trials: the Levenberg-Marquardt of
+    Trial k sees the points P + Z3[k] * s3 and the pixels ``pixels`` + Z2[k] * s2
+    (Z3 (K, N, 3), Z2 (K, N, 2) standard normal draws). One compiled pass,
+    parallel over trials: the noise, the Levenberg-Marquardt of
     ``core.calibrate.levenberg_marquardt`` (linear loss), then each estimate's
-    projection error against the reference and its rays to the ground probe.
+    projection error against the reference, its rays to the ground probe,
+    its centre and its rotation from the reference.
     """
     from dronecal_field.core import kernels
 
     kernels.announce_compile_once()
-    K = Q.shape[0]
+    K = Z3.shape[0]
     state = BatchState.from_camera(camera, K)
     sel, fx_col, aspect = _free_columns(A)
     cost, iterations = np.empty(K), np.empty(K, dtype=np.int64)
     proj, gproj, hits = np.empty(K), np.empty(K), np.empty((K, len(probes.uv_probe), 3))
+    centre, rotation = np.empty((K, 3)), np.empty((K, 3))
     kernels.monte_carlo_trials(
-        state.intrinsics, state.distortion, state.R, state.t, Q, q,
+        state.intrinsics, state.distortion, state.R, state.t, Z3, Z2, P, s3, pixels, s2,
         np.ascontiguousarray(A, dtype=float), sel, fx_col, aspect, int(max_iterations), float(tolerance),
-        probes.points_world, probes.uv_ref_points, probes.ground_world, probes.uv_ref_ground, probes.uv_probe, float(ground_z),
-        cost, iterations, proj, gproj, hits,
+        *probes.by_coordinate(), probes.uv_probe, float(ground_z),
+        cost, iterations, proj, gproj, hits, centre, rotation,
     )
-    return state, cost, {"projection": proj, "ground_projection": gproj, **_ground_metrics(hits, probes.probe)}
+    params = {name: state.intrinsics[:, i] for i, name in enumerate(PARAM_NAMES[0:4])}
+    params.update({name: state.distortion[:, i] for i, name in enumerate(PARAM_NAMES[4:9])})
+    rotation = np.degrees(rotation)
+    for i, axis in enumerate("xyz"):
+        params[f"pos_{axis}"] = centre[:, i]
+    for i, axis in enumerate("xyz"):
+        params[f"rot_{axis}"] = rotation[:, i]
+    return cost, {"projection": proj, "ground_projection": gproj, **_ground_metrics(hits, probes.probe)}, params
 
 
 def _param_samples(state: BatchState, reference: Camera) -> dict[str, np.ndarray]:
@@ -290,44 +307,41 @@ def monte_carlo(
     UncertaintyResult with rms_mean/max/var/percentiles (px), parameter spreads
     and projection errors.
     """
-    P = np.asarray(points_world, float)
+    P = np.ascontiguousarray(points_world, float)
     if trials < 2:
         raise InputError(f"--trials {trials} is too few for statistics: use at least 2 (the paper uses 500)")
     s3, s2 = _sigmas(P, sigma_3d, sigma_2d)
     mdl = resolve_model(model, P.shape[0])
     A = mdl.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx)
-    uv_ref = camera.project(P) if observed_pixels is None else np.asarray(observed_pixels, float)
+    uv_ref = camera.project(P) if observed_pixels is None else np.ascontiguousarray(observed_pixels, float)
     probes = _make_probes(camera, P, ground_z)
     rng = np.random.default_rng(seed)
 
     chunk_size = trials_per_chunk(chunk_size, P.shape[0])
-    # noise drawn into buffers reused by every chunk (the same numbers as drawing new arrays)
-    Q_buf = np.empty((min(chunk_size, trials), P.shape[0], 3))
-    q_buf = np.empty((min(chunk_size, trials), P.shape[0], 2))
+    # standard normal draws into buffers reused by every chunk (the same stream as drawing new arrays);
+    # the kernel scales them by the sigmas and adds them to the points and pixels
+    Z3_buf = np.empty((min(chunk_size, trials), P.shape[0], 3))
+    Z2_buf = np.empty((min(chunk_size, trials), P.shape[0], 2))
     rms_all, metrics_all, params_all, failed = [], [], [], 0
     for start in range(0, trials, chunk_size):
         k = min(chunk_size, trials - start)
-        Q, q = Q_buf[:k], q_buf[:k]
-        rng.standard_normal(out=Q)
-        Q *= s3
-        Q += P
-        rng.standard_normal(out=q)
-        q *= s2[:, None]
-        q += uv_ref
-        state, cost, metrics = _solve_trials(camera, Q, q, A, probes, ground_z, max_iterations, mc_tolerance)
+        Z3, Z2 = Z3_buf[:k], Z2_buf[:k]
+        rng.standard_normal(out=Z3)
+        rng.standard_normal(out=Z2)
+        cost, metrics, params = _solve_trials(camera, Z3, Z2, P, s3, uv_ref, s2, A, probes, ground_z, max_iterations, mc_tolerance)
         rms = np.sqrt(cost / P.shape[0])
         ok = np.isfinite(rms)
         failed += int((~ok).sum())
         rms_all.append(rms)
         metrics_all.append(metrics)
-        params_all.append(_param_samples(state, camera))
+        params_all.append(params)
 
     rms = np.concatenate(rms_all)
     metrics = {key: np.concatenate([m[key] for m in metrics_all]) for key in metrics_all[0]}
     params = {key: np.concatenate([p[key] for p in params_all]) for key in params_all[0]}
     rms_of = lambda v: np.sqrt(np.mean(v**2))  # noqa: E731
     out = dict(
-        param_std={key: _nan_stat(lambda v: np.std(v, ddof=1), val) for key, val in params.items()},
+        param_std=_param_std(params),
         projection_error_px=_nan_stat(rms_of, metrics["projection"]),
         ground_projection_error_px=_nan_stat(rms_of, metrics["ground_projection"]),
         ground_error_15m_cm=_nan_stat(rms_of, metrics["pos15"]),
@@ -353,6 +367,14 @@ def monte_carlo(
         model_term=None if richer is None else richer.name,
         **out,
     )
+
+
+def _param_std(params: dict[str, np.ndarray]) -> dict[str, float]:
+    """Each parameter's sample standard deviation over the finite trials (one numpy pass for all when every trial is finite)."""
+    values = np.stack(list(params.values()))
+    if np.all(np.isfinite(values)):
+        return dict(zip(params, (float(v) for v in np.std(values, axis=1, ddof=1))))
+    return {key: _nan_stat(lambda v: np.std(v, ddof=1), val) for key, val in params.items()}
 
 
 def _nan_percentiles(values: np.ndarray, q) -> np.ndarray:
