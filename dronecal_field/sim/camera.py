@@ -439,7 +439,8 @@ class SimCamera:
                     last_heartbeat_ns = now_ns
                 if (
                     self.vehicle_sysid is not None
-                    and now_ns - last_position_ns > REQUEST_AGAIN_NS
+                    # PX4 streams GLOBAL_POSITION_INT (the EKF's) unasked: without its truth yet, ask for HIL_STATE_QUATERNION anyway
+                    and (now_ns - last_position_ns > REQUEST_AGAIN_NS or (self._vehicle_autopilot == MAV_AUTOPILOT_PX4 and not simstate_seen))
                     and now_ns - last_request_ns > REQUEST_AGAIN_NS
                     and self._vehicle_compid is not None
                 ):
