@@ -35,7 +35,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np  # noqa: E402
 from numba import njit, prange  # noqa: E402
 
-from dronecal_field.core.normal_kernel import normal_equations_15  # noqa: E402
+from dronecal_field.core.normal_kernel import normal_equations_15, normal_equations_no_k3  # noqa: E402
 
 LOSS_CODES = {"linear": 0, "huber": 1, "cauchy": 2}
 
@@ -80,6 +80,17 @@ def _squared_residuals(
 
 
 @njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+def _normal_equations(
+    intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, y: np.ndarray, w: np.ndarray,
+    H15: np.ndarray, g15: np.ndarray, sq: np.ndarray, with_k3: bool,
+) -> float:
+    """``core.normal_kernel``'s normal equations of all 15 parameters, k3's left at 0 unless it is free."""
+    if with_k3:
+        return normal_equations_15(intr, dist, R, t, X, y, w, H15, g15, sq)
+    return normal_equations_no_k3(intr, dist, R, t, X, y, w, H15, g15, sq)
+
+
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
 def _free_normal(H15: np.ndarray, g15: np.ndarray, sel: np.ndarray, fx_col: int, aspect: float, JtJ: np.ndarray, g: np.ndarray) -> None:
     """The normal equations (m, m), (m,) of the free parameters from those of all 15: A^T H15 A and A^T g15.
 
@@ -107,46 +118,32 @@ def _free_normal(H15: np.ndarray, g15: np.ndarray, sel: np.ndarray, fx_col: int,
 
 
 @njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
-def _cholesky_solve(H: np.ndarray, b: np.ndarray, U: np.ndarray, x: np.ndarray) -> bool:
-    """Solve H x = b for symmetric positive definite H (m, m) by Cholesky (H = U^T U); False if H is not positive definite.
-
-    Right-looking: each finished row of U updates the rows below it by
-    contiguous, independent multiply-adds (the dot-product form chains every
-    entry on the one before and waits on it). U's diagonal holds the
-    reciprocals of the factor's diagonal.
-    """
+def _cholesky_solve(H: np.ndarray, b: np.ndarray, L: np.ndarray, x: np.ndarray) -> bool:
+    """Solve H x = b for symmetric positive definite H (m, m) by Cholesky; False if H is not positive definite."""
     m = H.shape[0]
-    for i in range(m):
-        for k in range(i, m):
-            U[i, k] = H[i, k]
     for j in range(m):
-        Uj = U[j]
-        d = Uj[j]
-        if not (d > 0.0) or not np.isfinite(d):
+        s = H[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not (s > 0.0) or not np.isfinite(s):
             return False
-        inv = 1.0 / np.sqrt(d)
-        Uj[j] = inv
-        for k in range(j + 1, m):
-            Uj[k] *= inv
-        for k in range(j + 1, m):
-            f = Uj[k]
-            Uk = U[k]
-            for i in range(k, m):
-                Uk[i] -= f * Uj[i]
+        d = np.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, m):
+            s = H[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / d
     for i in range(m):
-        x[i] = b[i]
-    for j in range(m):  # U^T z = b
-        x[j] *= U[j, j]
-        f = x[j]
-        Uj = U[j]
-        for k in range(j + 1, m):
-            x[k] -= Uj[k] * f
-    for i in range(m - 1, -1, -1):  # U x = z
-        Ui = U[i]
+        s = b[i]
+        for k in range(i):
+            s -= L[i, k] * x[k]
+        x[i] = s / L[i, i]
+    for i in range(m - 1, -1, -1):
         s = x[i]
         for k in range(i + 1, m):
-            s -= Ui[k] * x[k]
-        x[i] = s * Ui[i]
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
     return True
 
 
@@ -199,13 +196,16 @@ def _solve_one(
     """
     N = y.shape[1]
     m = sel.shape[0]
+    with_k3 = False
+    for a in range(m):
+        with_k3 |= sel[a] == 8
     for n in range(N):
         w[n] = 1.0
-    cost = normal_equations_15(intr, dist, R, t, X, y, w, H15, g15, sq)
+    cost = _normal_equations(intr, dist, R, t, X, y, w, H15, g15, sq, with_k3)
     if loss != 0:
         for n in range(N):
             w[n] = _weight(sq[n], loss, scale)
-        cost = normal_equations_15(intr, dist, R, t, X, y, w, H15, g15, sq)
+        cost = _normal_equations(intr, dist, R, t, X, y, w, H15, g15, sq, with_k3)
     _free_normal(H15, g15, sel, fx_col, aspect, JtJ, g)
     lam = damping
     fails = 0
@@ -217,11 +217,13 @@ def _solve_one(
             H[a, a] += lam * max(JtJ[a, a], 1e-12)
         cost_t = np.inf
         if _cholesky_solve(H, g, L, delta):
+            # full = A @ delta: column a of the parameter map moves parameter sel[a] (and fy with a tied aspect)
             for i in range(15):
-                s = 0.0
-                for a in range(m):
-                    s += A[i, a] * delta[a]
-                full[i] = s
+                full[i] = 0.0
+            for a in range(m):
+                full[sel[a]] += delta[a]
+            if fx_col >= 0:
+                full[1] += aspect * delta[fx_col]
             for i in range(4):
                 intr_t[i] = intr[i] + full[i]
             for i in range(5):
@@ -249,7 +251,7 @@ def _solve_one(
             if loss != 0:
                 for n in range(N):
                     w[n] = _weight(sq[n], loss, scale)
-            c = normal_equations_15(intr, dist, R, t, X, y, w, H15, g15, sq)
+            c = _normal_equations(intr, dist, R, t, X, y, w, H15, g15, sq, with_k3)
             _free_normal(H15, g15, sel, fx_col, aspect, JtJ, g)
             if loss != 0:
                 cost = c
@@ -506,10 +508,13 @@ def normal_equations(
     """
     shared = X.shape[0] == 1
     H15, g15 = np.empty((15, 15)), np.empty(15)
+    with_k3 = False
+    for a in range(sel.shape[0]):
+        with_k3 |= sel[a] == 8
     for k in range(R.shape[0]):
         Xk = np.ascontiguousarray((X[0] if shared else X[k]).T)
         yk = np.ascontiguousarray(y[k].T)
-        normal_equations_15(intr[k], dist[k], R[k], t[k], Xk, yk, w[k], H15, g15, sq[k])
+        _normal_equations(intr[k], dist[k], R[k], t[k], Xk, yk, w[k], H15, g15, sq[k], with_k3)
         _free_normal(H15, g15, sel, fx_col, aspect, JtJ[k], g[k])
 
 

@@ -313,8 +313,8 @@ def monte_carlo(
     s3, s2 = _sigmas(P, sigma_3d, sigma_2d)
     mdl = resolve_model(model, P.shape[0])
     A = mdl.parameter_map(camera.intrinsics.fy / camera.intrinsics.fx)
-    uv_ref = camera.project(P) if observed_pixels is None else np.ascontiguousarray(observed_pixels, float)
     probes = _make_probes(camera, P, ground_z)
+    uv_ref = probes.uv_ref_points if observed_pixels is None else np.ascontiguousarray(observed_pixels, float)
     rng = np.random.default_rng(seed)
 
     chunk_size = trials_per_chunk(chunk_size, P.shape[0])
@@ -347,9 +347,10 @@ def monte_carlo(
         ground_error_15m_cm=_nan_stat(rms_of, metrics["pos15"]),
         speed_error_15m_kmh=_nan_stat(rms_of, metrics["speed15"]),
     )
-    pct = {p: float(v) for p, v in zip(PERCENTILES, _nan_percentiles(rms, PERCENTILES))}
-    out["ground_error_15m_cm_p95"] = float(_nan_percentiles(metrics["pos15"], (95,))[0])
-    out["speed_error_15m_kmh_p95"] = float(_nan_percentiles(metrics["speed15"], (95,))[0])
+    rms_pct, pos_pct, speed_pct = _percentiles_of((rms, metrics["pos15"], metrics["speed15"]), PERCENTILES)
+    pct = {p: float(v) for p, v in zip(PERCENTILES, rms_pct)}
+    out["ground_error_15m_cm_p95"] = float(pos_pct[PERCENTILES.index(95)])
+    out["speed_error_15m_kmh_p95"] = float(speed_pct[PERCENTILES.index(95)])
     richer = _model_term_model(mdl, P.shape[0], model_term)
     if richer is not None:
         out = _add_model_term(out, camera, P, s3, s2, mdl, richer, probes, ground_z, fitted_pixels)
@@ -375,6 +376,14 @@ def _param_std(params: dict[str, np.ndarray]) -> dict[str, float]:
     if np.all(np.isfinite(values)):
         return dict(zip(params, (float(v) for v in np.std(values, axis=1, ddof=1))))
     return {key: _nan_stat(lambda v: np.std(v, ddof=1), val) for key, val in params.items()}
+
+
+def _percentiles_of(series: tuple[np.ndarray, ...], q) -> list[np.ndarray]:
+    """Percentiles ``q`` of the finite values of each (K,) series: one numpy call for all when every value is finite."""
+    values = np.stack(series)
+    if np.all(np.isfinite(values)):
+        return list(np.percentile(values, list(q), axis=1).T)
+    return [_nan_percentiles(v, q) for v in series]
 
 
 def _nan_percentiles(values: np.ndarray, q) -> np.ndarray:
