@@ -1,6 +1,7 @@
 """The PX4 flight calibrated with the SITL's GNSS (3D fix, 0.2 m / 0.5 m) and with RTK: truth, confidence, what the report says.
 
-One plan (the demo camera, tests/test_px4_sim_flight.py's), flown by
+One plan (the demo camera's; by default the PX4 SITL CI flight's,
+tests/data/px4_sitl_mission.plan: 8 holds of 8 s spread over the image), flown by
 `fly --start` on `sim vehicle --autopilot px4` with `sim camera`, once per
 receiver and seed: ``--gnss auto`` (PX4 SITL's SensorGpsSim: white noise
 0.2 m per horizontal axis and 0.5 m vertical, fix type 3, h_acc 900 mm) and
@@ -10,7 +11,7 @@ against the simulator's truth camera: focal error (%), camera position
 focal std, ground error at 15 m) against the true error, with the sentence
 the report prints about the GNSS (pipeline/gnss_quality.py).
 
-Run: ``.venv/bin/python benchmarks/px4_gnss_calibration.py [--seeds 2] [--speedup 2] [--replan]``
+Run: ``.venv/bin/python benchmarks/px4_gnss_calibration.py [--seeds 2] [--speedup 2] [--mission PLAN | --replan]``
 (about 2-4 min a flight on a busy 2-core machine).
 """
 
@@ -29,16 +30,22 @@ if str(REPO / "tests") not in sys.path:
 
 from test_px4_sim_flight import fly_px4_sim, plan_for_px4, score  # noqa: E402
 
+SITL_MISSION = REPO / "tests" / "data" / "px4_sitl_mission.plan"
+
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("/tmp/px4-gnss-calibration"))
     parser.add_argument("--seeds", type=int, default=1)
     parser.add_argument("--speedup", type=float, default=2.0)
-    parser.add_argument("--replan", action="store_true", help="plan again instead of flying tests/data/px4_sim_mission.plan")
+    parser.add_argument("--mission", type=Path, default=SITL_MISSION, help="the plan flown (default: the PX4 SITL CI flight's)")
+    parser.add_argument("--replan", action="store_true", help="plan again (the demo camera, 3 min) instead of flying --mission")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    mission = plan_for_px4(args.out, saved=not args.replan)  # the truth camera goes to out/truth.yaml
+    if not args.replan and not args.mission.is_file():
+        parser.error(f"--mission {args.mission}: no such plan; give a .plan file or --replan")
+    mission = plan_for_px4(args.out, saved=False) if args.replan else args.mission
+    plan_for_px4(args.out)  # the truth camera goes to out/truth.yaml
     truth = args.out / "truth.yaml"
     rows = []
     for seed in range(args.seeds):

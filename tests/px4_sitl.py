@@ -22,6 +22,7 @@ PX4 runs in real time only.
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import subprocess
@@ -170,3 +171,56 @@ class Px4Sitl(SitlProcess):
     def argv(self, argv: Sequence[str]) -> list[str]:
         """``argv`` run inside PX4's network namespace (the host's /tmp and files stay visible)."""
         return ["nsenter", f"--net=/proc/{self.proc.pid}/ns/net", "--", *argv]
+
+
+# The CI flight's holds for the demo camera (tests/test_px4_sim_flight.py's truth: 1280x720, f 1000 px, 4 m mast, tilt 25 deg):
+# (u px, v px, range m) the marker is seen at. PX4 SITL's GNSS is white noise of ~0.2 m / 0.5 m per fix, so a hold's point is
+# as good as the number of fixes averaged over its range: few long holds, far where the image allows it. The camera looks down
+# 25 deg, so only the upper rows can be far (the middle row at 10 m would be under the ground): bottom row near (4.6 m, 1.3 m up),
+# middle row's corners at ~7 m, top row at 12 m; every corner region of the image is covered for the distortion.
+SPREAD_HOLDS: tuple[tuple[float, float, float], ...] = (
+    (1050, 600, 4.6), (640, 640, 4.4), (230, 600, 4.6),  # bottom row, right to left
+    (130, 360, 7.5), (190, 130, 12.0), (640, 110, 12.0), (1090, 130, 12.0), (1150, 360, 7.5),  # up the left, across the top, down the right
+)
+
+
+def spread_mission(out_path: Path, source: Path, truth_path: Path, *, holds: Sequence[tuple[float, float, float]] = SPREAD_HOLDS,
+                   hold_s: float = 8.0, speed_m_s: float = 2.0, acceptance_m: float = 0.3) -> Path:
+    """``source``'s take-off, speed, camera ROI and landing around holds where ``truth_path``'s camera sees the marker at ``holds``.
+
+    Each (u, v, range) becomes a NAV_WAYPOINT held ``hold_s`` at the point on that pixel's ray (no distortion: the point lands
+    within a few tens of pixels of it), the speed item is set to ``speed_m_s``; the rest of ``source`` is kept (its first
+    hold item is the template). ``acceptance_m`` is each hold's acceptance radius (param 2): PX4 starts the hold's
+    timer when the vehicle comes this close (0: its NAV_ACC_RAD, 2 m, so the hold ran out while still arriving).
+    Written as a QGC .plan at ``out_path``.
+    """
+    from dataclasses import replace
+
+    import numpy as np
+
+    from dronecal_field.camerafile import read_camera
+    from dronecal_field.geodesy import EnuOrigin, enu_to_geodetic
+    from dronecal_field.mavlink import missionfile as mf
+
+    cam = read_camera(truth_path)
+    origin = EnuOrigin(*cam.enu_origin)
+    rot = cam.pose.R_cam_from_world
+    centre = -rot.T @ cam.pose.t_cam_from_world
+    fx, fy, cx, cy = cam.intrinsics.fx, cam.intrinsics.fy, cam.intrinsics.cx, cam.intrinsics.cy
+    mission = mf.read_mission(source)
+    first_hold = next(i for i, it in enumerate(mission.items) if it.command == mf.CMD_NAV_WAYPOINT and it.hold_s > 0)
+    last_hold = max(i for i, it in enumerate(mission.items) if it.command == mf.CMD_NAV_WAYPOINT and it.hold_s > 0)
+    template = mission.items[first_hold]
+    new = []
+    for u, v, rng in holds:
+        ray = rot.T @ np.array([(u - cx) / fx, (v - cy) / fy, 1.0])
+        at = centre + rng * ray / np.linalg.norm(ray)
+        lat, lon, _h = enu_to_geodetic(at, origin)[0]
+        yaw = math.degrees(math.atan2(centre[0] - at[0], centre[1] - at[1])) % 360.0  # facing the camera, as `plan` writes it
+        new.append(replace(template, p1=hold_s, p2=acceptance_m, p4=round(yaw, 2), x=int(round(lat * 1e7)), y=int(round(lon * 1e7)),
+                           z=round(float(at[2]), 2)))
+    head = [replace(it, p2=speed_m_s) if it.command == mf.CMD_DO_CHANGE_SPEED else it for it in mission.items[:first_hold]]
+    items = [*head, *new, *mission.items[last_hold + 1:]]
+    items = [replace(it, seq=i) for i, it in enumerate(items)]
+    out_path.write_text(mf.to_qgc_plan(replace(mission, items=tuple(items))))
+    return out_path

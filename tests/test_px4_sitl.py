@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -40,15 +41,17 @@ from test_mavlink_support import HOME
 
 pytestmark = [needs_px4, pytest.mark.slow, pytest.mark.timeout(420)]
 
+# px4_sitl.spread_mission(SITL_MISSION, tests/data/px4_sim_mission.plan, truth.yaml): 8 holds of 8 s spread over the image
+SITL_MISSION = Path(__file__).parent / "data" / "px4_sitl_mission.plan"
+
 
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory):
     """Plan, fly on PX4 SITL with the sim camera, calibrate: the folder with every output and the logs."""
     out = tmp_path_factory.mktemp("px4-flight")
-    # the demo camera's plan, saved (tests/data/px4_sim_mission.plan: 17 holds of 3 s, `plan` estimates 2.4 min):
-    # planning again costs minutes on a busy machine and moves with the planner's flight model
-    mission_path = plan_for_px4(out)
+    plan_for_px4(out)  # the demo camera's truth (out/truth.yaml)
+    mission_path = SITL_MISSION
     truth = read_camera(out / "truth.yaml")
     home = json.loads(mission_path.read_text())["mission"]["plannedHomePosition"]
     logs = out / "logs"
