@@ -123,10 +123,11 @@ def main() -> None:
         cv, en, full = (float(np.median(v)) / args.trials * 1e3 for v in (t_cv, t_en, t_mc))
         cpu_cv, cpu_en, cpu_full = (float(np.median(v)) / args.trials * 1e3 for v in (c_cv, c_en, c_mc))
         name = "distorted" if distorted else "pinhole"
-        print(f"Table 1 {name} camera, {len(X)} points, k = {args.trials}, median of {args.repeats} (ms per trial)")
+        print(f"Table 1 {name} camera, {len(X)} points, k = {args.trials}, median of {args.repeats} (ms per trial); engine {monte_carlo.__module__} from {sys.modules[monte_carlo.__module__].__file__}")
         print(f"  cv2.calibrateCamera loop : {cv:8.4f}   mean RMS {rms_cv.mean():.5f}  var {rms_cv.var(ddof=1):.5f}  max {rms_cv.max():.4f}")
         print(f"  batched engine (solve)   : {en:8.4f}   mean RMS {rms_en.mean():.5f}  var {rms_en.var(ddof=1):.5f}  max {rms_en.max():.4f}")
-        print(f"  monte_carlo (+ projection errors, parameter spreads): {full:8.4f}   mean RMS {mc.rms_mean:.5f}")
+        print(f"  monte_carlo (+ projection errors, parameter spreads): {full:8.4f}   mean RMS {mc.rms_mean:.5f}  "
+              f"std fx {mc.param_std['fx']:.4f} px, k1 {mc.param_std['k1']:.5f}, ground 15 m {mc.ground_error_15m_cm:.3f} cm")
         print(f"  ratio solve  : {cv / en:6.1f}x   mean RMS differs by {abs(rms_en.mean() / rms_cv.mean() - 1) * 100:.4f}%")
         print(f"  ratio full MC: {cv / full:6.1f}x   (spread over repeats: {min(t_cv) / max(t_mc):.0f}x - {max(t_cv) / min(t_mc):.0f}x)")
         print(f"  CPU time, all threads (ms per trial): cv2 {cpu_cv:.4f}, solve {cpu_en:.4f}, full MC {cpu_full:.4f}: "
