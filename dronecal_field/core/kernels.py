@@ -217,13 +217,11 @@ def _solve_one(
             H[a, a] += lam * max(JtJ[a, a], 1e-12)
         cost_t = np.inf
         if _cholesky_solve(H, g, L, delta):
-            # full = A @ delta: column a of the parameter map moves parameter sel[a] (and fy with a tied aspect)
             for i in range(15):
-                full[i] = 0.0
-            for a in range(m):
-                full[sel[a]] += delta[a]
-            if fx_col >= 0:
-                full[1] += aspect * delta[fx_col]
+                s = 0.0
+                for a in range(m):
+                    s += A[i, a] * delta[a]
+                full[i] = s
             for i in range(4):
                 intr_t[i] = intr[i] + full[i]
             for i in range(5):
@@ -415,15 +413,15 @@ def solve_batch(
 @njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
 def _rotation_vector_between(R: np.ndarray, R0: np.ndarray, out: np.ndarray) -> None:
     """Rotation vector (radians) of R R0^T, both (3, 3) rotations, into out (3,) (scipy's as_rotvec, angle in [0, pi])."""
-    d = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            d[i, j] = R[i, 0] * R0[j, 0] + R[i, 1] * R0[j, 1] + R[i, 2] * R0[j, 2]
-    v0 = 0.5 * (d[2, 1] - d[1, 2])
-    v1 = 0.5 * (d[0, 2] - d[2, 0])
-    v2 = 0.5 * (d[1, 0] - d[0, 1])
+
+    def entry(i: int, j: int) -> float:
+        return R[i, 0] * R0[j, 0] + R[i, 1] * R0[j, 1] + R[i, 2] * R0[j, 2]
+
+    v0 = 0.5 * (entry(2, 1) - entry(1, 2))
+    v1 = 0.5 * (entry(0, 2) - entry(2, 0))
+    v2 = 0.5 * (entry(1, 0) - entry(0, 1))
     s = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-    c = 0.5 * (d[0, 0] + d[1, 1] + d[2, 2] - 1.0)
+    c = 0.5 * (entry(0, 0) + entry(1, 1) + entry(2, 2) - 1.0)
     # atan2 keeps small angles exact (arccos of the trace does not); |v| = sin(angle)
     f = np.arctan2(s, c) / s if s > 1e-300 else 1.0
     out[0] = v0 * f
