@@ -55,6 +55,29 @@ Pairs (error, reported 1 sigma): a-wide/a-4k 5.3 mm (21.9), 0.156 deg (0.624); a
 8.1 (166.1), 0.294 (0.560); b-table1/b-wide 10.0 (63.8), 0.316 (2.061): every error inside 1 sigma, the sigmas
 cautious (the fits' 2-5 px RMS, against ~0.3 px for the renderer, inflate them: the MJPEG cameras' arrival
 stamps jitter on the legs). b-wide misses 1 px with 2 of its holds used (79 points, mostly legs).
+
+Why b-wide had 79 points: its layout flies through (1 s holds at the leg ends serve the legs, so 2 of 60 holds is by
+design), and its legs gave 77 pairs of ~700 leg detections. The frame selector decoded a leg's frames "at least 0.25 s
+apart": on 8 fps MJPEG stamps 0.1249 s apart that took every third frame half the time, 0.375 s gaps past the 0.35 s
+the legs' cubic may span, so most fixes had no track around them (the H.264 b-table1 decodes every access unit: 894
+pairs). Not the yaw (its legs face pole b), not its view. Fixed in pipeline/sampling.py (a leg frame within a fifth of
+a frame interval of the period is on time). The same recording calibrated again (18:10-18:40, load 13-16; 1776 s wall,
+626 s CPU for 902 s of recording):
+
+==========  =======  =====  ======  =======  =====================  ===========================================
+camera      focal %  pp px  pos cm  rot deg  ground 3-30 m RMS/max  points, model, fit RMS (before the fix)
+==========  =======  =====  ======  =======  =====================  ===========================================
+a-wide      0.09     1.2    0.1     0.087    0.67 / 6.7             1726, k1k2, 3.61 px (0.59 px, 110 points)
+a-4k        0.02     3.7    0.7     0.176    **1.06** / 4.9         284, k1, 3.00 px (0.53 px, 42 points)
+b-table1    0.11     2.4    0.7     0.147    0.44 / 0.7             897, k1, 4.61 px (unchanged)
+b-wide      0.00     3.2    0.4     0.194    0.84 / 6.8             2062, k1k2, 3.44 px (2.14 px, 79 points)
+==========  =======  =====  ======  =======  =====================  ===========================================
+
+Pairs 3.2-11.1 mm / 0.10-0.29 deg against 1 sigma 21.8-208.9 mm / 0.44-2.05 deg. a-4k now also pairs the legs of
+a-wide's layout it sees (259 pairs on 6 legs; the agreement check left 3 out, the 3 kept took it from 0.53 to 1.06 px):
+those legs' speed was chosen for a-wide's focal length, and the plan counts a leg's fixes for its own camera only
+(plan.multiplan.cross_visibility); calibrate does not yet (pipeline.track.find_legs could keep, per camera, the legs
+between two of its own grid points of an attached site plan.json, as it keeps a single camera's designed legs).
 """
 
 from __future__ import annotations
