@@ -277,12 +277,25 @@ def main() -> int:
     mission = mission or Path(args.mission or ROOT / "missions" / "security-4k" / "mission.plan")
     marker_args = marker_flags(mission, marker)
     if (args.scale != 1.0 or any(v != 1.0 for v in scales.values())) and (mission.parent / "plan.json").exists():
-        # plan.json's camera sizes are the full ones: fly would refuse the scaled streams. The mission alone, the marker as flags.
-        alone = work / "mission-only"
-        alone.mkdir(exist_ok=True)
-        (alone / "mission.plan").write_bytes(mission.read_bytes())
-        mission = alone / "mission.plan"
-        print(f"--scale {args.scale:g}: flying the mission without its plan.json (no per-camera plan for the live check)", flush=True)
+        # plan.json's camera sizes are the full ones: fly would refuse the scaled streams. A copy whose camera guesses are
+        # scaled as the streams are, so the run still carries the plan (calibrate reads which legs were designed for which
+        # camera from its grid); the marker as flags.
+        scaled = work / "mission-scaled"
+        scaled.mkdir(exist_ok=True)
+        (scaled / "mission.plan").write_bytes(mission.read_bytes())
+        pj = json.loads((mission.parent / "plan.json").read_text())
+        sizes = {n: (c.intrinsics.width, c.intrinsics.height) for n, c in cameras}
+        for cam in pj.get("cameras", []):
+            g = cam.get("camera_guess") or {}
+            if cam.get("name") in sizes and g.get("width"):
+                k = sizes[cam["name"]][0] / g["width"]
+                g["width"], g["height"] = sizes[cam["name"]]
+                for key in ("focal_px", "cx", "cy"):
+                    if isinstance(g.get(key), (int, float)):
+                        g[key] = g[key] * k
+        (scaled / "plan.json").write_text(json.dumps(pj))
+        mission = scaled / "mission.plan"
+        print(f"--scale {args.scale:g}: flying the mission with a plan.json whose camera guesses are scaled likewise", flush=True)
     print(f"mission {mission}; cameras " + ", ".join(f"{n} {c.intrinsics.width}x{c.intrinsics.height}{' RTSP' if n == args.rtsp_camera else ''}"
                                                    for n, c in cameras) + f" at {args.fps:g} fps; vehicle x{args.speedup:g}", flush=True)
     runs = [("site", False)] + ([] if args.no_baseline else [("one", True)])
