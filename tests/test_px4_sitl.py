@@ -1,21 +1,28 @@
 """A short plan flown end to end on PX4 1.16 SITL (SIH), recorded and calibrated; what was flown against the plan.
 
-`dronecal-field plan`'s mission for the demo's camera (saved:
-tests/data/px4_sim_mission.plan), PX4 SITL at the plan's take-off
-point (tests/px4_sitl.py: private network and mount namespaces, a fresh
-working directory), `dronecal-field sim camera` on PX4's onboard link (it
-asks for HIL_STATE_QUATERNION, SIH's truth), `dronecal-field fly --start
+The demo camera's truth (tests/test_px4_sim_flight.py) and a plan for it
+made to be calibrated through the SITL's GNSS (tests/data/px4_sitl_mission.plan,
+written by :func:`px4_sitl.spread_mission`): 8 holds of 8 s where the camera
+sees the marker across the image, at two depths (bottom row 4.4-4.6 m away,
+the middle row's ends at 7.5 m, the top row at 12 m). PX4 SITL at the plan's
+take-off point (tests/px4_sitl.py: private network and mount namespaces, a
+fresh working directory), `dronecal-field sim camera` on PX4's onboard link
+(it asks for HIL_STATE_QUATERNION, SIH's truth), `dronecal-field fly --start
 --min-fix 3d` on the GCS link (PX4 detected from its HEARTBEAT: the mission
 without its home item, read back by PX4's rules, arm + MISSION_START), then
 `dronecal-field calibrate --min-fix 3d` on the recording, scored against the
-simulator's truth camera. PX4 runs in real time: the plan is cut to 17
-holds of 3 s (`plan` estimates 2.2 min; PX4 flew it in 2.4 min). Holds of
-2 s (1.9 min) flew, but left calibrate too little to solve through the
-SITL's GNSS noise ("all points project from behind the camera").
+simulator's truth camera. PX4 runs in real time: the flight takes ~2.5 min.
 
-PX4 SITL's GNSS is a 3D fix (no RTK) claiming h_acc 0.9 m, with about 0.2 m
-horizontal / 0.5 m vertical noise: the calibration is scored in bands of
-that noise, not RTK's.
+PX4 SITL's GNSS is a 3D fix (no RTK) claiming h_acc 0.9 m, with white noise
+of 0.2 m horizontal / 0.5 m vertical per fix at 8 Hz (measured at rest: 5 s
+means within 0.08 m of SIH's truth, lag-1 autocorrelation under 0.06), so a
+hold's ~50 fixes average it to ~3 cm / ~7 cm: long holds, few of them, far
+where the image allows it. (17 holds of 3 s at 2-5 m were refused by
+calibrate: their points were off by 0.3-0.8 m, because the sim camera drew
+the vehicle at the EKF's height, which wanders +-0.6 m from SIH's truth,
+until it asked PX4 for HIL_STATE_QUATERNION.) The camera's distortion (k1
+-0.22) is not fitted from 8 points, so calibrate's residuals (10-40 px) and
+its confidence include it.
 """
 
 from __future__ import annotations
@@ -78,10 +85,13 @@ def flight(tmp_path_factory):
         px4_log = sitl.warnings()
     assert fly_rc == 0, (logs / "fly.log").read_text()[-3000:] + "\nPX4: " + px4_log
     with (logs / "calibrate.log").open("w") as f:
-        calib_rc = subprocess.run(cli_argv("calibrate", out / "run.mcap", "--out", out / "calibration", "--trials", 30, "--min-fix", "3d"),
+        # holds only: a leg's pairs carry each fix's 0.5 m unaveraged, yet count as up to 5 points each for the model's choice
+        # (seen: 8 holds + 5 leg points freed the aspect ratio and pinned nothing: fy 107 px, "not physical")
+        calib_rc = subprocess.run(cli_argv("calibrate", out / "run.mcap", "--out", out / "calibration", "--trials", 30, "--min-fix", "3d",
+                                           "--leg-source", "none"),
                                   stdout=f, stderr=subprocess.STDOUT, timeout=300).returncode  # fmt: skip
     calib_log = (logs / "calibrate.log").read_text()
-    # 17 holds through GNSS noise of ~0.5 m either calibrate or are refused in one line: never a camera 'calibrated' at random
+    # calibrated (0) or refused in one line (2): test_calibration_of_the_px4_flight_against_the_truth wants 0
     assert calib_rc in (0, 2) and "Traceback" not in calib_log, calib_log[-3000:]
     return dict(out=out, mission=mf.read_mission(mission_path), truth=truth, fly_log=(logs / "fly.log").read_text(),
                 calibrated=calib_rc == 0, calib_log=calib_log)
@@ -160,7 +170,9 @@ def test_px4_upload_read_back_and_flight_to_landing(flight):
           [round(v, 1) for v in report["yaw_err_deg"]])  # fmt: skip
     flown = np.array([f for _s, _p, f in report["holds"]])
     planned = np.array([p for _s, p, _f in report["holds"]])
-    assert np.median(flown / planned) >= 0.8  # vehicle seconds, not the wall clock
+    # vehicle seconds, not the wall clock: PX4 starts a hold's timer 0.3 m out (fly's acceptance radius), still arriving,
+    # so the still part of an 8 s hold was 2.1-8.9 s, median 0.73-0.9 of the plan
+    assert np.median(flown / planned) >= 0.6
     assert np.median(report["yaw_err_deg"]) < 10.0  # DO_SET_ROI_LOCATION honoured: the camera-facing yaw
 
 
@@ -169,18 +181,12 @@ def _f(value, spec: str = ".0f") -> str:
 
 
 def test_calibration_of_the_px4_flight_against_the_truth(flight):
-    """As good as PX4 SITL's GNSS allows, and the report says so: calibrate measures that noise from its own residuals
-    (0.5-0.6 m in all, split between white and correlated differently in each run), and its predicted errors (focal, ground at 15 m)
-    are not tighter than the true ones. The holds themselves are all used: the marker faces the camera (ROI honoured)."""
+    """Calibrated (not refused), as good as PX4 SITL's GNSS allows, and the report says so: calibrate measures the noise
+    from its own residuals (GNSS plus the distortion 8 points do not fit), and its predicted errors (focal, ground at 15 m)
+    are not tighter than the true ones. The holds themselves are used: the marker faces the camera (ROI honoured)."""
     truth = flight["truth"]
-    if not flight["calibrated"]:
-        # refused: one line naming why (the camera the noise left unpinned, or the Monte-Carlo's spread) and nothing written
-        # that could be taken for a calibration (seen: fx 1117 px and principal point (1821, -180) px for 1280x720)
-        errors = [line for line in flight["calib_log"].splitlines() if line.startswith("dronecal-field calibrate: error:")]
-        print("PX4 flight refused by calibrate:", errors)
-        assert len(errors) == 1 and ("GNSS noise" in errors[0] or "not physical" in errors[0]), flight["calib_log"][-2000:]
-        assert not (flight["out"] / "calibration" / "camera.yaml").exists()
-        return
+    errors = [line for line in flight["calib_log"].splitlines() if line.startswith("dronecal-field calibrate: error:")]
+    assert flight["calibrated"], errors or flight["calib_log"][-2000:]
     est = in_enu_frame_of(read_camera(flight["out"] / "calibration" / "camera.yaml"), truth.enu_origin)
     report = json.loads((flight["out"] / "calibration" / "report.json").read_text())
     sampled = used_marker_points(report, est.enu_origin, truth.enu_origin)
@@ -195,13 +201,14 @@ def test_calibration_of_the_px4_flight_against_the_truth(flight):
           f"{noise['sigma_white_m']:.2f} m white, {noise['sigma_corr_m']:.2f} m correlated over {_f(noise['tau_s'], '.1f')} s; "
           f"report: {' '.join(report['gnss'].get('quality') or [])}")  # fmt: skip
     holds = sum(1 for it in flight["mission"].items[1:] if it.hold_s > 0)
-    # the holds are used (the marker faced the camera): PX4's heading at a hold wanders 1-11 deg, one may be lost; a camera
-    # starved to 3 frames/s (load 22 on the 2 cores) left 13 of 17 (focal then 40 % off, reported std 167 %)
-    full = report["hover_windows"]["used"] >= holds - 1
-    assert report["hover_windows"]["used"] >= holds - 5
+    # the holds are used (the marker faced the camera): one may be lost (seen: the first hold, right after take-off, with 2
+    # detections in its settled part, the vehicle ~0.5 m off its planned height through the EKF's wander)
+    assert report["hover_windows"]["used"] >= holds - 2
     assert report["gnss"]["fix_types"] == {"3d": report["gnss"]["fixes_used"]}
     assert math.hypot(noise["sigma_white_m"], noise["sigma_corr_m"]) > 0.2  # the SITL's GNSS, not RTK's cm (the split varies per run)
+    # a calibration, not a guess (measured: focal 2.8-4.8 % off, camera 16-28 cm): gross bounds, the GNSS claims 0.9 m
+    assert abs(cmp.focal_error_pct) < 25.0 and cmp.position_error_cm < 150.0
     # uncertainty that matches reality: never tighter than the true error
-    assert mc["param_std"]["fx"] >= 0.5 * cmp.focal_error_px
-    if true_15m is not None and full:  # with 4 holds lost the 15 m figure was 1.4 km off against a reported p95 of 31 m
+    assert mc["param_std"]["fx"] >= 0.5 * abs(cmp.focal_error_px)
+    if true_15m is not None:
         assert mc["ground_error_15m_cm_p95"] >= 0.5 * true_15m
