@@ -83,13 +83,17 @@ def main() -> None:
     parser.add_argument("--scale4k", type=float, default=1.0, help="render scale (default 1: 3840x2160)")
     parser.add_argument("--perturbation", default="base", help="a bench_perturbation.py perturbation (default base)")
     parser.add_argument("--trials", type=int, default=0, help="Monte-Carlo trials of calibrate (default 0: linearised)")
+    parser.add_argument("--layout", choices=("rows", "corners"), default="corners",
+                        help="legs: rows at 3 depths x 3 heights (before), or those plus rows along the top and bottom "
+                             "image edges (tests/contract_writer_4k.py; default)")
     parser.add_argument("--k3", action="store_true", help="only compare the cached fit with the same points fitted with k3")
     args = parser.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
-    truth, flight, spec, planned = make_case("4k", args.perturbation, args.scale4k, 0)
+    truth, flight, spec, planned = make_case("4k", args.perturbation, args.scale4k, 0, layout4k=args.layout)
     if args.perturbation != "latency1":
         spec = replace(spec, latency_s=LATENCY_S)
-    path = args.workdir / f"4k-{args.perturbation}-{truth.width}-lat{spec.latency_s:.2f}.mcap"
+    tag = "" if args.layout == "rows" else f"-{args.layout}"
+    path = args.workdir / f"4k-{args.perturbation}-{truth.width}-lat{spec.latency_s:.2f}{tag}.mcap"
     if args.k3:
         print(k3_check(pickle.loads(path.with_suffix(".fit.pkl").read_bytes())))
         return

@@ -138,13 +138,23 @@ def paper_waypoints(camera) -> np.ndarray:
     return wps[visible(camera, marker, 20.0)]
 
 
-def make_case(name: str, perturbation: str, scale4k: float, seed: int, scale: float = 1.0, exposure_s: float = 0.0):
-    """(truth camera, Flight, RunSpec, planned speed m/s) of one row."""
+LAYOUTS_4K = ("rows", "corners")
+
+
+def make_case(name: str, perturbation: str, scale4k: float, seed: int, scale: float = 1.0, exposure_s: float = 0.0,
+              layout4k: str = "rows"):
+    """(truth camera, Flight, RunSpec, planned speed m/s) of one row; ``layout4k`` "corners" adds the 4K plan's rows
+    along the top and bottom image edges (tests/contract_writer_4k.py)."""
     truth = truth_camera(name, scale4k, scale)
     speedup = {"speed2": 2.0, "speed8": 8.0}.get(perturbation, 1.0)
     if name == "4k":
         planned = 0.18
-        waypoints = leg_waypoints(truth, (3.0, 5.0, 8.0), (1.0, 2.5, 4.0))
+        if layout4k == "corners":
+            from contract_writer_4k import corner_leg_waypoints
+
+            waypoints = corner_leg_waypoints(truth, (3.0, 5.0, 8.0), (1.0, 2.5, 4.0))
+        else:
+            waypoints = leg_waypoints(truth, (3.0, 5.0, 8.0), (1.0, 2.5, 4.0))
         hold = 1.0 if perturbation == "hold1" else 3.0
         holds = np.full(len(waypoints), hold)
         flight = make_leg_flight(truth, waypoints, hold_s=holds, speed_mps=planned * speedup, accel_mps2=1.0,
@@ -202,12 +212,13 @@ def errors(report, truth) -> dict:
 
 
 def run_case(name: str, perturbation: str, scale4k: float, seed: int, workdir: Path, scale: float = 1.0, exposure_s: float = 0.0,
-             keep: bool = False) -> dict:
+             keep: bool = False, layout4k: str = "rows") -> dict:
     from dronecal_field.errors import DronecalError
     from dronecal_field.pipeline.run import CalibrateOptions, calibrate_run
 
-    truth, flight, spec, planned = make_case(name, perturbation, scale4k, seed, scale, exposure_s)
-    path = workdir / f"{name}-{perturbation}-{seed}-{truth.width}.mcap"
+    truth, flight, spec, planned = make_case(name, perturbation, scale4k, seed, scale, exposure_s, layout4k)
+    tag = f"-{layout4k}" if name == "4k" and layout4k != "rows" else ""
+    path = workdir / f"{name}-{perturbation}-{seed}-{truth.width}{tag}.mcap"
     t = time.perf_counter()
     if not (keep and path.exists()):  # --keep: a run written before is calibrated again
         write_run(path, truth, flight, LOOK, spec)
@@ -287,6 +298,9 @@ def main() -> None:
     parser.add_argument("--json", type=Path, help="write the rows here")
     parser.add_argument("--workdir", type=Path, help="where the runs are written (default: a new folder in /tmp)")
     parser.add_argument("--keep", action="store_true", help="keep the runs in --workdir, and calibrate a run found there again")
+    parser.add_argument("--layout4k", choices=LAYOUTS_4K, default="rows",
+                        help="the 4K legs: rows at 3 depths x 3 heights (default), or those plus rows along the top "
+                             "and bottom image edges (corners: tests/contract_writer_4k.py)")
     args = parser.parse_args()
     workdir = args.workdir or Path(tempfile.mkdtemp(prefix="perturbation-"))
     workdir.mkdir(parents=True, exist_ok=True)
@@ -294,7 +308,7 @@ def main() -> None:
     for name in args.cameras.split(","):
         for seed in range(args.seeds):
             for p in args.only.split(","):
-                row = run_case(name, p, args.scale4k, seed, workdir, args.scale, args.exposure, args.keep)
+                row = run_case(name, p, args.scale4k, seed, workdir, args.scale, args.exposure, args.keep, args.layout4k)
                 rows.append(row)
                 if row.get("refused"):
                     print(f"  {name:6s} {p:13s} seed {seed}: refused: {row['refused']}  [write {row['write_s']:.0f} s]", flush=True)
