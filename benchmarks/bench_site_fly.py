@@ -46,6 +46,15 @@ benchmarks), recorder alone (``--no-live --no-baseline``):
 
 The accuracy of these flights is bench_site_accuracy.py's docstring.
 
+Measured 2026-11-27 18:44-19:00 (load average 11-12: a CI run's two CPU hogs, PX4 SITL and two other helpers'
+benchmarks), ``--speedup 1 --scale 1 --camera-scale a-4k=0.5 --fps 8 --rtsp-camera b-table1 --no-baseline
+--site-plan missions/site-two-poles`` (888 s planned, 60 holds, 35 legs), the run now carrying the site's
+plan.json (its a-4k guess scaled like the stream): recorded 897.4 s = 15.0 min, fly 86.2 s CPU in 941 s = 9.2 %
+of one core for the four streams; frames recorded of made (the simulators' counts, printed as None before: the
+cameras were SIGKILLed before their last line): a-wide 6774 / 7114 (11 gaps), a-4k 6823 / 7165 (10 gaps),
+b-table1 (RTSP) 5036 / 7296 (93 lost in the stream, 50 lag spans up to 0.21 s, 2 gaps), b-wide 6627 / 6967
+(17 gaps): the gaps (~2 s each, 40 in all) are the renderers starved at load 11.
+
 Measured 2026-11-27 12:38-12:47 (2 cores shared with seven other sessions'
 tests and benchmarks: load average 25-28), ``--site-plan`` = ``plan --site
 missions/site-two-poles.toml`` (one flight, 891 s planned, 46 holds, 57 legs,
