@@ -107,7 +107,7 @@ def _track(run) -> np.ndarray:
 
 
 def flown_against_planned(mission: mf.Mission, track: np.ndarray) -> dict:
-    """Per hold: planned vs flown still time near the point; per leg: planned vs top speed; yaw towards the pole."""
+    """Per hold: planned vs flown time within 0.5 m of the point; per leg: planned vs top speed; yaw towards the pole."""
     origin = EnuOrigin(*HOME)
     t, e, n, u, speed, hdg = track.T
     roi = next((it for it in mission.items if it.command == mf.CMD_DO_SET_ROI), None)
@@ -117,9 +117,11 @@ def flown_against_planned(mission: mf.Mission, track: np.ndarray) -> dict:
         if item.command != mf.CMD_NAV_WAYPOINT or item.hold_s <= 0:
             continue
         we, wn, _ = geodetic_to_enu(item.x * 1e-7, item.y * 1e-7, HOME[2], origin)[0]
-        near = (np.hypot(e - we, n - wn) < 0.5) & (np.abs(u - item.z) < 0.6) & (speed < 0.3)
+        # held: within 0.5 m of the point (the EKF's position, which PX4 holds); no speed gate, since the EKF's velocity
+        # jitters with the 0.5 m GNSS noise it fuses and broke the "still" stretches into pieces (median 0.54-0.9 of the hold)
+        near = (np.hypot(e - we, n - wn) < 0.5) & (np.abs(u - item.z) < 0.6)
         best, start = 0.0, None
-        for i, ok in enumerate(near):  # longest still stretch near the point, in vehicle seconds
+        for i, ok in enumerate(near):  # longest stretch near the point, in vehicle seconds
             if ok and start is None:
                 start = i
             if (not ok or i == len(near) - 1) and start is not None:
@@ -165,14 +167,14 @@ def test_px4_upload_read_back_and_flight_to_landing(flight):
     assert fixes[0].timestamp_ns > 1_600_000_000 * 10**9
     assert frames > 100
     report = flown_against_planned(mission, track)
-    print("PX4 flown vs planned: holds (seq, planned s, flown still s):", [(s, p, round(f, 1)) for s, p, f in report["holds"]],
+    print("PX4 flown vs planned: holds (seq, planned s, flown within 0.5 m s):", [(s, p, round(f, 1)) for s, p, f in report["holds"]],
           "| speed planned / top:", report["speeds"], "| yaw to the pole at holds, median |error| deg:",
           [round(v, 1) for v in report["yaw_err_deg"]])  # fmt: skip
     flown = np.array([f for _s, _p, f in report["holds"]])
     planned = np.array([p for _s, p, _f in report["holds"]])
-    # vehicle seconds, not the wall clock: PX4 starts a hold's timer 0.3 m out (fly's acceptance radius), still arriving,
-    # so the still part of an 8 s hold was 2.1-8.9 s, median 0.73-0.9 of the plan
-    assert np.median(flown / planned) >= 0.6
+    # vehicle seconds, not the wall clock: PX4 starts a hold's timer 0.3 m out (fly's acceptance radius); within 0.5 m of an
+    # 8 s hold's point for 2.9-12.3 s (arrival and departure included), median 0.98-1.17 of the plan in three runs
+    assert np.median(flown / planned) >= 0.7
     assert np.median(report["yaw_err_deg"]) < 10.0  # DO_SET_ROI_LOCATION honoured: the camera-facing yaw
 
 
