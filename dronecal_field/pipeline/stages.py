@@ -89,8 +89,8 @@ def run_stages(path: Path, options: CalibrateOptions, live, clock: "StageClock",
                like: "RunStages | None" = None) -> RunStages:
     """Stages 1-4 of one run (of one of its cameras): track, hover windows and legs, detections, time alignment.
 
-    ``like``: the stages of another camera of the same run, whose track, hover windows and legs (the flight's,
-    shared by every camera) are taken instead of being read again.
+    ``like``: the stages of another camera of the same run, whose track and hover windows (the flight's, shared by
+    every camera) are taken instead of being read again; the legs are each camera's own.
     """
     from dronecal_field.runfile.reader import open_run
 
@@ -98,7 +98,8 @@ def run_stages(path: Path, options: CalibrateOptions, live, clock: "StageClock",
         md = run.metadata
         if like is not None:
             read, windows, window_source, notes = like.read, like.windows, like.window_source, like.track_notes
-            legs, leg_source = like.legs, like.leg_source
+            # the legs per camera: a site plan's legs each serve their own camera (pipeline.track._planned_sample_seqs)
+            legs, leg_source = clock("legs_s", find_legs, run, read.track, windows, options)
         else:
             read = clock("read_track_s", read_track, run, path, options)
             windows, window_source, notes = clock("hover_windows_s", hover_windows, run, read.track.t_ns, read.track.antenna_enu_m, options, read.holds)
