@@ -173,8 +173,8 @@ def test_px4_upload_read_back_and_flight_to_landing(flight):
     flown = np.array([f for _s, _p, f in report["holds"]])
     planned = np.array([p for _s, p, _f in report["holds"]])
     # vehicle seconds, not the wall clock: PX4 starts a hold's timer 0.3 m out (fly's acceptance radius); within 0.5 m of an
-    # 8 s hold's point for 2.9-12.3 s (arrival and departure included), median 0.98-1.17 of the plan in three runs
-    assert np.median(flown / planned) >= 0.7
+    # 8 s hold's point for 2.9-12.3 s (arrival and departure included), median 0.74-1.17 of the plan in five runs
+    assert np.median(flown / planned) >= 0.5
     assert np.median(report["yaw_err_deg"]) < 10.0  # DO_SET_ROI_LOCATION honoured: the camera-facing yaw
 
 
