@@ -76,8 +76,33 @@ b-wide      0.00     3.2    0.4     0.194    0.84 / 6.8             2062, k1k2, 
 Pairs 3.2-11.1 mm / 0.10-0.29 deg against 1 sigma 21.8-208.9 mm / 0.44-2.05 deg. a-4k now also pairs the legs of
 a-wide's layout it sees (259 pairs on 6 legs; the agreement check left 3 out, the 3 kept took it from 0.53 to 1.06 px):
 those legs' speed was chosen for a-wide's focal length, and the plan counts a leg's fixes for its own camera only
-(plan.multiplan.cross_visibility); calibrate does not yet (pipeline.track.find_legs could keep, per camera, the legs
-between two of its own grid points of an attached site plan.json, as it keeps a single camera's designed legs).
+(plan.multiplan.cross_visibility). calibrate now does the same: with the site's plan.json in the run, each camera keeps
+the legs between two of its own grid points (pipeline.track), each camera finding its own legs (pipeline.stages: the
+first camera's legs had served all four). That recording flew without plan.json, so it shows neither.
+
+Measured 2026-11-27 18:44-19:13: a new flight of the same plan, now carrying the plan.json (bench_site_fly.py's
+docstring: 15.0 min recorded at real time, load 11-12, 40 video gaps of ~2 s from the starved renderers, fly 9.2 % of
+one core), then ``bench_site_accuracy.py`` at load 1-3: calibrate 289 s wall, 314 s CPU for the four cameras
+(0.32 / 0.35 of the 896 s recording):
+
+==========  =======  =====  ======  =======  =====================  ===========================================
+camera      focal %  pp px  pos cm  rot deg  ground 3-30 m RMS/max  points, model, fit RMS, offset, holds used
+==========  =======  =====  ======  =======  =====================  ===========================================
+a-wide      0.06     1.7    0.6     0.105    0.47 / 4.4             1702 (1684 pairs on its 12 legs), k1k2p1p2,
+                                                                    3.56 px, +0.214 s, 18/60
+a-4k        0.13     1.5    0.9     0.072    0.41 / 1.7             26 holds (its hover layout, no legs), k1, 1.06
+                                                                    px, +0.173 s
+b-table1    0.36     10.4   0.4     0.599    0.37 / 1.5             794 (789 pairs on its 10 legs), k1, 4.75 px,
+                                                                    +0.064 s, 5/60
+b-wide      0.00     1.9    0.5     0.116    0.35 / 1.5             1690 (1680 pairs on its 12 legs), k1k2p1p2,
+                                                                    3.45 px, +0.206 s, 10/60
+==========  =======  =====  ======  =======  =====================  ===========================================
+
+Pairs (error, reported 1 sigma): same pole a-wide/a-4k 14.6 mm (10.6), 0.102 deg (0.324): the translation at 1.4
+sigma; b-table1/b-wide 16.9 (83.4), 0.584 (2.628); across poles 6.4-7.4 mm (73.0-181.5), 0.124-0.658 deg
+(0.534-2.635). The same recording calibrated before pipeline.stages gave each camera its own legs (the first
+camera's 12 legs for all four): a-wide 0.47, a-4k 0.81 px (415 pairs of a-wide's legs), b-table1 and b-wide refused
+(7 points each; calibrate exit 1).
 """
 
 from __future__ import annotations
