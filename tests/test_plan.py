@@ -322,6 +322,15 @@ def test_make_plan_on_a_local_cluster_gives_the_same_plan():
         there = make_plan(req, client=client)
         assert len(client.scheduler_info()["workers"]) == 2
     assert len(here.candidates) == len(there.candidates) == 18
-    assert [c.row() for c in there.candidates] == [c.row() for c in here.candidates]
+    # equal to round-off: a worker's numba threads split the engine's reductions differently (4.21129182229112 against
+    # 4.2112918222911215 px in one CI run), the plan itself identical
+    for a, b in zip(there.candidates, here.candidates):
+        ra, rb = a.row(), b.row()
+        assert ra.keys() == rb.keys()
+        for key in ra:
+            if isinstance(ra[key], float):
+                assert ra[key] == pytest.approx(rb[key], rel=1e-9), (a.name, key)
+            else:
+                assert ra[key] == rb[key], (a.name, key)
     assert there.chosen.name == here.chosen.name
     assert np.array_equal(there.grid_site, here.grid_site)
