@@ -408,7 +408,8 @@ def rows(sitls: list[dict], sim: dict) -> list[tuple[str, str, str, bool]]:
     near("climb rate, m/s", "climb_rate_mps", 0.15, rel=True)
     for name in sitls[0]["holds"]:
         planned = sitls[0]["holds"][name]["planned_s"]
-        near(f"hold {name} ({planned:g} s planned): still s", None, 1.3, get=lambda x, n=name: x["holds"][n]["still_s"])
+        # the SITL's own spread, still by the 1 s median speed: 3.0 s idle, 5.4 s beside two CPU hogs (a 3 s hold)
+        near(f"hold {name} ({planned:g} s planned): still s", None, 2.0, get=lambda x, n=name: x["holds"][n]["still_s"])
         near(f"hold {name}: yaw error to the pole, deg", None, 3.0, get=lambda x, n=name: x["holds"][n]["yaw_err_deg"])
         near(f"hold {name}: first reached minus hold end, s", None, 0.5, get=lambda x, n=name: x["holds"][n].get("reached_minus_hold_end_s"))
     if sitls[0].get("leg1_top_mps") is not None:  # the full flight's legs
