@@ -5,11 +5,16 @@ the region of validity, the uncertainty maps and the ground homography (``core.u
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from dronecal_field.geodesy import EnuOrigin
 from dronecal_field.pipeline.points import WaypointPoint
 from dronecal_field.pipeline.results import CalibrateOptions, Uncertainty
+
+if TYPE_CHECKING:  # the engine (numba) is imported where it runs, not when this module loads
+    from dronecal_field.core.uncertainty import UncertaintyResult
 
 # A leg point's pixel is a cubic through the 4 detections around its fix (pipeline.legs): at 10 fps they span 0.3 s,
 # and a fix 0.1 s on shares 3 of them, so the detector's error (inside the measured "white" noise) is common to the
@@ -71,7 +76,7 @@ def leg_sigma_factors(t_s: np.ndarray, leg: np.ndarray, correlation_s: float = P
 FOCAL_KEYS = ("fx", "fy")
 
 
-def focal_from(shared, white, reference=None):
+def focal_from(shared: UncertaintyResult, white: UncertaintyResult, reference: UncertaintyResult | None = None) -> UncertaintyResult:
     """``shared`` (an UncertaintyResult under the legs' factors) with the focal length's std of ``white`` (the same
     points taken as independent), never larger than ``shared``'s.
 
