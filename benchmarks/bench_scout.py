@@ -23,21 +23,41 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_wholeview import CAMERAS, DEFAULT_SPEEDUP, MARKER, truth_camera  # noqa: E402
+from bench_wholeview import CAMERAS, DEFAULT_SPEEDUP, MARKER, fly_facts, truth_camera  # noqa: E402
 from dronecal_field.demo import SITE, cli_argv, run_step, start_simulators  # noqa: E402
 
 
 def fly(plan_dir: Path, truth_path: Path, run_path: Path, logs: Path, speedup: float, fps: float, tag: str) -> None:
+    """Fly one plan on fresh simulators; ``fps`` is frames per VEHICLE second (what plan was told).
+
+    The sim camera runs on the host clock (frames on a grid of wall time, stamped with it), not the vehicle's: it
+    serves ``fps x speedup`` frames per wall second so that a slowed vehicle (speedup < 1, for the 4K camera's render
+    time) still gets ``fps`` frames per vehicle second, and the camera ``1 / (fps x speedup)`` wall seconds per frame.
+    """
     plan = json.loads((plan_dir / "mission.plan").read_text())
     home = plan["mission"]["plannedHomePosition"]
     (logs / tag).mkdir(parents=True, exist_ok=True)
-    sims = start_simulators(truth_path, tuple(home), logs / tag, speedup, fps, dict(MARKER, size_m=json.loads((plan_dir / "plan.json").read_text())["marker"]["size_m"]))
+    flight_wall_s = json.loads((plan_dir / "plan.json").read_text())["flight"]["flight_time_s"] / speedup
+    sims = start_simulators(truth_path, tuple(home), logs / tag, speedup, fps * speedup,
+                            dict(MARKER, size_m=json.loads((plan_dir / "plan.json").read_text())["marker"]["size_m"]))
     try:
         sims.wait_ready(timeout_s=300.0)  # a 4K ray map on a loaded machine
+        timeout_s = int(600 + 2 * flight_wall_s)  # boot, take-off and landing at the slowed clock, with room for a loaded machine
         run_step("fly", cli_argv("fly", "--connect", sims.vehicle_url, "--mission", plan_dir / "mission.plan", "--video", sims.video_url,
-                                 "--out", run_path, "--start", "--timeout-s", "1500"), logs / f"fly-{tag}.log", timeout_s=1800)
+                                 "--out", run_path, "--start", "--timeout-s", timeout_s), logs / f"fly-{tag}.log", timeout_s=timeout_s + 300)
     finally:
         sims.stop()
+    print(f"{tag}: recorded {recorded(logs / f'fly-{tag}.log', speedup, fps)}", flush=True)
+
+
+def recorded(fly_log: Path, speedup: float, fps: float) -> str:
+    """The recording's frames and frame rate (wall and vehicle clock) from fly's log, against what was asked."""
+    f = fly_facts(fly_log, speedup)
+    if f.get("flight_vehicle_s") is None:
+        return f"(no summary line in {fly_log})"
+    return (f"{f['frames']} frames ({f['dropped']} dropped), {f['gnss_fixes']} GNSS fixes in {f['record_wall_s']:.0f} s wall = "
+            f"{f['flight_vehicle_s']:.0f} vehicle s; {f['camera_fps_wall_measured']:.2f} fps wall = {f['camera_fps_vehicle_measured']:.2f} "
+            f"per vehicle s (asked {fps * speedup:g} / {fps:g}) at speed-up {speedup:g}")
 
 
 def main() -> None:
@@ -46,7 +66,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("bench-out/scout"))
     ap.add_argument("--az-error", type=float, default=15.0)
     ap.add_argument("--height-error", type=float, default=0.2)
-    ap.add_argument("--fps", type=float, default=10.0)
+    ap.add_argument("--fps", type=float, default=10.0, help="camera frames per vehicle second (plan's --fps; the sim camera serves fps x speedup per wall s)")
     ap.add_argument("--main", action="store_true")
     ap.add_argument("--speedup", type=float, default=None, help="sim vehicle speed-up (default bench_wholeview's: 4K 1x)")
     ap.add_argument("--min-agl", type=float, default=None, help="--min-agl for both plans (the Table 1 camera's 2 m pole: 0.5)")
@@ -64,6 +84,7 @@ def main() -> None:
     truth_path = out / "truth.yaml"
     write_camera(truth_path, truth, comment="bench_scout truth")
     speedup = args.speedup or DEFAULT_SPEEDUP[args.camera]
+    print(f"{args.camera}: speed-up {speedup:g}, camera {args.fps * speedup:g} fps wall = {args.fps:g} per vehicle second", flush=True)
     t0 = time.monotonic()
     scout_dir = out / "scout-plan"
     agl = [] if args.min_agl is None else ["--min-agl", args.min_agl]
@@ -75,6 +96,7 @@ def main() -> None:
     scout_run = out / "scout.mcap"
     if not scout_run.exists():
         fly(scout_dir, truth_path, scout_run, logs, speedup, args.fps, "scout")
+    print(f"scout done at {time.monotonic() - t0:.0f} s wall", flush=True)
     main_dir = out / "main-plan"
     run_step("plan", cli_argv("plan", "--from-run", scout_run, "--out", main_dir, "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]),
                               "--fps", args.fps, "--hover", "3", "--trials", "50", "--max-flight-time", "12", *agl), logs / "plan-main.log", timeout_s=900)
@@ -92,10 +114,13 @@ def main() -> None:
         main_run = out / "main.mcap"
         if not main_run.exists():
             fly(main_dir, truth_path, main_run, logs, speedup, args.fps, "main")
+        print(f"main done at {time.monotonic() - t0:.0f} s wall", flush=True)
         for tag, runs in (("main", [main_run]), ("pooled", [scout_run, main_run])):
             cal = out / f"calibration-{tag}"
             extra = ["--joint"] if len(runs) > 1 else []
-            run_step("calibrate", cli_argv("calibrate", *runs, *extra, "--out", cal, "--trials", "0"), logs / f"calibrate-{tag}.log", timeout_s=1800)
+            # settle is counted on the run's (wall) clock: 1 vehicle second
+            run_step("calibrate", cli_argv("calibrate", *runs, *extra, "--out", cal, "--trials", "0", "--settle-s", 1.0 / speedup),
+                     logs / f"calibrate-{tag}.log", timeout_s=1800)
             est = in_enu_frame_of(read_camera(cal / "camera.yaml"), truth.enu_origin)
             g = compare_cameras(truth, est, ground_step_m=0.5).ground
             print(f"{tag}: ground 3-30 m {g}", flush=True)

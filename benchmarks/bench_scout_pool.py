@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,14 +49,17 @@ def main() -> None:
         truth = _truth(folder)
         runs = [folder / "scout.mcap", folder / "main.mcap"]
         alike = folder / "calibration-pooled-alike"
+        rep = json.loads((folder / "calibration-pooled" / "report.json").read_text())
         if not (alike / "camera.yaml").exists():
             ratio = joint.EQUAL_NOISE_RATIO
             joint.EQUAL_NOISE_RATIO = float("inf")
             try:
-                calibrate_runs(runs, CalibrateOptions(trials=0, out_dir=alike))
+                # the pooled calibration's settle (bench_scout gives 1 vehicle second on the run's wall clock, slowed vehicles)
+                base = CalibrateOptions(trials=0, out_dir=alike)
+                settle = rep.get("options", {}).get("settle_s", base.points.settle_s)
+                calibrate_runs(runs, replace(base, points=replace(base.points, settle_s=settle)))
             finally:
                 joint.EQUAL_NOISE_RATIO = ratio
-        rep = json.loads((folder / "calibration-pooled" / "report.json").read_text())
         noise = {Path(r["path"]).name: r["noise_px_weighted_by"] for r in rep["joint"]["runs"]}
         row = {tag: _ground(truth, folder / f"calibration-{tag}") for tag in ("main", "pooled", "pooled-alike")}
         print(f"{folder}: ground 3-30 m RMS / max px: main alone {row['main'].rms_px:.3f} / {row['main'].max_px:.2f}, "
