@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from dronecal_field.core.synthetic import paper_camera, paper_grid
+from dronecal_field.core.trial_noise import trial_normals
 from dronecal_field.core.uncertainty import convergence_curve, ground_probe, linearised, monte_carlo
 
 
@@ -43,17 +44,23 @@ def test_monte_carlo_agrees_with_an_opencv_loop_on_the_same_trials():
     X = paper_grid(cam)
     k = 60
     mc = monte_carlo(cam, X, trials=k, seed=5)
-    rng = np.random.default_rng(5)  # the engine draws 3D then 2D noise for the whole chunk
+    draws = [trial_normals(5, i, len(X)) for i in range(k)]  # each trial's own stream: 3D noise, then 2D noise
     uv = cam.project(X)
-    Q = X[None] + rng.standard_normal((k, len(X), 3)) * np.array([0.01, 0.01, 0.015])
-    q = uv[None] + rng.standard_normal((k, len(X), 2)) * 2.0
+    Q = X[None] + np.array([z3 for z3, _ in draws]) * np.array([0.01, 0.01, 0.015])
+    q = uv[None] + np.array([z2 for _, z2 in draws]) * 2.0
     flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
     rms_cv = np.array([
         cv2.calibrateCamera([Q[i].astype(np.float32)], [q[i].astype(np.float32)], (1280, 960), cam.intrinsics.matrix.copy(), np.zeros(5), flags=flags, criteria=crit)[0]
         for i in range(k)
     ])
-    assert np.max(np.abs(mc.rms - rms_cv) / rms_cv) < 1e-4
+    rel = np.abs(mc.rms - rms_cv) / rms_cv
+    # The engine stops a trial at a 1e-5 relative cost drop (cv2 here runs to 1e-15): the RMS is within 2e-5 on
+    # most trials, 2e-4 on the slowest. With these draws trial 36 stalls in a curved valley 0.2 % above the minimum
+    # cv2 finds (the engine run to 1e-15 ends there too); the trial-to-trial spread of the RMS is 7 %.
+    assert np.median(rel) < 1e-5
+    assert np.sum(rel > 3e-4) <= 1 and rel.max() < 3e-3
+    assert abs(mc.rms_mean / rms_cv.mean() - 1.0) < 1e-4
 
 
 def test_seeded_and_reproducible(table1):
@@ -232,14 +239,31 @@ def test_a_legs_points_count_for_its_duration_over_the_pairing_correlation_not_t
 
 
 def test_engine_figures_as_before_the_speed_work():
-    """Issue 20's speed work (fused normal equations, noise applied in the kernel) changed no figure: the values
-    of the engine before it (5b9947d..05ed969, same seed) to round-off, far inside the Monte-Carlo's own noise."""
+    """Issue 20's speed work changed the figures by Monte-Carlo noise only.
+
+    Until its third round the engine drew numpy's stream (k, N, 3) then (k, N, 2) for the whole chunk; it now draws
+    each trial's own stream inside the compiled loop (core.trial_noise) and stops a trial at a 1e-5 relative cost
+    drop (was 1e-6), so the same seed gives other trials. Each figure must agree with the old engine's (seed 1,
+    k = 500, 5b9947d..6fa39b3) within 3 standard errors of the difference of two independent Monte-Carlos: a
+    standard deviation (or an RMS) estimated from k trials has relative standard error 1 / sqrt(2 (k - 1)) = 3.2 %,
+    so 3 sqrt(2) x 3.2 % = 13 %; the mean RMS has standard error sqrt(var / k). The new engine's own values are
+    pinned to round-off, as the old ones were."""
     cam = paper_camera(distorted=True)
-    mc = monte_carlo(cam, paper_grid(cam), trials=500, seed=1)
-    assert mc.rms_mean == pytest.approx(4.284632913, rel=1e-9)
-    assert mc.rms_var == pytest.approx(0.09582703429, rel=1e-8)
-    before = {"fx": 16.551814, "cx": 45.318764, "k1": 0.047671484, "pos_x": 0.041154065, "rot_y": 2.3556232}
-    for key, value in before.items():
+    k = 500
+    mc = monte_carlo(cam, paper_grid(cam), trials=k, seed=1)
+    old = {"fx": 16.551814, "cx": 45.318764, "k1": 0.047671484, "pos_x": 0.041154065, "rot_y": 2.3556232}
+    old_rms_mean, old_rms_var, old_ground_cm = 4.284632913, 0.09582703429, 14.47327371
+    tol_std = 3.0 * np.sqrt(2.0) / np.sqrt(2.0 * (k - 1))
+    for key, value in old.items():
+        assert abs(mc.param_std[key] / value - 1.0) < tol_std, key
+    assert abs(mc.ground_error_15m_cm / old_ground_cm - 1.0) < tol_std
+    assert abs(np.sqrt(mc.rms_var / old_rms_var) - 1.0) < tol_std
+    assert abs(mc.rms_mean - old_rms_mean) < 3.0 * np.sqrt(2.0 * old_rms_var / k)
+    # this engine's figures, to round-off
+    assert mc.rms_mean == pytest.approx(4.295557017, rel=1e-9)
+    assert mc.rms_var == pytest.approx(0.09836383719, rel=1e-8)
+    now = {"fx": 17.093500549, "cx": 43.895044437, "k1": 0.046103918, "pos_x": 0.043157381, "rot_y": 2.278779726}
+    for key, value in now.items():
         assert mc.param_std[key] == pytest.approx(value, rel=1e-6), key
-    assert mc.ground_error_15m_cm == pytest.approx(14.47327371, rel=1e-8)
+    assert mc.ground_error_15m_cm == pytest.approx(14.25498519, rel=1e-8)
     assert mc.failed_trials == 0

@@ -36,6 +36,7 @@ import numpy as np  # noqa: E402
 from numba import njit, prange  # noqa: E402
 
 from dronecal_field.core.normal_kernel import normal_equations_15, normal_equations_no_k3  # noqa: E402
+from dronecal_field.core.trial_noise import standard_normal, trial_state  # noqa: E402
 
 LOSS_CODES = {"linear": 0, "huber": 1, "cauchy": 2}
 
@@ -118,32 +119,39 @@ def _free_normal(H15: np.ndarray, g15: np.ndarray, sel: np.ndarray, fx_col: int,
 
 
 @njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
-def _cholesky_solve(H: np.ndarray, b: np.ndarray, L: np.ndarray, x: np.ndarray) -> bool:
-    """Solve H x = b for symmetric positive definite H (m, m) by Cholesky; False if H is not positive definite."""
-    m = H.shape[0]
+def _cholesky_solve(JtJ: np.ndarray, lam: float, b: np.ndarray, L: np.ndarray, invd: np.ndarray, x: np.ndarray) -> bool:
+    """Solve (JtJ + lam diag(JtJ)) x = b by Cholesky (Marquardt's damping); False if that matrix is not positive definite.
+
+    JtJ (m, m) symmetric, left unchanged (the next damping reuses it); the
+    damped diagonal is formed on the fly, without a copy. L (m, m) and
+    invd (m,), the factor's reciprocal diagonal, are workspace: multiplying
+    by invd keeps the divisions (14-20 cycles each, on the critical path)
+    out of the two triangular solves.
+    """
+    m = JtJ.shape[0]
     for j in range(m):
-        s = H[j, j]
+        s = JtJ[j, j] + lam * max(JtJ[j, j], 1e-12)
         for k in range(j):
             s -= L[j, k] * L[j, k]
         if not (s > 0.0) or not np.isfinite(s):
             return False
-        d = np.sqrt(s)
-        L[j, j] = d
+        inv = 1.0 / np.sqrt(s)
+        invd[j] = inv
         for i in range(j + 1, m):
-            s = H[i, j]
+            s = JtJ[i, j]
             for k in range(j):
                 s -= L[i, k] * L[j, k]
-            L[i, j] = s / d
+            L[i, j] = s * inv
     for i in range(m):
         s = b[i]
         for k in range(i):
             s -= L[i, k] * x[k]
-        x[i] = s / L[i, i]
+        x[i] = s * invd[i]
     for i in range(m - 1, -1, -1):
         s = x[i]
         for k in range(i + 1, m):
             s -= L[k, i] * x[k]
-        x[i] = s / L[i, i]
+        x[i] = s * invd[i]
     return True
 
 
@@ -182,14 +190,14 @@ def _solve_one(
     X: np.ndarray, y: np.ndarray, A: np.ndarray, sel: np.ndarray, fx_col: int, aspect: float,
     max_iterations: int, tolerance: float, loss: int, scale: float, damping: float,
     H15: np.ndarray, g15: np.ndarray, w: np.ndarray, sq: np.ndarray, sq_t: np.ndarray,
-    JtJ: np.ndarray, g: np.ndarray, H: np.ndarray, L: np.ndarray, delta: np.ndarray,
+    JtJ: np.ndarray, g: np.ndarray, invd: np.ndarray, L: np.ndarray, delta: np.ndarray,
     intr_t: np.ndarray, dist_t: np.ndarray, R_t: np.ndarray, t_t: np.ndarray, dR: np.ndarray, full: np.ndarray,
 ) -> tuple[float, int]:
     """Levenberg-Marquardt for one problem, in place on intr, dist, R, t; returns (cost, iterations).
 
     X (3, N) world points and y (2, N) pixels, one row per coordinate. The
     arrays after ``damping`` are workspace (H15 (15, 15), g15 (15,), w, sq,
-    sq_t (N,), JtJ, H, L (m, m), g, delta (m,), intr_t (4,), dist_t (5,),
+    sq_t (N,), JtJ, L (m, m), g, invd, delta (m,), intr_t (4,), dist_t (5,),
     R_t, dR (3, 3), t_t (3,), full (15,)), reused across problems. A trial
     step is judged on its residuals alone; the normal equations are formed
     only where a step is accepted and the solve goes on.
@@ -211,12 +219,8 @@ def _solve_one(
     fails = 0
     it = 0
     for it in range(1, max_iterations + 1):
-        for a in range(m):
-            for b in range(m):
-                H[a, b] = JtJ[a, b]
-            H[a, a] += lam * max(JtJ[a, a], 1e-12)
         cost_t = np.inf
-        if _cholesky_solve(H, g, L, delta):
+        if _cholesky_solve(JtJ, lam, g, L, invd, delta):
             for i in range(15):
                 s = 0.0
                 for a in range(m):
@@ -362,7 +366,7 @@ def _workspace(m: int, N: int):
     """The arrays _solve_one works in, for m free parameters and N points (the last two: the points (3, N) and pixels (2, N))."""
     return (
         np.empty((15, 15)), np.empty(15), np.empty(N), np.empty(N), np.empty(N),
-        np.empty((m, m)), np.empty(m), np.empty((m, m)), np.empty((m, m)), np.empty(m),
+        np.empty((m, m)), np.empty(m), np.empty(m), np.empty((m, m)), np.empty(m),
         np.empty(4), np.empty(5), np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty(15),
         np.empty((3, N)), np.empty((2, N)),
     )
@@ -392,7 +396,7 @@ def solve_batch(
     N = y.shape[1]
     shared = X.shape[0] == 1
     for block in prange((K + BLOCK - 1) // BLOCK):
-        H15, g15, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full, Xs, ys = _workspace(sel.shape[0], N)
+        H15, g15, w, sq, sq_t, JtJ, g, invd, L, delta, intr_t, dist_t, R_t, t_t, dR, full, Xs, ys = _workspace(sel.shape[0], N)
         for k in range(block * BLOCK, min(K, (block + 1) * BLOCK)):
             Xk = X[0] if shared else X[k]
             for n in range(N):
@@ -404,7 +408,7 @@ def solve_batch(
             c, it = _solve_one(
                 intr[k], dist[k], R[k], t[k], Xs, ys, A, sel, fx_col, aspect,
                 max_iterations, tolerance, loss, scale, 1e-3,
-                H15, g15, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full,
+                H15, g15, w, sq, sq_t, JtJ, g, invd, L, delta, intr_t, dist_t, R_t, t_t, dR, full,
             )
             cost[k] = c
             iterations[k] = it
@@ -435,12 +439,12 @@ def monte_carlo_trials(
     dist: np.ndarray,  # (K, 5) in/out
     R: np.ndarray,  # (K, 3, 3) in/out
     t: np.ndarray,  # (K, 3) in/out
-    Z3: np.ndarray,  # (K, N, 3) standard normal draws for the world points
-    Z2: np.ndarray,  # (K, N, 2) standard normal draws for the pixels
+    key: np.uint64,  # the seed's key (core.trial_noise.seed_key)
+    first_trial: int,  # the index of trial 0 of this chunk in the whole Monte-Carlo
     points: np.ndarray,  # (N, 3) the sampled points P, metres
-    sigma_3d: np.ndarray,  # (N, 3) metres: trial k's points are P + Z3[k] * sigma_3d
+    sigma_3d: np.ndarray,  # (N, 3) metres: trial k's points are P + Z3 * sigma_3d
     pixels: np.ndarray,  # (N, 2) observed pixels p
-    sigma_2d: np.ndarray,  # (N,) pixels: trial k's pixels are p + Z2[k] * sigma_2d
+    sigma_2d: np.ndarray,  # (N,) pixels: trial k's pixels are p + Z2 * sigma_2d
     A: np.ndarray,  # (15, m)
     sel: np.ndarray,  # (m,)
     fx_col: int,
@@ -461,27 +465,33 @@ def monte_carlo_trials(
     centre: np.ndarray,  # (K, 3) out: each estimate's camera centre, metres
     rotation: np.ndarray,  # (K, 3) out: rotation vector (radians) of each estimate's R times the reference's R^T
 ) -> None:
-    """K Monte-Carlo trials in one parallel pass: each trial's noise is applied, it is calibrated (as solve_batch, linear loss) and scored against the reference.
+    """K Monte-Carlo trials in one parallel pass: each trial's noise is drawn and applied, it is calibrated (as solve_batch, linear loss) and scored against the reference.
 
-    The perturbed points are built in the thread's workspace from the draws
-    (no (K, N) arrays of them), in the same arithmetic as P + Z * sigma.
+    Trial k's standard normal draws Z3 (N, 3) then Z2 (N, 2) come from its
+    own stream, ``core.trial_noise.trial_state(key, first_trial + k)``, in
+    that memory order (``trial_noise.trial_normals`` replays them); the
+    perturbed points are built in the thread's workspace, with no (K, N)
+    arrays of draws.
     """
     K = R.shape[0]
     N = points.shape[0]
     for block in prange((K + BLOCK - 1) // BLOCK):
-        H15, g15, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full, Xs, ys = _workspace(sel.shape[0], N)
+        H15, g15, w, sq, sq_t, JtJ, g, invd, L, delta, intr_t, dist_t, R_t, t_t, dR, full, Xs, ys = _workspace(sel.shape[0], N)
         R0 = np.empty((3, 3))
         for k in range(block * BLOCK, min(K, (block + 1) * BLOCK)):
-            for i in range(3):
-                for n in range(N):
-                    Xs[i, n] = Z3[k, n, i] * sigma_3d[n, i] + points[n, i]
-            for i in range(2):
-                for n in range(N):
-                    ys[i, n] = Z2[k, n, i] * sigma_2d[n] + pixels[n, i]
+            s = trial_state(key, first_trial + k)
+            for n in range(N):
+                for i in range(3):
+                    s, z = standard_normal(s)
+                    Xs[i, n] = z * sigma_3d[n, i] + points[n, i]
+            for n in range(N):
+                for i in range(2):
+                    s, z = standard_normal(s)
+                    ys[i, n] = z * sigma_2d[n] + pixels[n, i]
             R0[:, :] = R[k]
             c, it = _solve_one(
                 intr[k], dist[k], R[k], t[k], Xs, ys, A, sel, fx_col, aspect, max_iterations, tolerance, 0, 1.0, 1e-3,
-                H15, g15, w, sq, sq_t, JtJ, g, H, L, delta, intr_t, dist_t, R_t, t_t, dR, full,
+                H15, g15, w, sq, sq_t, JtJ, g, invd, L, delta, intr_t, dist_t, R_t, t_t, dR, full,
             )
             cost[k] = c
             iterations[k] = it
