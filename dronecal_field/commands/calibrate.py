@@ -255,6 +255,8 @@ def _summary_lines(report, title: str, out: Path) -> list[str]:
     hover = getattr(report, "hover_points", report.points)
     on_legs = getattr(report, "leg_points", [])
     dropped = [p for p in hover if not p.used]
+    at15 = getattr(getattr(report, "validity", None), "at_15m", None)  # pipeline.ground15: the lens extrapolated 15 m out
+    at15_note = f" ({at15.line()})" if at15 is not None and at15.line() else ""
     legs_text = (f" and {sum(1 for p in on_legs if p.used)} fix-by-fix pairs on {len(report.legs)} legs (from {report.leg_source})"
                  if getattr(report, "legs", None) else "")
     lines = [
@@ -265,7 +267,7 @@ def _summary_lines(report, title: str, out: Path) -> list[str]:
         "  camera at ENU " + " ".join(f"{v:.3f}" for v in cam.pose.position_world) + " m",
         f"  RMS reprojection {report.result.rms_px:.3f} px; {len(report.result.outliers)} outliers",
         f"  camera time offset {offset_text(off.offset_s, off.std_s)} ({off.method})" + (f", of {report.runs[0].path.name}" if getattr(report, "runs", None) else ""),
-        f"  confidence ({mc.method}): RMS mean {mc.rms_mean:.3f} px; at 15 m: {mc.ground_error_15m_cm:.1f} cm, "
+        f"  confidence ({mc.method}): RMS mean {mc.rms_mean:.3f} px; at 15 m: {mc.ground_error_15m_cm:.1f} cm{at15_note}, "
         f"{mc.speed_error_15m_kmh:.2f} km/h at 50 km/h",
     ]
     if report.frames.frames_from_live:

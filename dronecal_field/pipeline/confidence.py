@@ -115,7 +115,10 @@ def uncertainty(camera, points: list[WaypointPoint], result, options: CalibrateO
                  plan_roi=None) -> Uncertainty:
     """Stage 7: Monte-Carlo and linearised uncertainty, the region of validity, the maps and the ground homography."""
     from dronecal_field.core.uncertainty import linearised, monte_carlo, parameter_covariance
+    from dataclasses import replace
+
     from dronecal_field.pipeline import maps
+    from dronecal_field.pipeline.ground15 import at_15m, honest
     from dronecal_field.pipeline.validity import assess_validity
 
     used = [p for p in points if p.used]
@@ -143,6 +146,10 @@ def uncertainty(camera, points: list[WaypointPoint], result, options: CalibrateO
         mc = focal_from(mc, white, lin)
     cov = parameter_covariance(camera, X, s3, s2, result.model)
     region = assess_validity(result, cov, s3, s2, origin=origin, roi=plan_roi, loss_scale_px=options.loss_scale_px)
+    # the figures 15 m out: where the heading point lies outside the region, the lens's extrapolation joins them
+    headline = mc if mc is not None else lin
+    at = at_15m(camera, cov, region, headline.ground_error_15m_cm, headline.ground_error_15m_cm_p95)
+    lin, mc, region = honest(lin, at), honest(mc, at), replace(region, at_15m=at)
     return Uncertainty(
         monte_carlo=mc, linearised=lin, covariance=cov,
         maps=maps.uncertainty_maps(camera, cov, seed=options.seed, richer=region.richer_camera, richer_covariance=region.richer_covariance),

@@ -250,6 +250,8 @@ def report_dict(report) -> dict:
                 "ground_position_error_cm_p95": headline.ground_error_15m_cm_p95,
                 "speed_error_kmh_at_50kmh": headline.speed_error_15m_kmh,
                 "speed_error_kmh_p95": headline.speed_error_15m_kmh_p95,
+                # the heading point against the region of validity, and the ring across the view (pipeline.ground15)
+                **({} if getattr(validity, "at_15m", None) is None else validity.at_15m.to_dict()),
             },
             "over_validity_region": None if validity is None else {
                 "method": "90 % bound: 1.645 x the linearised std (measured sigmas), root-sum-square with the "
@@ -462,7 +464,8 @@ def report_html(report, data: dict) -> str:
          else f"{offset_text(off['offset_s'], off['std_s'])} ({off['method']})"),
         ("fit vs measured sigmas", (unc.get("consistency") or {}).get("note", "-")),
         ("MC RMS mean / p95", f"{_fmt(mc.get('rms_mean'), '.3f')} / {_fmt((mc.get('rms_percentiles') or {}).get('95'), '.3f')} px ({mc.get('trials', 0)} trials)"),
-        ("ground position error at 15 m", f"{_fmt(at15.get('ground_position_error_cm'), '.2f', ' cm')} RMS, p95 {_fmt(at15.get('ground_position_error_cm_p95'), '.2f', ' cm')}"),
+        ("ground position error at 15 m", f"{_fmt(at15.get('ground_position_error_cm'), '.2f', ' cm')} RMS, p95 {_fmt(at15.get('ground_position_error_cm_p95'), '.2f', ' cm')}"
+         + ("" if getattr(validity, "at_15m", None) is None or not validity.at_15m.line() else f" ({validity.at_15m.line()})")),
         ("speed error at 15 m (50 km/h)", f"{_fmt(at15.get('speed_error_kmh_at_50kmh'), '.3f', ' km/h')} RMS, p95 {_fmt(at15.get('speed_error_kmh_p95'), '.3f', ' km/h')}"),
         *_validity_rows(validity, region),
         ("frames decoded / read", f"{report.frames.frames_decoded} / {report.frames.frames_read} ({report.frames.frames_corrupt} corrupt"

@@ -505,6 +505,7 @@ class ValidityRegion:
     # Whether the ground point 15 m out on the heading (the report's "at 15 m" figures,
     # core.uncertainty.ground_probe) lies inside the region: outside, those figures are not supported.
     probe_15m_inside: bool | None = None
+    at_15m: object | None = field(default=None, repr=False)  # pipeline.ground15.AtFifteen, set by the uncertainty stage
 
     @property
     def richer_camera(self) -> Camera | None:
@@ -780,8 +781,8 @@ def assess_validity(
     probe_inside = _probe_15m_inside(camera, polygon, ground_z)
     if probe_inside is False:
         warnings.append(
-            "the ground 15 m out on the camera's heading lies outside the region of validity: the report's figures at 15 m "
-            "(ground and speed error) are not supported by the points; fly points that reach that part of the image"
+            "the ground 15 m out on the camera's heading lies outside the region of validity: the report's ground error "
+            "there includes the lens's extrapolation, its speed error does not; fly points that reach that part of the image"
         )
     return ValidityRegion(
         polygon_px=polygon,
