@@ -40,6 +40,7 @@ class TimeOffset:
     cost_zero_px: float | None = None
     rolling_shutter: dict | None = None  # Timing.to_dict() when legs refined the timing
     gnss_times: dict | None = None  # how the fixes were timed and told apart (run.py)
+    through_lens: bool = False  # scanned on pixels undistorted by a first calibration (solve.py)
 
     @property
     def offset_ns(self) -> int:
@@ -57,6 +58,7 @@ class TimeOffset:
             "rms_at_zero_px": self.cost_zero_px,
             "rolling_shutter": self.rolling_shutter,
             "gnss_fix_times": self.gnss_times,
+            "scanned_through_lens": self.through_lens,
         }
 
 
