@@ -94,19 +94,25 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_perturbation import LOOK, fit_record, make_case  # noqa: E402
+from bench_perturbation import LOOK, fit_record, make_case, probe_error_cm, ring_true_cm  # noqa: E402
 from contract_writer import write_run  # noqa: E402
 
 TERMS = {"noise": (False, False), "covariance": (True, False), "full": (True, True)}
 DEFAULT_ONLY = "base,speed2,hold1,gnss5,rtk_tau10,shutter"
 
 
-def fit_case(name: str, perturbation: str, scale4k: float, scale: float, seed: int, workdir: Path) -> dict | None:
+def run_path(name: str, perturbation: str, seed: int, width: int, workdir: Path, layout4k: str = "rows") -> Path:
+    """The run's file, as benchmarks/bench_perturbation.py names it (its ``--keep`` fits are read here too)."""
+    tag = f"-{layout4k}" if name == "4k" and layout4k != "rows" else ""
+    return workdir / f"{name}-{perturbation}-{seed}-{width}{tag}.mcap"
+
+
+def fit_case(name: str, perturbation: str, scale4k: float, scale: float, seed: int, workdir: Path, layout4k: str = "rows") -> dict | None:
     """The cached fit of one run (writing and calibrating it when not cached); None when calibrate refused."""
     from dronecal_field.errors import DronecalError
 
-    truth, flight, spec, _ = make_case(name, perturbation, scale4k, seed, scale)
-    path = workdir / f"{name}-{perturbation}-{seed}-{truth.width}.mcap"
+    truth, flight, spec, _ = make_case(name, perturbation, scale4k, seed, scale, layout4k=layout4k)
+    path = run_path(name, perturbation, seed, truth.width, workdir, layout4k)
     cache = path.with_suffix(".fit.pkl")
     if cache.exists():
         return pickle.loads(cache.read_bytes())
@@ -125,49 +131,12 @@ def fit_case(name: str, perturbation: str, scale4k: float, scale: float, seed: i
     return fit
 
 
-def probe_error_cm(truth, est) -> float:
-    """|true error| 15 m out along the truth's heading: where est's ray of the truth's pixel of that point meets the ground."""
-    from dronecal_field.core.camera import intersect_plane_z
-    from dronecal_field.core.uncertainty import ground_probe
-
-    P = ground_probe(truth).point
-    uv = truth.project(P[None])
-    hit = intersect_plane_z(*est.batch_arrays(), uv[None], 0.0)[0, 0]
-    return float(100.0 * np.linalg.norm(hit[:2] - P[:2])) if np.all(np.isfinite(hit)) else float("inf")
-
-
-def ring_figures(truth, est, region, covariance) -> tuple[float, float, float]:
-    """(true RMS cm, predicted 1-sigma RMS cm, share of the ring inside the region of validity) over the ring 15 m out.
-
-    Both RMS are over the part of the ring the region of validity supports:
-    beyond it the report claims no figure (the region's warning names it).
-    """
-    from dronecal_field.pipeline.validity import BOUND_FACTOR, pixel_errors, points_in_polygon
-    from dronecal_field.sim.compare import ground_error_m, visible_ground_grid
-
-    ground, ranges = visible_ground_grid(truth, (3.0, 30.0), 0.25)
-    ring = ground[np.abs(ranges - 15.0) <= 0.5]
-    if not len(ring):
-        return float("nan"), float("nan"), float("nan")
-    err = ground_error_m(truth, est, ring)
-    uv = truth.project(ring)
-    inside = points_in_polygon(uv, region.polygon_px)
-    e = pixel_errors(est, covariance, uv, region.richer_camera, region.richer_covariance)
-    # pixel_errors' extrapolation term is bound-like (twice the models' gap): as a 1-sigma, std and gap / 1.645 root-sum-square
-    one_sigma = np.hypot(e.std_cm, e.extrapolation_cm / BOUND_FACTOR)
-    ok = inside & np.isfinite(err) & np.isfinite(one_sigma)
-    if not ok.any():
-        return float("nan"), float("nan"), float(np.mean(inside))
-    true_rms = float(100.0 * np.sqrt(np.mean(err[ok] ** 2)))
-    pred = float(np.sqrt(np.mean(one_sigma[ok] ** 2)))
-    return true_rms, pred, float(np.mean(inside))
-
-
 def score(fit: dict, terms: str = "full", legs: bool = True, focal_white: bool = True) -> dict:
     from dronecal_field.core.uncertainty import linearised, parameter_covariance
     from dronecal_field.pipeline.validity import assess_validity
 
     from dronecal_field.pipeline.confidence import focal_from, leg_sigma_factors
+    from dronecal_field.pipeline.ground15 import at_15m, honest
 
     truth, result, X, s3, s2 = fit["truth"], fit["result"], fit["X"], fit["s3"], fit["s2"]
     est = result.camera
@@ -184,27 +153,36 @@ def score(fit: dict, terms: str = "full", legs: bool = True, focal_white: bool =
         if focal_white:
             lin = focal_from(lin, white)
     t_lin = time.perf_counter() - t
+    from dronecal_field.sim.compare import compare_cameras
+
     cov = parameter_covariance(est, X, s3, s2, result.model)
     region = assess_validity(result, cov, s3, s2)
     ps = lin.param_std
     ti, ei = truth.intrinsics, est.intrinsics
-    ring_true, ring_pred, ring_inside = ring_figures(truth, est, region, cov)
+    at = at_15m(est, cov, region, lin.ground_error_15m_cm, lin.ground_error_15m_cm_p95)  # what the uncertainty stage reports
+    reported = honest(lin, at)
+    probe_true = probe_error_cm(truth, est)
+    ring_true, ring_left, ring_left_max = ring_true_cm(truth, est)
+    ring_all = compare_cameras(truth, est).ground_error_cm_at.get(15.0) or float("nan")
     row = {
         "model": result.model.name, "points": len(X),
         "focal": (abs(0.5 * (ei.fx + ei.fy - ti.fx - ti.fy)), 0.5 * (ps["fx"] + ps["fy"])),
         "pp": (float(np.hypot(ei.cx - ti.cx, ei.cy - ti.cy)), float(np.hypot(ps["cx"], ps["cy"]))),
         "position": (100.0 * float(np.linalg.norm(est.pose.position_world - truth.pose.position_world)),
                      100.0 * float(np.sqrt(ps["pos_x"] ** 2 + ps["pos_y"] ** 2 + ps["pos_z"] ** 2))),
-        "ground@15": (probe_error_cm(truth, est), float(lin.ground_error_15m_cm)),
-        "ring@15": (ring_true, ring_pred),
-        "ring_inside": ring_inside,
+        "ground@15": (probe_true, float(reported.ground_error_15m_cm)),
+        "ground@15 params": (probe_true, float(at.parameter_cm)),  # before the extrapolation term (as before issue 20's fix)
+        "ring@15": (ring_true, float(at.across_view_cm) if at.across_view_cm is not None else float("nan")),
+        "ring/heading": (ring_all, float(at.parameter_cm)),  # the old table's figure: sim.compare's ring against the heading's
+        "ring_inside": 1.0 - (at.across_view_outside or 0.0),
+        "ring_left_out": ring_left, "ring_left_out_max_cm": ring_left_max,
         "supported@15": region.probe_15m_inside,
         "linearised_s": t_lin,
     }
     return row
 
 
-FIGURES = ("focal", "pp", "position", "ground@15", "ring@15")
+FIGURES = ("focal", "pp", "position", "ground@15", "ground@15 params", "ring@15", "ring/heading")
 
 
 def main() -> None:
@@ -221,6 +199,8 @@ def main() -> None:
                              "reports without the fitted pixels), full: + the richer fit's departure (default)")
     parser.add_argument("--independent-legs", action="store_true",
                         help="take a leg's points as independent (before confidence.leg_sigma_factors)")
+    parser.add_argument("--layout4k", choices=("rows", "corners"), default="rows",
+                        help="the 4K plan's legs (as benchmarks/bench_perturbation.py --layout4k)")
     parser.add_argument("--focal-shared", action="store_true",
                         help="the focal length's std under the legs' factors too (before confidence.focal_from)")
     args = parser.parse_args()
@@ -230,11 +210,11 @@ def main() -> None:
         for seed in range(args.seeds):
             for p in args.only.split(","):
                 if args.rescore:
-                    truth = make_case(name, p, args.scale4k, seed, args.scale)[0]
-                    cache = args.workdir / f"{name}-{p}-{seed}-{truth.width}.fit.pkl"
+                    truth = make_case(name, p, args.scale4k, seed, args.scale, layout4k=args.layout4k)[0]
+                    cache = run_path(name, p, seed, truth.width, args.workdir, args.layout4k).with_suffix(".fit.pkl")
                     if not cache.exists():
                         continue
-                fit = fit_case(name, p, args.scale4k, args.scale, seed, args.workdir)
+                fit = fit_case(name, p, args.scale4k, args.scale, seed, args.workdir, args.layout4k)
                 if fit.get("refused"):
                     print(f"{name:6s} {p:13s} refused: {fit['refused']}")
                     continue
@@ -243,6 +223,7 @@ def main() -> None:
                 rows.append(row)
                 parts = "  ".join(f"{k} {row[k][0]:.3g}/{row[k][1]:.3g}={row[k][0] / max(row[k][1], 1e-12):.2f}" for k in FIGURES)
                 print(f"{name:6s} {p:10s} {row['model']:22s} {parts}  ring inside region {row['ring_inside']:.0%}"
+                      f" (left out {row['ring_left_out']:.0%}, up to {row['ring_left_out_max_cm']:.0f} cm)"
                       f"  15 m supported {row['supported@15']}  [linearised {row['linearised_s']:.2f} s]", flush=True)
     if not rows:
         return
