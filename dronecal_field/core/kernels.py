@@ -81,6 +81,38 @@ def _squared_residuals(
 
 
 @njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+def _residuals(
+    intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray,
+    X: np.ndarray,  # (3, N)
+    y: np.ndarray,  # (2, N)
+    r: np.ndarray,  # (2, N) out: observed - projected u, v
+    sq: np.ndarray,  # (N,) out
+) -> float:
+    """The reprojection residuals of every point and their sum of squares (``_squared_residuals`` keeping the vectors)."""
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2]
+    t0, t1, t2 = t[0], t[1], t[2]
+    Xx, Xy, Xz, yu, yv, ru_out, rv_out = X[0], X[1], X[2], y[0], y[1], r[0], r[1]
+    total = 0.0
+    for n in range(yu.shape[0]):
+        X0, X1, X2 = Xx[n], Xy[n], Xz[n]
+        iz = 1.0 / (r20 * X0 + r21 * X1 + r22 * X2 + t2)
+        xn = (r00 * X0 + r01 * X1 + r02 * X2 + t0) * iz
+        yn = (r10 * X0 + r11 * X1 + r12 * X2 + t1) * iz
+        r2 = xn * xn + yn * yn
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xy2 = 2.0 * xn * yn
+        ru = yu[n] - (fx * (xn * radial + p1 * xy2 + p2 * (r2 + 2.0 * xn * xn)) + cx)
+        rv = yv[n] - (fy * (yn * radial + p1 * (r2 + 2.0 * yn * yn) + p2 * xy2) + cy)
+        ru_out[n] = ru
+        rv_out[n] = rv
+        sq[n] = ru * ru + rv * rv
+        total += sq[n]
+    return total
+
+
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
 def _normal_equations(
     intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, y: np.ndarray, w: np.ndarray,
     H15: np.ndarray, g15: np.ndarray, sq: np.ndarray, with_k3: bool,
@@ -177,6 +209,31 @@ def _rodrigues(w0: float, w1: float, w2: float, out: np.ndarray) -> None:
 
 
 @njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+def _step_camera(
+    intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, delta: np.ndarray,
+    sel: np.ndarray, fx_col: int, aspect: float, full: np.ndarray,
+    intr_t: np.ndarray, dist_t: np.ndarray, R_t: np.ndarray, t_t: np.ndarray, dR: np.ndarray,
+) -> None:
+    """The camera moved by the free-parameter step delta (m,), into intr_t, dist_t, R_t, t_t (rotation on the left)."""
+    # full = A @ delta, from the map's structure (column a moves parameter sel[a]; a tied fx also moves fy)
+    for i in range(15):
+        full[i] = 0.0
+    for a in range(sel.shape[0]):
+        full[sel[a]] = delta[a]
+    if fx_col >= 0:
+        full[1] = aspect * delta[fx_col]
+    for i in range(4):
+        intr_t[i] = intr[i] + full[i]
+    for i in range(5):
+        dist_t[i] = dist[i] + full[4 + i]
+    _rodrigues(full[9], full[10], full[11], dR)
+    for i in range(3):
+        t_t[i] = t[i] + full[12 + i]
+        for j in range(3):
+            R_t[i, j] = dR[i, 0] * R[0, j] + dR[i, 1] * R[1, j] + dR[i, 2] * R[2, j]
+
+
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
 def _cost(w: np.ndarray, sq: np.ndarray) -> float:
     c = 0.0
     for n in range(sq.shape[0]):
@@ -221,30 +278,21 @@ def _solve_one(
     for it in range(1, max_iterations + 1):
         cost_t = np.inf
         if _cholesky_solve(JtJ, lam, g, L, invd, delta):
-            for i in range(15):
-                s = 0.0
-                for a in range(m):
-                    s += A[i, a] * delta[a]
-                full[i] = s
-            for i in range(4):
-                intr_t[i] = intr[i] + full[i]
-            for i in range(5):
-                dist_t[i] = dist[i] + full[4 + i]
-            _rodrigues(full[9], full[10], full[11], dR)
-            for i in range(3):
-                t_t[i] = t[i] + full[12 + i]
-                for j in range(3):
-                    R_t[i, j] = dR[i, 0] * R[0, j] + dR[i, 1] * R[1, j] + dR[i, 2] * R[2, j]
+            _step_camera(intr, dist, R, t, delta, sel, fx_col, aspect, full, intr_t, dist_t, R_t, t_t, dR)
             _squared_residuals(intr_t, dist_t, R_t, t_t, X, y, sq_t)
             # judged with the weights the step was computed with, so reweighting cannot fake progress
             cost_t = _cost(w, sq_t)
         if cost_t < cost and np.isfinite(cost_t):
             rel = (cost - cost_t) / max(cost, 1e-300)
-            intr[:] = intr_t
-            dist[:] = dist_t
-            R[:, :] = R_t
-            t[:] = t_t
-            sq[:] = sq_t
+            for i in range(4):
+                intr[i] = intr_t[i]
+            for i in range(5):
+                dist[i] = dist_t[i]
+            for i in range(3):
+                t[i] = t_t[i]
+                for j in range(3):
+                    R[i, j] = R_t[i, j]
+            sq, sq_t = sq_t, sq  # the trial's residuals become the current ones (both are workspace)
             cost = cost_t
             lam = max(lam / 10.0, 1e-9)
             fails = 0
@@ -433,6 +481,51 @@ def _rotation_vector_between(R: np.ndarray, R0: np.ndarray, out: np.ndarray) -> 
     out[2] = v2 * f
 
 
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+def _reference_step(
+    intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, y: np.ndarray,
+    Ju: np.ndarray, Jv: np.ndarray, L0: np.ndarray, invd0: np.ndarray, sel: np.ndarray, fx_col: int, aspect: float,
+    r: np.ndarray, sq: np.ndarray, g: np.ndarray, delta: np.ndarray, full: np.ndarray,
+    intr_t: np.ndarray, dist_t: np.ndarray, R_t: np.ndarray, t_t: np.ndarray, dR: np.ndarray,
+) -> tuple[float, float]:
+    """A trial's first step from the reference camera, with the reference's Jacobian and damped factor; (cost before, cost after).
+
+    The trial's points move the Jacobian by ~1e-3 of itself (centimetres at
+    metres), so its first Levenberg-Marquardt step (damping 1e-3) is taken
+    with the noise-free points' Jacobian Ju, Jv (m, N) and the Cholesky factor
+    L0, invd0 of their damped normal equations, computed once for all trials:
+    a residual pass and J^T r instead of the normal equations and a
+    factorisation. The step lands in intr_t, dist_t, R_t, t_t; the caller
+    keeps it only if the cost fell (then the solve goes on with exact normal
+    equations), else solves from the reference as usual.
+    """
+    m = sel.shape[0]
+    cost = _residuals(intr, dist, R, t, X, y, r, sq)
+    ru, rv = r[0], r[1]
+    for a in range(m):
+        s = 0.0
+        ja, jb = Ju[a], Jv[a]
+        for n in range(ru.shape[0]):
+            s += ja[n] * ru[n] + jb[n] * rv[n]
+        g[a] = s
+    for i in range(m):
+        s = g[i]
+        for k in range(i):
+            s -= L0[i, k] * delta[k]
+        delta[i] = s * invd0[i]
+    for i in range(m - 1, -1, -1):
+        s = delta[i]
+        for k in range(i + 1, m):
+            s -= L0[k, i] * delta[k]
+        delta[i] = s * invd0[i]
+    _step_camera(intr, dist, R, t, delta, sel, fx_col, aspect, full, intr_t, dist_t, R_t, t_t, dR)
+    _squared_residuals(intr_t, dist_t, R_t, t_t, X, y, sq)
+    cost_t = 0.0
+    for n in range(sq.shape[0]):
+        cost_t += sq[n]
+    return cost, cost_t
+
+
 @njit(cache=True, parallel=True, nogil=True)
 def monte_carlo_trials(
     intr: np.ndarray,  # (K, 4) in: the reference camera's; out: each trial's estimate
@@ -451,6 +544,10 @@ def monte_carlo_trials(
     aspect: float,
     max_iterations: int,
     tolerance: float,
+    Ju: np.ndarray,  # (m, N) d(u)/d(free parameters) of the reference camera at the unperturbed points
+    Jv: np.ndarray,  # (m, N) the same for v
+    L0: np.ndarray,  # (m, m) Cholesky factor of Ju Ju^T + Jv Jv^T with Marquardt damping 1e-3 (lower triangle)
+    invd0: np.ndarray,  # (m,) its reciprocal diagonal (zeros: no first step from the reference)
     points_t: np.ndarray,  # (3, N) the unperturbed points, one row per coordinate
     uv_points: np.ndarray,  # (2, N) the reference camera's pixels of points
     ground: np.ndarray,  # (3, M) ground points in view, metres
@@ -478,6 +575,7 @@ def monte_carlo_trials(
     for block in prange((K + BLOCK - 1) // BLOCK):
         H15, g15, w, sq, sq_t, JtJ, g, invd, L, delta, intr_t, dist_t, R_t, t_t, dR, full, Xs, ys = _workspace(sel.shape[0], N)
         R0 = np.empty((3, 3))
+        r = np.empty((2, N))
         for k in range(block * BLOCK, min(K, (block + 1) * BLOCK)):
             s = trial_state(key, first_trial + k)
             for n in range(N):
@@ -489,10 +587,27 @@ def monte_carlo_trials(
                     s, z = standard_normal(s)
                     ys[i, n] = z * sigma_2d[n] + pixels[n, i]
             R0[:, :] = R[k]
-            c, it = _solve_one(
-                intr[k], dist[k], R[k], t[k], Xs, ys, A, sel, fx_col, aspect, max_iterations, tolerance, 0, 1.0, 1e-3,
-                H15, g15, w, sq, sq_t, JtJ, g, invd, L, delta, intr_t, dist_t, R_t, t_t, dR, full,
+            c0, c1 = _reference_step(
+                intr[k], dist[k], R[k], t[k], Xs, ys, Ju, Jv, L0, invd0, sel, fx_col, aspect,
+                r, sq, g, delta, full, intr_t, dist_t, R_t, t_t, dR,
             )
+            # the step _solve_one would take first (to ~1e-3 of it), kept when it lowers the cost by more than the
+            # tolerance (a smaller drop, as from a zero step, is not trusted to mean converged) and the solve goes on
+            if max_iterations >= 2 and np.isfinite(c1) and c0 - c1 > tolerance * c0:
+                intr[k, :] = intr_t
+                dist[k, :] = dist_t
+                R[k, :, :] = R_t
+                t[k, :] = t_t
+                c, it = _solve_one(
+                    intr[k], dist[k], R[k], t[k], Xs, ys, A, sel, fx_col, aspect, max_iterations - 1, tolerance, 0, 1.0, 1e-4,
+                    H15, g15, w, sq, sq_t, JtJ, g, invd, L, delta, intr_t, dist_t, R_t, t_t, dR, full,
+                )
+                it += 1
+            else:
+                c, it = _solve_one(
+                    intr[k], dist[k], R[k], t[k], Xs, ys, A, sel, fx_col, aspect, max_iterations, tolerance, 0, 1.0, 1e-3,
+                    H15, g15, w, sq, sq_t, JtJ, g, invd, L, delta, intr_t, dist_t, R_t, t_t, dR, full,
+                )
             cost[k] = c
             iterations[k] = it
             proj[k] = _rms_projection_difference(intr[k], dist[k], R[k], t[k], points_t, uv_points)
