@@ -484,40 +484,31 @@ def _rotation_vector_between(R: np.ndarray, R0: np.ndarray, out: np.ndarray) -> 
 @njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
 def _reference_step(
     intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray, y: np.ndarray,
-    Ju: np.ndarray, Jv: np.ndarray, L0: np.ndarray, invd0: np.ndarray, sel: np.ndarray, fx_col: int, aspect: float,
-    r: np.ndarray, sq: np.ndarray, g: np.ndarray, delta: np.ndarray, full: np.ndarray,
+    Pu: np.ndarray, Pv: np.ndarray, sel: np.ndarray, fx_col: int, aspect: float,
+    r: np.ndarray, sq: np.ndarray, delta: np.ndarray, full: np.ndarray,
     intr_t: np.ndarray, dist_t: np.ndarray, R_t: np.ndarray, t_t: np.ndarray, dR: np.ndarray,
 ) -> tuple[float, float]:
-    """A trial's first step from the reference camera, with the reference's Jacobian and damped factor; (cost before, cost after).
+    """A trial's first step from the reference camera, with the reference's Jacobian; (cost before, cost after).
 
     The trial's points move the Jacobian by ~1e-3 of itself (centimetres at
     metres), so its first Levenberg-Marquardt step (damping 1e-3) is taken
-    with the noise-free points' Jacobian Ju, Jv (m, N) and the Cholesky factor
-    L0, invd0 of their damped normal equations, computed once for all trials:
-    a residual pass and J^T r instead of the normal equations and a
-    factorisation. The step lands in intr_t, dist_t, R_t, t_t; the caller
-    keeps it only if the cost fell (then the solve goes on with exact normal
-    equations), else solves from the reference as usual.
+    with the noise-free points' Jacobian J, through the step matrix
+    (J^T J + 1e-3 diag(J^T J))^-1 J^T = [Pu Pv] ((m, N) each) computed once
+    for all trials: a residual pass and one matrix-vector product instead of
+    the normal equations and a factorisation. The step lands in intr_t,
+    dist_t, R_t, t_t; the caller keeps it only if the cost fell enough (then
+    the solve goes on with exact normal equations), else solves from the
+    reference as usual.
     """
     m = sel.shape[0]
     cost = _residuals(intr, dist, R, t, X, y, r, sq)
     ru, rv = r[0], r[1]
     for a in range(m):
         s = 0.0
-        ja, jb = Ju[a], Jv[a]
+        pa, pb = Pu[a], Pv[a]
         for n in range(ru.shape[0]):
-            s += ja[n] * ru[n] + jb[n] * rv[n]
-        g[a] = s
-    for i in range(m):
-        s = g[i]
-        for k in range(i):
-            s -= L0[i, k] * delta[k]
-        delta[i] = s * invd0[i]
-    for i in range(m - 1, -1, -1):
-        s = delta[i]
-        for k in range(i + 1, m):
-            s -= L0[k, i] * delta[k]
-        delta[i] = s * invd0[i]
+            s += pa[n] * ru[n] + pb[n] * rv[n]
+        delta[a] = s
     _step_camera(intr, dist, R, t, delta, sel, fx_col, aspect, full, intr_t, dist_t, R_t, t_t, dR)
     _squared_residuals(intr_t, dist_t, R_t, t_t, X, y, sq)
     cost_t = 0.0
@@ -544,10 +535,8 @@ def monte_carlo_trials(
     aspect: float,
     max_iterations: int,
     tolerance: float,
-    Ju: np.ndarray,  # (m, N) d(u)/d(free parameters) of the reference camera at the unperturbed points
-    Jv: np.ndarray,  # (m, N) the same for v
-    L0: np.ndarray,  # (m, m) Cholesky factor of Ju Ju^T + Jv Jv^T with Marquardt damping 1e-3 (lower triangle)
-    invd0: np.ndarray,  # (m,) its reciprocal diagonal (zeros: no first step from the reference)
+    Pu: np.ndarray,  # (m, N) the first step's matrix for the u residuals (_reference_step; zeros: no such step)
+    Pv: np.ndarray,  # (m, N) the same for v
     points_t: np.ndarray,  # (3, N) the unperturbed points, one row per coordinate
     uv_points: np.ndarray,  # (2, N) the reference camera's pixels of points
     ground: np.ndarray,  # (3, M) ground points in view, metres
@@ -588,8 +577,8 @@ def monte_carlo_trials(
                     ys[i, n] = z * sigma_2d[n] + pixels[n, i]
             R0[:, :] = R[k]
             c0, c1 = _reference_step(
-                intr[k], dist[k], R[k], t[k], Xs, ys, Ju, Jv, L0, invd0, sel, fx_col, aspect,
-                r, sq, g, delta, full, intr_t, dist_t, R_t, t_t, dR,
+                intr[k], dist[k], R[k], t[k], Xs, ys, Pu, Pv, sel, fx_col, aspect,
+                r, sq, delta, full, intr_t, dist_t, R_t, t_t, dR,
             )
             # the step _solve_one would take first (to ~1e-3 of it), kept when it lowers the cost by more than the
             # tolerance (a smaller drop, as from a zero step, is not trusted to mean converged) and the solve goes on

@@ -225,7 +225,7 @@ def _solve_trials(
     kernels.monte_carlo_trials(
         state.intrinsics, state.distortion, state.R, state.t, np.uint64(key), int(trials.start), P, s3, pixels, s2,
         np.ascontiguousarray(A, dtype=float), sel, fx_col, aspect, int(max_iterations), float(tolerance),
-        *_reference_factor(camera, P, A), *probes.by_coordinate(), probes.uv_probe, float(ground_z),
+        *_reference_step_matrix(camera, P, A), *probes.by_coordinate(), probes.uv_probe, float(ground_z),
         cost, iterations, proj, gproj, hits, centre, rotation,
     )
     params = {name: state.intrinsics[:, i] for i, name in enumerate(PARAM_NAMES[0:4])}
@@ -238,27 +238,28 @@ def _solve_trials(
     return cost, {"projection": proj, "ground_projection": gproj, **_ground_metrics(hits, probes.probe)}, params
 
 
-def _reference_factor(camera: Camera, P: np.ndarray, A: np.ndarray, damping: float = 1e-3) -> tuple[np.ndarray, ...]:
-    """The reference camera's Jacobian at the unperturbed points and its damped normal equations' Cholesky factor, for every trial's first step.
+def _reference_step_matrix(camera: Camera, P: np.ndarray, A: np.ndarray, damping: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """The matrix of every trial's first step from the reference camera: (J^T J + damping diag(J^T J))^-1 J^T, as (Pu, Pv) (m, N) each.
 
-    (Ju (m, N), Jv (m, N), L (m, m), 1 / diag(L) (m,)); L factors
-    J^T J + damping diag(J^T J) (Marquardt's damping, as the solver's first
-    iteration). When the points cannot fix the camera (not positive
-    definite), the reciprocal diagonal is zero: no trial takes that step.
+    J (2N, m) is the reference camera's Jacobian at the unperturbed points;
+    a trial's first step is then Pu @ ru + Pv @ rv for its residuals (ru, rv)
+    at the reference (Marquardt's damping, as the solver's first iteration).
+    When the points cannot fix the camera (not positive definite) both are
+    zero: no trial takes that step.
     """
     _, J, _ = project_batch_jacobians(*camera.batch_arrays(), P[None], with_points=False)
     Jm = J[0] @ A  # (N, 2, m)
-    Ju, Jv = np.ascontiguousarray(Jm[:, 0, :].T), np.ascontiguousarray(Jm[:, 1, :].T)
+    Ju, Jv = Jm[:, 0, :].T, Jm[:, 1, :].T
     H = Ju @ Ju.T + Jv @ Jv.T
     H[np.diag_indices_from(H)] += damping * np.maximum(np.diag(H), 1e-12)
     try:
-        L = np.linalg.cholesky(H)
-        invd = 1.0 / np.diag(L)
+        np.linalg.cholesky(H)  # positive definite, or no step
+        Pu, Pv = np.linalg.solve(H, Ju), np.linalg.solve(H, Jv)
     except np.linalg.LinAlgError:
-        L, invd = np.zeros_like(H), np.zeros(H.shape[0])
-    if not np.all(np.isfinite(invd)):
-        L, invd = np.zeros_like(H), np.zeros(H.shape[0])
-    return Ju, Jv, np.ascontiguousarray(L), invd
+        Pu = Pv = np.zeros_like(Ju)
+    if not (np.all(np.isfinite(Pu)) and np.all(np.isfinite(Pv))):
+        Pu = Pv = np.zeros_like(Ju)
+    return np.ascontiguousarray(Pu), np.ascontiguousarray(Pv)
 
 
 def _param_samples(state: BatchState, reference: Camera) -> dict[str, np.ndarray]:
