@@ -48,13 +48,16 @@ def _site_to_origin_enu(site, pts_site: np.ndarray, origin) -> np.ndarray:
     return geodetic_to_enu(llh[:, 0], llh[:, 1], llh[:, 2], origin)
 
 
-def _fly(truth, site, route, speed: float, path: Path, seed: int) -> None:
+def _fly(truth, site, route, speed: float, path: Path, seed: int, latency_s: float = 0.0) -> None:
     from contract_writer import ORIGIN, MarkerLook, RunSpec, make_leg_flight, write_run
 
     grid = np.array([k == "grid" for k in route.kind])
     wps = _site_to_origin_enu(site, route.points[grid], ORIGIN)
     flight = make_leg_flight(truth, wps, hold_s=route.hold_s[grid], speed_mps=speed, offset_frd_m=OFFSET, seed=seed)
-    write_run(path, truth, flight, MarkerLook(size_m=0.4), RunSpec(site_origin=ORIGIN, fps=10.0, gnss_hz=10.0, seed=seed + 2))
+    spec = RunSpec(site_origin=ORIGIN, fps=10.0, gnss_hz=10.0, seed=seed + 2)
+    if latency_s:
+        spec = replace(spec, latency_s=latency_s, declared_latency="unknown")
+    write_run(path, truth, flight, MarkerLook(size_m=0.4), spec)
 
 
 def _ground(truth, cal_dir: Path):
@@ -63,10 +66,13 @@ def _ground(truth, cal_dir: Path):
     from dronecal_field.sim.compare import compare_cameras
 
     est = in_enu_frame_of(read_camera(cal_dir / "camera.yaml"), truth.enu_origin)
-    return compare_cameras(truth, est, ground_step_m=0.5).ground
+    cmp = compare_cameras(truth, est, ground_step_m=0.5)
+    i, t = est.intrinsics, truth.intrinsics
+    return (f"{cmp.ground}; principal point {cmp.principal_point_error_px:.1f} px off, fx {100 * (i.fx / t.fx - 1):+.3f} %, "
+            f"fy {100 * (i.fy / t.fy - 1):+.3f} %, position {100 * np.linalg.norm(est.pose.position_world - truth.pose.position_world):.2f} cm")
 
 
-def run_one(name: str, out: Path, az_error: float, height_error: float) -> None:
+def run_one(name: str, out: Path, az_error: float, height_error: float, latency_s: float = 0.0) -> None:
     from contract_writer import ORIGIN
 
     from dronecal_field.plan.fromrun import axis_angles_deg, estimate_from_run, format_estimate, request_from_estimate
@@ -87,7 +93,7 @@ def run_one(name: str, out: Path, az_error: float, height_error: float) -> None:
     scout = make_scout(site, ScoutSpec(), limits, FlightModel())
     scout_run = out / "scout.mcap"
     if not scout_run.exists():
-        _fly(truth, site, scout.route, ScoutSpec().speed_m_s, scout_run, seed=11)
+        _fly(truth, site, scout.route, ScoutSpec().speed_m_s, scout_run, seed=11, latency_s=latency_s)
     print(f"{name}: scout {scout.route.flight_time_s / 60:.2f} min, {len(scout.rows)} rows", flush=True)
     est = estimate_from_run(scout_run)
     az_t, tilt_t = axis_angles_deg(truth.pose.R_cam_from_world)
@@ -109,7 +115,7 @@ def run_one(name: str, out: Path, az_error: float, height_error: float) -> None:
         if len(result.routes) > 1:
             print(f"  main plan has {len(result.routes)} flights: only the first is written", flush=True)
         speed = result.chosen.leg_speed_m_s or 1.0
-        _fly(truth, result.request.site, result.routes[0], speed, main_run, seed=21)
+        _fly(truth, result.request.site, result.routes[0], speed, main_run, seed=21, latency_s=latency_s)
     for tag, runs in (("main", [main_run]), ("pooled", [scout_run, main_run])):
         cal = out / f"calibration-{tag}"
         argv = [sys.executable, "-m", "dronecal_field", "calibrate", *map(str, runs), "--out", str(cal), "--trials", "0"]
@@ -131,9 +137,10 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("bench-out/scout-writer"))
     ap.add_argument("--az-error", type=float, default=20.0)
     ap.add_argument("--height-error", type=float, default=0.3)
+    ap.add_argument("--latency", type=float, default=0.0, help="frames stamped this late, declared unknown (issue 20's 4K run: 0.35)")
     args = ap.parse_args()
     for name in args.camera or ["wide"]:
-        run_one(name, args.out / name, args.az_error, args.height_error)
+        run_one(name, args.out / name, args.az_error, args.height_error, args.latency)
 
 
 if __name__ == "__main__":
