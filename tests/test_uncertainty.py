@@ -76,7 +76,10 @@ def test_chunking_does_not_change_the_numbers(table1):
     cam, X = table1
     whole = monte_carlo(cam, X, trials=120, seed=9, chunk_size=2000)
     chunked = monte_carlo(cam, X, trials=120, seed=9, chunk_size=120)
+    small = monte_carlo(cam, X, trials=120, seed=9, chunk_size=7)
     assert np.allclose(whole.rms, chunked.rms)
+    # each trial draws from its own stream, so chunks of any size give the very same trials
+    assert np.array_equal(whole.rms, small.rms)
 
 
 def test_per_point_sigmas_are_used():
@@ -267,3 +270,42 @@ def test_engine_figures_as_before_the_speed_work():
         assert mc.param_std[key] == pytest.approx(value, rel=1e-6), key
     assert mc.ground_error_15m_cm == pytest.approx(14.25548710, rel=1e-8)
     assert mc.failed_trials == 0
+
+
+def test_trial_noise_is_standard_normal_and_independent_between_trials():
+    """The engine's in-kernel draws (core.trial_noise): N(0, 1) by their moments and tails, uncorrelated across trials."""
+    from scipy import stats
+
+    from dronecal_field.core.trial_noise import fill_standard_normal, seed_key, trial_state
+
+    z = np.empty(2_000_000)
+    fill_standard_normal(np.uint64(trial_state(seed_key(3), 0)), z)
+    se = 1.0 / np.sqrt(z.size)
+    assert abs(z.mean()) < 4 * se
+    assert abs(z.var() - 1.0) < 4 * np.sqrt(2.0) * se
+    assert abs(stats.kurtosis(z)) < 4 * np.sqrt(24.0) * se
+    assert stats.kstest(z[:200_000], "norm").pvalue > 1e-3
+    for c in (1.0, 2.0, 3.0, 3.6541528853610088, 4.0):  # the ziggurat's tail starts at 3.654
+        p = 2 * stats.norm.sf(c)
+        assert abs(np.mean(np.abs(z) > c) - p) < 5 * np.sqrt(p / z.size), c
+    a = np.array([trial_normals(7, t, 62)[0].ravel() for t in range(1000)])  # (trials, 186)
+    corr = np.corrcoef(a.T) - np.eye(a.shape[1])
+    assert np.abs(corr).max() < 5.5 / np.sqrt(1000)  # ~17000 pairs: no correlation beyond chance
+
+
+def test_the_first_steps_jacobian_matches_the_camera_model():
+    """normal_kernel.jacobian_15 (the Monte-Carlo's first step) equals core.camera.project_batch_jacobians, every lens term on."""
+    from dronecal_field.core.camera import Camera, project_batch_jacobians
+    from dronecal_field.core.normal_kernel import jacobian_15
+
+    p = paper_camera(True)
+    i = p.intrinsics
+    cam = Camera.from_arrays(np.array([i.fx, 1.01 * i.fy, i.cx + 7, i.cy - 5]), np.array([-0.28, 0.07, 1e-3, -2e-3, 0.01]),
+                             p.pose.R_cam_from_world, p.pose.t_cam_from_world, p.width, p.height)
+    X = paper_grid(cam)
+    _, J, _ = project_batch_jacobians(*cam.batch_arrays(), X[None], with_points=False)
+    Ju, Jv = np.empty((15, len(X))), np.empty((15, len(X)))
+    intr, dist, R, t = cam.batch_arrays()
+    jacobian_15(intr[0], dist[0], R[0], t[0], np.ascontiguousarray(X.T), Ju, Jv)
+    np.testing.assert_allclose(Ju, J[0][:, 0, :].T, rtol=1e-12, atol=1e-12 * np.abs(J).max())
+    np.testing.assert_allclose(Jv, J[0][:, 1, :].T, rtol=1e-12, atol=1e-12 * np.abs(J).max())

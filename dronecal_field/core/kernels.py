@@ -131,6 +131,13 @@ def _free_normal(H15: np.ndarray, g15: np.ndarray, sel: np.ndarray, fx_col: int,
     ratio the fx column also moves fy by ``aspect``.
     """
     m = sel.shape[0]
+    if fx_col < 0:  # no tied aspect: a plain gather (no branches in the loop: 0.14 -> 0.05 us for m = 14)
+        for a in range(m):
+            pa = sel[a]
+            g[a] = g15[pa]
+            for b in range(m):
+                JtJ[a, b] = H15[pa, sel[b]]
+        return
     for a in range(m):
         pa = sel[a]
         ga = g15[pa]

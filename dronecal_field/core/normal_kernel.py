@@ -537,3 +537,55 @@ def normal_equations_no_k3(
         for b in range(a):
             H[a, b] = H[b, a]
     return cost
+
+
+@njit(cache=True, fastmath=True, nogil=True, error_model="numpy")
+def jacobian_15(
+    intr: np.ndarray,  # (4,)
+    dist: np.ndarray,  # (5,)
+    R: np.ndarray,  # (3, 3)
+    t: np.ndarray,  # (3,)
+    X: np.ndarray,  # (3, N) world x, y, z of every point, one row per coordinate
+    Ju: np.ndarray,  # (15, N) out: d(u)/d(parameter) at every point
+    Jv: np.ndarray,  # (15, N) out: d(v)/d(parameter)
+) -> None:
+    """The pixels' Jacobian itself, by parameter row (the algebra of :func:`normal_equations_15`, unweighted): for the Monte-Carlo's first step, formed once per call."""
+    fx, fy = intr[0], intr[1]
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2]
+    t0, t1, t2 = t[0], t[1], t[2]
+    for n in range(X.shape[1]):
+        X0, X1, X2 = X[0, n], X[1, n], X[2, n]
+        ax = r00 * X0 + r01 * X1 + r02 * X2
+        ay = r10 * X0 + r11 * X1 + r12 * X2
+        az = r20 * X0 + r21 * X1 + r22 * X2
+        iz = 1.0 / (az + t2)
+        xn = (ax + t0) * iz
+        yn = (ay + t1) * iz
+        r2 = xn * xn + yn * yn
+        r4 = r2 * r2
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xy2 = 2.0 * xn * yn
+        drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+        dxd_dy = xy2 * drad + 2.0 * p1 * xn + 2.0 * p2 * yn
+        a00 = fx * (radial + 2.0 * xn * xn * drad + 2.0 * p1 * yn + 6.0 * p2 * xn) * iz
+        a01 = fx * dxd_dy * iz
+        a10 = fy * dxd_dy * iz
+        a11 = fy * (radial + 2.0 * yn * yn * drad + 6.0 * p1 * yn + 2.0 * p2 * xn) * iz
+        gu2 = -(a00 * xn + a01 * yn)
+        gv2 = -(a10 * xn + a11 * yn)
+        Ju[0, n], Jv[0, n] = xn * radial + p1 * xy2 + p2 * (r2 + 2.0 * xn * xn), 0.0
+        Ju[1, n], Jv[1, n] = 0.0, yn * radial + p1 * (r2 + 2.0 * yn * yn) + p2 * xy2
+        Ju[2, n], Jv[2, n] = 1.0, 0.0
+        Ju[3, n], Jv[3, n] = 0.0, 1.0
+        Ju[4, n], Jv[4, n] = fx * xn * r2, fy * yn * r2
+        Ju[5, n], Jv[5, n] = fx * xn * r4, fy * yn * r4
+        Ju[6, n], Jv[6, n] = fx * xy2, fy * (r2 + 2.0 * yn * yn)
+        Ju[7, n], Jv[7, n] = fx * (r2 + 2.0 * xn * xn), fy * xy2
+        Ju[8, n], Jv[8, n] = fx * xn * r4 * r2, fy * yn * r4 * r2
+        Ju[9, n], Jv[9, n] = ay * gu2 - az * a01, ay * gv2 - az * a11
+        Ju[10, n], Jv[10, n] = az * a00 - ax * gu2, az * a10 - ax * gv2
+        Ju[11, n], Jv[11, n] = ax * a01 - ay * a00, ax * a11 - ay * a10
+        Ju[12, n], Jv[12, n] = a00, a10
+        Ju[13, n], Jv[13, n] = a01, a11
+        Ju[14, n], Jv[14, n] = gu2, gv2

@@ -247,9 +247,12 @@ def _reference_step_matrix(camera: Camera, P: np.ndarray, A: np.ndarray, damping
     When the points cannot fix the camera (not positive definite) both are
     zero: no trial takes that step.
     """
-    _, J, _ = project_batch_jacobians(*camera.batch_arrays(), P[None], with_points=False)
-    Jm = J[0] @ A  # (N, 2, m)
-    Ju, Jv = Jm[:, 0, :].T, Jm[:, 1, :].T
+    from dronecal_field.core.normal_kernel import jacobian_15
+
+    Ju15, Jv15 = np.empty((15, len(P))), np.empty((15, len(P)))
+    intr, dist, R, t = camera.batch_arrays()
+    jacobian_15(intr[0], dist[0], R[0], t[0], np.ascontiguousarray(P.T), Ju15, Jv15)
+    Ju, Jv = A.T @ Ju15, A.T @ Jv15  # (m, N): the free parameters' columns (numpy's project_batch_jacobians took 0.2 ms)
     H = Ju @ Ju.T + Jv @ Jv.T
     H[np.diag_indices_from(H)] += damping * np.maximum(np.diag(H), 1e-12)
     try:
@@ -407,9 +410,24 @@ def _param_std(params: dict[str, np.ndarray]) -> dict[str, float]:
 def _percentiles_of(series: tuple[np.ndarray, ...], q) -> list[np.ndarray]:
     """Percentiles ``q`` of the finite values of each (K,) series: one numpy call for all when every value is finite."""
     values = np.stack(series)
-    if np.all(np.isfinite(values)):
-        return list(np.percentile(values, list(q), axis=1).T)
+    if np.all(np.isfinite(values)) and values.shape[1] > 1:
+        return list(_linear_percentiles(np.sort(values, axis=1), q))
     return [_nan_percentiles(v, q) for v in series]
+
+
+def _linear_percentiles(sorted_values: np.ndarray, q) -> np.ndarray:
+    """Percentiles q of each sorted row (S, K), K >= 2, as np.percentile's default 'linear' method computes them (its lerp too).
+
+    (S, len(q)). One sort for all rows: np.percentile's own call took 90 us
+    of the Monte-Carlo's ~1 ms of Python per call.
+    """
+    n = sorted_values.shape[1]
+    pos = np.asarray(q, float) / 100.0 * (n - 1)
+    lo = np.minimum(np.floor(pos).astype(np.int64), n - 2)
+    frac = pos - lo
+    a, b = sorted_values[:, lo], sorted_values[:, lo + 1]
+    diff = b - a
+    return np.where(frac >= 0.5, b - diff * (1.0 - frac), a + diff * frac)
 
 
 def _nan_percentiles(values: np.ndarray, q) -> np.ndarray:
