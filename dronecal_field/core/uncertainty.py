@@ -177,25 +177,30 @@ class _Probes:
 
 
 def _make_probes(camera: Camera, points: np.ndarray, ground_z: float) -> _Probes:
+    from dronecal_field.core.mc_setup import project  # compiled: camera.project's numpy calls cost ms when cold
+
     uv_g, g = _ground_pixels(camera, ground_z)
     probe = ground_probe(camera, ground_z)
     probe_pts = np.vstack([probe.point[None], probe.track])
+    intr, dist, R, t = camera.batch_arrays()
+    points = np.ascontiguousarray(points, float)
     return _Probes(
-        points_world=np.ascontiguousarray(points, float),
-        uv_ref_points=camera.project(points),
+        points_world=points,
+        uv_ref_points=project(intr[0], dist[0], R[0], t[0], points),
         ground_world=g.reshape(-1, 3),
         uv_ref_ground=uv_g.reshape(-1, 2),
         probe=probe,
-        uv_probe=camera.project(probe_pts),
+        uv_probe=project(intr[0], dist[0], R[0], t[0], probe_pts),
     )
 
 
 def _ground_metrics(hits: np.ndarray, probe: GroundProbe) -> dict[str, np.ndarray]:
     """Per-trial ground position error 15 m out (cm) and speed error (km/h) from where each camera's probe rays meet the ground (K, 3, 3)."""
-    pos_err_cm = 100.0 * np.linalg.norm(hits[:, 0, :2] - probe.point[:2], axis=-1)
-    d_true = np.linalg.norm(probe.track[1] - probe.track[0])
-    d_est = np.linalg.norm(hits[:, 2] - hits[:, 1], axis=-1)
-    speed_err = np.abs(d_est - d_true) / SPEED_BASE_S * 3.6
+    from dronecal_field.core.mc_figures import ground_errors
+
+    pos_err_cm, speed_err = np.empty(len(hits)), np.empty(len(hits))
+    ground_errors(np.ascontiguousarray(hits), probe.point, float(np.linalg.norm(probe.track[1] - probe.track[0])), SPEED_BASE_S,
+                  pos_err_cm, speed_err)
     return {"pos15": pos_err_cm, "speed15": speed_err}
 
 
@@ -225,7 +230,7 @@ def _solve_trials(
     kernels.monte_carlo_trials(
         state.intrinsics, state.distortion, state.R, state.t, np.uint64(key), int(trials.start), P, s3, pixels, s2,
         np.ascontiguousarray(A, dtype=float), sel, fx_col, aspect, int(max_iterations), float(tolerance),
-        *_reference_step_matrix(camera, P, A), *probes.by_coordinate(), probes.uv_probe, float(ground_z),
+        *_reference_step_matrix(camera, P, sel, fx_col, aspect), *probes.by_coordinate(), probes.uv_probe, float(ground_z),
         cost, iterations, proj, gproj, hits, centre, rotation,
     )
     params = {name: state.intrinsics[:, i] for i, name in enumerate(PARAM_NAMES[0:4])}
@@ -238,31 +243,22 @@ def _solve_trials(
     return cost, {"projection": proj, "ground_projection": gproj, **_ground_metrics(hits, probes.probe)}, params
 
 
-def _reference_step_matrix(camera: Camera, P: np.ndarray, A: np.ndarray, damping: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+def _reference_step_matrix(camera: Camera, P: np.ndarray, sel: np.ndarray, fx_col: int, aspect: float,
+                           damping: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
     """The matrix of every trial's first step from the reference camera: (J^T J + damping diag(J^T J))^-1 J^T, as (Pu, Pv) (m, N) each.
 
     J (2N, m) is the reference camera's Jacobian at the unperturbed points;
     a trial's first step is then Pu @ ru + Pv @ rv for its residuals (ru, rv)
     at the reference (Marquardt's damping, as the solver's first iteration).
     When the points cannot fix the camera (not positive definite) both are
-    zero: no trial takes that step.
+    zero: no trial takes that step (``core.mc_setup.step_matrix``).
     """
-    from dronecal_field.core.normal_kernel import jacobian_15
+    from dronecal_field.core.mc_setup import step_matrix
 
-    Ju15, Jv15 = np.empty((15, len(P))), np.empty((15, len(P)))
+    Pu, Pv = np.empty((len(sel), len(P))), np.empty((len(sel), len(P)))
     intr, dist, R, t = camera.batch_arrays()
-    jacobian_15(intr[0], dist[0], R[0], t[0], np.ascontiguousarray(P.T), Ju15, Jv15)
-    Ju, Jv = A.T @ Ju15, A.T @ Jv15  # (m, N): the free parameters' columns (numpy's project_batch_jacobians took 0.2 ms)
-    H = Ju @ Ju.T + Jv @ Jv.T
-    H[np.diag_indices_from(H)] += damping * np.maximum(np.diag(H), 1e-12)
-    try:
-        np.linalg.cholesky(H)  # positive definite, or no step
-        Pu, Pv = np.linalg.solve(H, Ju), np.linalg.solve(H, Jv)
-    except np.linalg.LinAlgError:
-        Pu = Pv = np.zeros_like(Ju)
-    if not (np.all(np.isfinite(Pu)) and np.all(np.isfinite(Pv))):
-        Pu = Pv = np.zeros_like(Ju)
-    return np.ascontiguousarray(Pu), np.ascontiguousarray(Pv)
+    step_matrix(intr[0], dist[0], R[0], t[0], np.ascontiguousarray(P, float), sel, int(fx_col), float(aspect), float(damping), Pu, Pv)
+    return Pu, Pv
 
 
 def _param_samples(state: BatchState, reference: Camera) -> dict[str, np.ndarray]:
@@ -365,21 +361,11 @@ def monte_carlo(
         metrics_all.append(metrics)
         params_all.append(params)
 
-    rms = np.concatenate(rms_all)
-    metrics = {key: np.concatenate([m[key] for m in metrics_all]) for key in metrics_all[0]}
-    params = {key: np.concatenate([p[key] for p in params_all]) for key in params_all[0]}
-    rms_of = lambda v: np.sqrt(np.mean(v**2))  # noqa: E731
-    out = dict(
-        param_std=_param_std(params),
-        projection_error_px=_nan_stat(rms_of, metrics["projection"]),
-        ground_projection_error_px=_nan_stat(rms_of, metrics["ground_projection"]),
-        ground_error_15m_cm=_nan_stat(rms_of, metrics["pos15"]),
-        speed_error_15m_kmh=_nan_stat(rms_of, metrics["speed15"]),
-    )
-    rms_pct, pos_pct, speed_pct = _percentiles_of((rms, metrics["pos15"], metrics["speed15"]), PERCENTILES)
-    pct = {p: float(v) for p, v in zip(PERCENTILES, rms_pct)}
-    out["ground_error_15m_cm_p95"] = float(pos_pct[PERCENTILES.index(95)])
-    out["speed_error_15m_kmh_p95"] = float(speed_pct[PERCENTILES.index(95)])
+    one = len(rms_all) == 1
+    rms = rms_all[0] if one else np.concatenate(rms_all)
+    metrics = metrics_all[0] if one else {key: np.concatenate([m[key] for m in metrics_all]) for key in metrics_all[0]}
+    params = params_all[0] if one else {key: np.concatenate([p[key] for p in params_all]) for key in params_all[0]}
+    out = _figures(rms, metrics, params)
     richer = _model_term_model(mdl, P.shape[0], model_term)
     if richer is not None:
         out = _add_model_term(out, camera, P, s3, s2, mdl, richer, probes, ground_z, fitted_pixels)
@@ -387,15 +373,52 @@ def monte_carlo(
         method="monte-carlo",
         trials=trials,
         model=mdl.name,
-        rms_mean=_nan_stat(np.mean, rms),
-        rms_max=_nan_stat(np.max, rms),
-        rms_var=_nan_stat(lambda v: np.var(v, ddof=1), rms),
-        rms_percentiles=pct,
         n_points=P.shape[0],
         rms=rms,
         failed_trials=failed,
         model_term=None if richer is None else richer.name,
         **out,
+    )
+
+
+def _figures(rms: np.ndarray, metrics: dict[str, np.ndarray], params: dict[str, np.ndarray]) -> dict:
+    """The result's figures from the per-trial values (K,): one compiled call when every trial finished, numpy's NaN-aware path otherwise."""
+    from dronecal_field.core.mc_figures import summary
+
+    rms_of = lambda v: np.sqrt(np.mean(v**2))  # noqa: E731
+    values = np.stack(list(params.values()))
+    series = (rms, metrics["projection"], metrics["pos15"], metrics["speed15"])
+    if rms.size >= 2 and np.all(np.isfinite(values)) and all(np.all(np.isfinite(v)) for v in series):
+        gproj = metrics["ground_projection"]
+        finite_ground = bool(np.all(np.isfinite(gproj)))
+        std, pct = np.empty(len(values)), np.empty((3, len(PERCENTILES)))
+        mean, top, var, proj, gp, pos, speed, _ = summary(
+            rms, metrics["projection"], gproj if finite_ground else np.zeros(1), metrics["pos15"], metrics["speed15"],
+            values, np.asarray(PERCENTILES, float), std, pct)
+        return dict(
+            param_std=dict(zip(params, (float(v) for v in std))),
+            projection_error_px=float(proj),
+            ground_projection_error_px=float(gp) if finite_ground else _nan_stat(rms_of, gproj),
+            ground_error_15m_cm=float(pos),
+            speed_error_15m_kmh=float(speed),
+            ground_error_15m_cm_p95=float(pct[1, PERCENTILES.index(95)]),
+            speed_error_15m_kmh_p95=float(pct[2, PERCENTILES.index(95)]),
+            rms_mean=float(mean), rms_max=float(top), rms_var=float(var),
+            rms_percentiles={p: float(v) for p, v in zip(PERCENTILES, pct[0])},
+        )
+    rms_pct, pos_pct, speed_pct = _percentiles_of((rms, metrics["pos15"], metrics["speed15"]), PERCENTILES)
+    return dict(
+        param_std=_param_std(params),
+        projection_error_px=_nan_stat(rms_of, metrics["projection"]),
+        ground_projection_error_px=_nan_stat(rms_of, metrics["ground_projection"]),
+        ground_error_15m_cm=_nan_stat(rms_of, metrics["pos15"]),
+        speed_error_15m_kmh=_nan_stat(rms_of, metrics["speed15"]),
+        ground_error_15m_cm_p95=float(pos_pct[PERCENTILES.index(95)]),
+        speed_error_15m_kmh_p95=float(speed_pct[PERCENTILES.index(95)]),
+        rms_mean=_nan_stat(np.mean, rms),
+        rms_max=_nan_stat(np.max, rms),
+        rms_var=_nan_stat(lambda v: np.var(v, ddof=1), rms),
+        rms_percentiles={p: float(v) for p, v in zip(PERCENTILES, rms_pct)},
     )
 
 
