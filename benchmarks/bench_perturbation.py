@@ -68,9 +68,14 @@ nothing was left out and nothing refused in any row):
 The rows over 1.5x are the lens extrapolated to the ground the legs do not
 reach (max 7.6-18 px at the corners; k3 never chosen). Median true/reported:
 focal 0.32, principal point 1.00, position 1.02; this table's "ground at 15 m"
-(2.08) sets sim.compare's ring figure against the linearised probe's 1-sigma,
-not like with like: bench_uncertainty_cover.py's ground@15 (0.93) and ring@15
-(1.06) are.
+(2.08) set sim.compare's ring figure against the linearised probe's 1-sigma,
+not like with like. Since 2026-11-27 21:30 the ratios are like with like: the
+heading point's true error against the report's "at 15 m" (with the lens's
+extrapolation where that point lies outside the region of validity,
+pipeline/ground15.py), and the ring 15 m from the pole against the report's
+"across the view" figure; the old figure is printed last. All 36 runs at 21:16
+(docs/calibrate.md, the perturbation section): heading 0.89 (was 1.86 as the
+old figure), across the view 0.61.
 """
 
 from __future__ import annotations

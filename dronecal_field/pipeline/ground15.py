@@ -60,7 +60,10 @@ class AtFifteen:
     RMS / max over the visible ring 15 m from the pole (None: none seen);
     ``across_view_outside``: share of that ring outside the region;
     ``across_view_unbounded``: share where the model cannot say (a fold, a ray
-    that misses the ground), left out of the RMS.
+    that misses the ground), left out of the RMS. ``image_without_ray``: share
+    of the image beyond the distortion model's fold, where no pixel has a ray:
+    the ground seen there is in neither figure (the wide camera on the
+    paper's grid: 22 % of the truth's ring 15 m out, up to 32 m off).
     """
 
     probe_inside: bool | None
@@ -72,6 +75,7 @@ class AtFifteen:
     across_view_max_cm: float | None
     across_view_outside: float | None
     across_view_unbounded: float | None
+    image_without_ray: float = 0.0
 
     @property
     def extrapolated(self) -> bool:
@@ -90,6 +94,7 @@ class AtFifteen:
                 "outside_region_fraction": self.across_view_outside,
                 "unbounded_fraction": self.across_view_unbounded,
             },
+            "image_without_ray_fraction": self.image_without_ray,
         }
 
     def line(self) -> str:
@@ -100,6 +105,8 @@ class AtFifteen:
         if self.across_view_cm is not None and (self.across_view_outside or 0.0) > 0.0:
             parts.append(f"across the view {_cm(self.across_view_cm)} RMS, max {_cm(self.across_view_max_cm)}, "
                          f"{self.across_view_outside:.0%} of it outside the region")
+        if self.image_without_ray > 0.0:
+            parts.append(f"the lens model has no ray at {self.image_without_ray:.0%} of the image (its edges): no ground figure there")
         return "; ".join(parts)
 
 
@@ -135,7 +142,15 @@ def at_15m(camera: Camera, covariance: np.ndarray, region: ValidityRegion, param
     p95 = float(np.hypot(parameter_cm_p95, P95_FACTOR * extra))
     view = _across_view(camera, covariance, region, ground_z)
     return AtFifteen(probe_inside=inside, parameter_cm=float(parameter_cm), extrapolation_cm=extra, ground_error_cm=sigma,
-                     ground_error_cm_p95=p95, **view)
+                     ground_error_cm_p95=p95, **view, image_without_ray=_without_ray(camera, covariance))
+
+
+def _without_ray(camera: Camera, covariance: np.ndarray, n: int = 48) -> float:
+    """Share of the image (an n x n grid of pixels) where the distortion model has no ray (``PixelErrors.has_ray``)."""
+    u = np.linspace(0.0, camera.width - 1.0, n)
+    v = np.linspace(0.0, camera.height - 1.0, n)
+    U, V = np.meshgrid(u, v)
+    return float(1.0 - pixel_errors(camera, covariance, np.c_[U.ravel(), V.ravel()]).has_ray.mean())
 
 
 def _across_view(camera: Camera, covariance: np.ndarray, region: ValidityRegion, ground_z: float) -> dict:
