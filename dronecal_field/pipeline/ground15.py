@@ -101,7 +101,7 @@ class AtFifteen:
         """The CLI's words after "at 15 m: X cm" (empty when the heading and the ring both lie inside the region)."""
         parts = []
         if self.extrapolated:
-            parts.append(f"outside the region of validity, incl. {self.extrapolation_cm:.1f} cm lens extrapolation")
+            parts.append(f"outside the region of validity, incl. {_cm(self.extrapolation_cm)} lens extrapolation")
         if self.across_view_cm is not None and (self.across_view_outside or 0.0) > 0.0:
             parts.append(f"across the view {_cm(self.across_view_cm)} RMS, max {_cm(self.across_view_max_cm)}, "
                          f"{self.across_view_outside:.0%} of it outside the region")
