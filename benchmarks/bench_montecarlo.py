@@ -1,6 +1,6 @@
 """Benchmark: the batched Monte-Carlo against a loop of cv2.calibrateCamera, same perturbed data.
 
-Run by hand:  .venv/bin/python benchmarks/bench_montecarlo.py [--trials 500] [--repeats 5] [--compile] [--big 100000]
+Run by hand:  .venv/bin/python benchmarks/bench_montecarlo.py [--trials 500] [--repeats 5] [--threads 1] [--compile] [--big 100000]
 
 For each Table 1 camera, every repeat times, one after the other, the
 cv2.calibrateCamera loop (the baseline), the engine's solve alone and the
@@ -98,9 +98,13 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats per camera; medians are printed (default 5)")
     parser.add_argument("--compile", action="store_true", help="also measure the first run's compile cost and the cached load, in fresh processes")
     parser.add_argument("--big", type=int, default=0, help="also run monte_carlo with this many trials and report peak memory")
+    parser.add_argument("--threads", type=int, default=0, help="numba threads for the engine (default: numba's, one per CPU)")
     args = parser.parse_args()
 
     import numba
+
+    if args.threads:
+        numba.set_num_threads(args.threads)
 
     print(f"numba {numba.__version__}, {numba.get_num_threads()} threads; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
     for distorted in (False, True):

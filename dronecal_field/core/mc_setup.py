@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from dronecal_field.core.kernels import _cholesky_solve
+from dronecal_field.core.kernels import _cholesky_solve, _intersect_into
 from dronecal_field.core.normal_kernel import jacobian_15
 
 
@@ -86,3 +86,29 @@ def step_matrix(
             for a in range(m):
                 P[a, n] = col[a]
     return True
+
+
+@njit(cache=True, nogil=True)
+def ground_grid(
+    intr: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int, ground_z: float,
+    nu: int, nv: int, max_range_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (M, 2) of an nu x nv grid over the image (5 %-95 % of each side, rows of v) whose rays meet the plane z = ground_z
+    in front of the camera within max_range_m horizontally, and those ground points (M, 3)."""
+    uv = np.empty((nu * nv, 2))
+    for j in range(nv):
+        for i in range(nu):
+            # np.linspace(0.05, 0.95, n)'s values: start + k * step, the last one exactly 0.95
+            fu = 0.95 if i == nu - 1 else 0.05 + i * ((0.95 - 0.05) / (nu - 1))
+            fv = 0.95 if j == nv - 1 else 0.05 + j * ((0.95 - 0.05) / (nv - 1))
+            uv[j * nu + i, 0] = fu * (width - 1)
+            uv[j * nu + i, 1] = fv * (height - 1)
+    g = np.empty((nu * nv, 3))
+    _intersect_into(intr, dist, R, t, uv, ground_z, g)
+    c0 = -(R[0, 0] * t[0] + R[1, 0] * t[1] + R[2, 0] * t[2])
+    c1 = -(R[0, 1] * t[0] + R[1, 1] * t[1] + R[2, 1] * t[2])
+    keep = np.zeros(nu * nv, dtype=np.bool_)
+    for p in range(nu * nv):
+        if np.isfinite(g[p, 0]) and np.isfinite(g[p, 1]) and np.isfinite(g[p, 2]):
+            keep[p] = np.sqrt((g[p, 0] - c0) ** 2 + (g[p, 1] - c1) ** 2) < max_range_m
+    return uv[keep], g[keep]
