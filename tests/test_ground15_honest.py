@@ -37,6 +37,16 @@ def probe_error_cm(truth, est) -> float:
     return float(100.0 * np.linalg.norm(hit[:2] - P[:2])) if np.all(np.isfinite(hit)) else float("inf")
 
 
+def speed_error_kmh(truth, est) -> float:
+    """|true error| of a 50 km/h vehicle's speed on the truth's heading 15 m out, km/h (core.uncertainty's track)."""
+    from dronecal_field.core.uncertainty import SPEED_BASE_S
+
+    track = ground_probe(truth).track
+    hits = intersect_plane_z(*est.batch_arrays(), truth.project(track)[None], 0.0)[0]
+    gap_m = np.linalg.norm(hits[1, :2] - hits[0, :2]) - np.linalg.norm(track[1, :2] - track[0, :2])
+    return float(abs(gap_m) / SPEED_BASE_S * 3.6)
+
+
 def calibrated(tmp_path, camera, waypoints):
     flight = make_flight(camera, waypoints, hold_s=2.5, move_s=1.2, seed=5)
     path = tmp_path / "run.mcap"
@@ -54,10 +64,12 @@ def test_points_in_the_middle_the_heading_figure_includes_the_lens_extrapolation
     assert at.probe_inside is False
     assert at.extrapolation_cm > 0.2 * at.parameter_cm  # measured: 35 cm against 37 cm of parameters
     assert lin.ground_error_15m_cm == pytest.approx(np.hypot(at.parameter_cm, at.extrapolation_cm), rel=1e-9)
+    assert at.speed_extrapolation_kmh > 0.0  # the speed figure there carries the lens's term too
     true_cm = probe_error_cm(truth, report.camera)
     # measured: true 26 cm, reported 51 cm (p95 114 cm)
     assert true_cm <= lin.ground_error_15m_cm and true_cm <= lin.ground_error_15m_cm_p95
     assert true_cm / lin.ground_error_15m_cm > 0.2  # covered, not drowned
+    assert speed_error_kmh(truth, report.camera) <= lin.speed_error_15m_kmh  # measured: 4.4 km/h against 5.9 (2.2 of it the lens)
 
     # the same number in the CLI line, report.json and report.html
     from dronecal_field.commands.calibrate import _summary_lines
@@ -69,6 +81,7 @@ def test_points_in_the_middle_the_heading_figure_includes_the_lens_extrapolation
     assert data["ground_position_error_cm"] == pytest.approx(lin.ground_error_15m_cm)
     assert data["heading_inside_region_of_validity"] is False
     assert data["extrapolation_cm"] == pytest.approx(at.extrapolation_cm)
+    assert data["speed_error_kmh_at_50kmh"] == pytest.approx(lin.speed_error_15m_kmh)
     line = next(s for s in _summary_lines(report, "run", out) if "at 15 m" in s)
     assert f"at 15 m: {lin.ground_error_15m_cm:.1f} cm (outside the region of validity, incl. {at.extrapolation_cm:.1f} cm" in line
     html = (out / "report.html").read_text()
@@ -80,7 +93,7 @@ def test_points_around_the_heading_leave_the_figure_unchanged(tmp_path):
     report = calibrated(tmp_path, truth, grid_waypoints(east_m=(-2.5, 0.0, 2.5), north_m=(6.0, 8.5, 11.0), up_m=(1.5, 3.5)))
     at, lin = report.validity.at_15m, report.linearised
     assert at.probe_inside is True
-    assert at.extrapolation_cm == 0.0
+    assert at.extrapolation_cm == 0.0 and at.speed_extrapolation_kmh == 0.0
     # the engine's own figure, as reported before issue 20's change
     assert lin.ground_error_15m_cm == at.parameter_cm == at.ground_error_cm
     true_cm = probe_error_cm(truth, report.camera)

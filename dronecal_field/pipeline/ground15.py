@@ -8,10 +8,10 @@ extrapolated there, and its error is the model's, not the noise's: the
 region's model-extrapolation term (``validity.pixel_errors``) says how large.
 Two figures follow:
 
-- **on the heading**: the engine's 1-sigma, root-sum-square with the
-  extrapolation term at the probe when the probe lies outside the region
-  (unchanged inside it: the term is under the region's 1 px threshold there
-  and the noise figure stands);
+- **on the heading**: the engine's 1-sigma (ground and speed error),
+  root-sum-square with the extrapolation term at the probe when the probe
+  lies outside the region (unchanged inside it: the term is under the
+  region's 1 px threshold there and the noise figure stands);
 - **across the view**: the predicted 1-sigma, RMS over the visible ground
   15 +- 0.5 m from the pole (``sim.compare``'s ring, what a user measuring
   "at 15 m" anywhere in the picture meets), with the share of that ring
@@ -36,7 +36,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dronecal_field.core.camera import Camera
-from dronecal_field.pipeline.validity import BOUND_FACTOR, ValidityRegion, ground_ring, pixel_errors, points_in_polygon, seen_on_ground
+from dronecal_field.pipeline.validity import (
+    BOUND_FACTOR, EXTRAPOLATION_FACTOR, ValidityRegion, ground_ring, pixel_errors, points_in_polygon, seen_on_ground,
+)
 
 if TYPE_CHECKING:  # the engine (numba) is imported where it runs
     from dronecal_field.core.uncertainty import UncertaintyResult
@@ -64,6 +66,8 @@ class AtFifteen:
     of the image beyond the distortion model's fold, where no pixel has a ray:
     the ground seen there is in neither figure (the wide camera on the
     paper's grid: 22 % of the truth's ring 15 m out, up to 32 m off).
+    ``speed_extrapolation_kmh``: the extrapolation term of the speed error
+    at 50 km/h on the heading, as a 1-sigma (0 inside the region).
     """
 
     probe_inside: bool | None
@@ -76,6 +80,7 @@ class AtFifteen:
     across_view_outside: float | None
     across_view_unbounded: float | None
     image_without_ray: float = 0.0
+    speed_extrapolation_kmh: float = 0.0
 
     @property
     def extrapolated(self) -> bool:
@@ -87,6 +92,7 @@ class AtFifteen:
             "heading_inside_region_of_validity": self.probe_inside,
             "parameter_cm": self.parameter_cm,
             "extrapolation_cm": self.extrapolation_cm,
+            "speed_extrapolation_kmh": self.speed_extrapolation_kmh,
             "across_view": None if self.across_view_cm is None else {
                 "range_m": [DISTANCE_M - RING_HALF_WIDTH_M, DISTANCE_M + RING_HALF_WIDTH_M],
                 "ground_position_error_cm_rms": self.across_view_cm,
@@ -130,8 +136,9 @@ def at_15m(camera: Camera, covariance: np.ndarray, region: ValidityRegion, param
     """
     richer, richer_cov = region.richer_camera, region.richer_covariance
     inside = region.probe_15m_inside
-    extra = 0.0
+    extra = speed = 0.0
     if inside is False:
+        speed = _speed_extrapolation_kmh(camera, richer, ground_z)
         from dronecal_field.core.uncertainty import ground_probe
 
         uv = camera.project(ground_probe(camera, ground_z).point[None])
@@ -142,7 +149,27 @@ def at_15m(camera: Camera, covariance: np.ndarray, region: ValidityRegion, param
     p95 = float(np.hypot(parameter_cm_p95, P95_FACTOR * extra))
     view = _across_view(camera, covariance, region, ground_z)
     return AtFifteen(probe_inside=inside, parameter_cm=float(parameter_cm), extrapolation_cm=extra, ground_error_cm=sigma,
-                     ground_error_cm_p95=p95, **view, image_without_ray=_without_ray(camera, covariance))
+                     ground_error_cm_p95=p95, **view, image_without_ray=_without_ray(camera, covariance),
+                     speed_extrapolation_kmh=speed)
+
+
+def _speed_extrapolation_kmh(camera: Camera, richer: Camera | None, ground_z: float) -> float:
+    """The speed error at 50 km/h on the heading between the chosen and the richer model, as a 1-sigma (km/h).
+
+    The chosen camera's pixels of the probe's two track points, brought down
+    to the ground by the richer camera: the gap in the distance travelled
+    over ``SPEED_BASE_S``, counted as validity counts a ground gap (twice,
+    a 90 % bound) and divided by 1.645.
+    """
+    if richer is None:
+        return 0.0
+    from dronecal_field.core.camera import intersect_plane_z
+    from dronecal_field.core.uncertainty import SPEED_BASE_S, ground_probe
+
+    track = ground_probe(camera, ground_z).track
+    hits = intersect_plane_z(*richer.batch_arrays(), camera.project(track)[None], ground_z)[0]
+    gap_m = abs(float(np.linalg.norm(hits[1, :2] - hits[0, :2])) - float(np.linalg.norm(track[1, :2] - track[0, :2])))
+    return EXTRAPOLATION_FACTOR / BOUND_FACTOR * gap_m / SPEED_BASE_S * 3.6 if np.isfinite(gap_m) else float("inf")
 
 
 def _without_ray(camera: Camera, covariance: np.ndarray, n: int = 48) -> float:
@@ -174,11 +201,14 @@ def _across_view(camera: Camera, covariance: np.ndarray, region: ValidityRegion,
 
 
 def honest(result: UncertaintyResult | None, at: AtFifteen) -> UncertaintyResult | None:
-    """``result`` with its ground figures 15 m out root-sum-square with ``at``'s extrapolation term (unchanged inside the region)."""
+    """``result`` with its ground and speed figures 15 m out root-sum-square with ``at``'s extrapolation terms (unchanged
+    inside the region)."""
     if result is None or not at.extrapolated:
         return result
     return replace(
         result,
         ground_error_15m_cm=float(np.hypot(result.ground_error_15m_cm, at.extrapolation_cm)),
         ground_error_15m_cm_p95=float(np.hypot(result.ground_error_15m_cm_p95, P95_FACTOR * at.extrapolation_cm)),
+        speed_error_15m_kmh=float(np.hypot(result.speed_error_15m_kmh, at.speed_extrapolation_kmh)),
+        speed_error_15m_kmh_p95=float(np.hypot(result.speed_error_15m_kmh_p95, P95_FACTOR * at.speed_extrapolation_kmh)),
     )

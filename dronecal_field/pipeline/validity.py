@@ -781,8 +781,8 @@ def assess_validity(
     probe_inside = _probe_15m_inside(camera, polygon, ground_z)
     if probe_inside is False:
         warnings.append(
-            "the ground 15 m out on the camera's heading lies outside the region of validity: the report's ground error "
-            "there includes the lens's extrapolation, its speed error does not; fly points that reach that part of the image"
+            "the ground 15 m out on the camera's heading lies outside the region of validity: the report's ground "
+            "and speed errors there include the lens's extrapolation; fly points that reach that part of the image"
         )
     return ValidityRegion(
         polygon_px=polygon,
