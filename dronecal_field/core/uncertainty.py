@@ -19,6 +19,7 @@ overfitting; the projection error does not.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -57,17 +58,18 @@ class GroundProbe:
 
 def ground_probe(camera: Camera, ground_z: float = 0.0, distance_m: float = GROUND_DISTANCE_M) -> GroundProbe:
     """The ground probe of ``camera`` (its optical axis projected on the ground plane gives the heading)."""
-    R = camera.pose.R_cam_from_world
-    c = camera.pose.position_world
-    heading = R[2].copy()
-    heading[2] = 0.0
-    if np.linalg.norm(heading) < 1e-9:  # looking straight down: use the image's up direction
-        heading = -R[1].copy()
-        heading[2] = 0.0
-    heading /= np.linalg.norm(heading)
-    point = np.array([c[0], c[1], ground_z]) + distance_m * heading
+    # on Python floats: a dozen numpy calls on 3-vectors cost 0.4 ms when the interpreter's caches are cold
+    R = camera.pose.R_cam_from_world.tolist()
+    c = camera.pose.position_world.tolist()
+    hx, hy = R[2][0], R[2][1]
+    if math.hypot(hx, hy) < 1e-9:  # looking straight down: use the image's up direction
+        hx, hy = -R[1][0], -R[1][1]
+    norm = math.hypot(hx, hy)
+    hx, hy = hx / norm, hy / norm
+    px, py = c[0] + distance_m * hx, c[1] + distance_m * hy
     half = 0.5 * VEHICLE_SPEED_KMH / 3.6 * SPEED_BASE_S
-    track = np.stack([point - half * heading, point + half * heading])
+    point = np.array([px, py, ground_z], dtype=float)
+    track = np.array([[px - half * hx, py - half * hy, ground_z], [px + half * hx, py + half * hy, ground_z]], dtype=float)
     return GroundProbe(point=point, track=track)
 
 
