@@ -74,12 +74,12 @@ def step_matrix(
                 s += Ju[a, n] * Ju[b, n] + Jv[a, n] * Jv[b, n]
             H[a, b] = s
             H[b, a] = s
-    L, invd, rhs, col = np.empty((m, m)), np.empty(m), np.empty(m), np.empty(m)
+    L, invd, rhs, col, every = np.empty((m, m)), np.empty(m), np.empty(m), np.empty(m), np.arange(m)
     for n in range(N):
         for J, P in ((Ju, Pu), (Jv, Pv)):
             for a in range(m):
                 rhs[a] = J[a, n]
-            if not _cholesky_solve(H, damping, rhs, L, invd, col):
+            if not _cholesky_solve(H, every, damping, rhs, L, invd, col):
                 Pu[:, :] = 0.0
                 Pv[:, :] = 0.0
                 return False
