@@ -109,3 +109,21 @@ def test_a_sped_up_simulators_holds_and_legs_are_measured_on_the_vehicle_clock()
     assert flight_against_plan(read(3.0), windows, legs) == []
     causes = flight_against_plan(read(1.0), windows, legs)  # the same numbers from a real vehicle: both said
     assert any("legs were flown at 1.6 m/s" in c for c in causes) and any("holds lasted 0.3 s" in c for c in causes)
+
+
+def test_a_run_that_missed_a_quarter_of_the_plan_says_so_first(tmp_path):
+    """The run starts a quarter into the flight (the first holds never reached): the plan's holds it lacks are named
+    first, as a slower or shorter flight is; the camera is still written."""
+    from dronecal_field.pipeline.asflown import unflown_holds
+    from dronecal_field.pipeline.hover import HoverWindow
+
+    report = calibrate_run(_run(tmp_path, "late", keep_span=(0.25, 1.0)), CalibrateOptions(trials=0))
+    missing = [n for n in report.notices if "holds were not flown" in n]
+    print(missing, f"ground 3-30 m {_ground(report):.2f} px")
+    assert len(missing) == 1 and missing[0].startswith("7 of the plan's 30 holds were not flown (seq 4-10)")
+    # a pure check of the rule: 2 of 10 missing is named, 1 is not, no seq (windows from the track) says nothing
+    holds = {s: 3.0 for s in range(4, 14)}
+    wins = [HoverWindow(index=k, start_ns=0, end_ns=1, source="event", seq=s) for k, s in enumerate(range(6, 14))]
+    assert unflown_holds(holds, wins) == "2 of the plan's 10 holds were not flown (seq 4-5)"
+    assert unflown_holds(holds, wins[:0] + [HoverWindow(0, 0, 1, "event", 4), *wins]) is None
+    assert unflown_holds(holds, [HoverWindow(0, 0, 1, "track", None)]) is None

@@ -63,7 +63,41 @@ def flight_against_plan(read, windows: list[HoverWindow], legs: list[Leg]) -> li
         flown = np.array([w.duration_s * read.vehicle_clock_rate for w in windows if w.seq in read.holds and read.holds[w.seq] > 0])
         if len(planned) and np.median(flown) < 0.6 * np.median(planned):
             out.append(f"the holds lasted {np.median(flown):.1f} s where the plan said {np.median(planned):.1f} s")
+    missing = unflown_holds(read.holds, windows)
+    if missing:
+        out.append(missing)
     return out
+
+
+UNFLOWN_SHARE = 0.2  # a plan this much of whose holds the run never reached is named first
+
+
+def unflown_holds(holds: dict[int, float] | None, windows: list[HoverWindow]) -> str | None:
+    """"6 of the plan's 16 holds were not flown (seq 4-9)" when the run reached (by the autopilot's own events) too
+    few of the mission.plan's holds: a flight cut short or started late samples less of the image than planned.
+    None when the windows carry no mission seq (found in the GNSS track) or the plan says no holds."""
+    planned = sorted(seq for seq, hold_s in (holds or {}).items() if hold_s > 0)
+    reached = {w.seq for w in windows if w.seq is not None}
+    if not planned or not reached:
+        return None
+    missing = [seq for seq in planned if seq not in reached]
+    if len(missing) < 2 or len(missing) < UNFLOWN_SHARE * len(planned):
+        return None
+    return f"{len(missing)} of the plan's {len(planned)} holds were not flown (seq {_ranges(missing)})"
+
+
+def _ranges(seqs: list[int]) -> str:
+    """'4-9, 12' for [4, 5, 6, 7, 8, 9, 12]."""
+    out: list[str] = []
+    start = prev = seqs[0]
+    for s in [*seqs[1:], None]:
+        if s is not None and s == prev + 1:
+            prev = s
+            continue
+        out.append(f"{start}-{prev}" if prev > start else f"{start}")
+        if s is not None:
+            start = prev = s
+    return ", ".join(out)
 
 
 def _leg_speed(track, legs: list[Leg], clock_rate: float) -> float | None:
