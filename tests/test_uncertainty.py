@@ -56,8 +56,8 @@ def test_monte_carlo_agrees_with_an_opencv_loop_on_the_same_trials():
     ])
     rel = np.abs(mc.rms - rms_cv) / rms_cv
     # The engine stops a trial at a 1e-5 relative cost drop (cv2 here runs to 1e-15): the RMS is within 2e-5 on
-    # most trials, 2e-4 on the slowest. With these draws trial 36 stalls in a curved valley 0.2 % above the minimum
-    # cv2 finds (the engine run to 1e-15 ends there too); the trial-to-trial spread of the RMS is 7 %.
+    # most trials, 1e-3 on the slowest (a curved valley where each step gains little; some, run to 1e-15, end
+    # 0.1-0.2 % above the minimum cv2 finds). The trial-to-trial spread of the RMS is 7 %.
     assert np.median(rel) < 1e-5
     assert np.sum(rel > 3e-4) <= 1 and rel.max() < 3e-3
     assert abs(mc.rms_mean / rms_cv.mean() - 1.0) < 1e-4
@@ -263,12 +263,12 @@ def test_engine_figures_as_before_the_speed_work():
     assert abs(np.sqrt(mc.rms_var / old_rms_var) - 1.0) < tol_std
     assert abs(mc.rms_mean - old_rms_mean) < 3.0 * np.sqrt(2.0 * old_rms_var / k)
     # this engine's figures, to round-off
-    assert mc.rms_mean == pytest.approx(4.295550275, rel=1e-9)
-    assert mc.rms_var == pytest.approx(0.09835904551, rel=1e-8)
-    now = {"fx": 17.113650754, "cx": 43.904616456, "k1": 0.046142898, "pos_x": 0.043181137, "rot_y": 2.279344384}
+    assert mc.rms_mean == pytest.approx(4.275376027, rel=1e-9)
+    assert mc.rms_var == pytest.approx(0.08691638437, rel=1e-8)
+    now = {"fx": 17.582667699, "cx": 43.159525192, "k1": 0.048115748, "pos_x": 0.042306798, "rot_y": 2.241078618}
     for key, value in now.items():
         assert mc.param_std[key] == pytest.approx(value, rel=1e-6), key
-    assert mc.ground_error_15m_cm == pytest.approx(14.25548710, rel=1e-8)
+    assert mc.ground_error_15m_cm == pytest.approx(14.47173011, rel=1e-8)
     assert mc.failed_trials == 0
 
 

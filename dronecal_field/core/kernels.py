@@ -36,7 +36,7 @@ import numpy as np  # noqa: E402
 from numba import njit, prange  # noqa: E402
 
 from dronecal_field.core.normal_kernel import normal_equations_15, normal_equations_no_k3  # noqa: E402
-from dronecal_field.core.trial_noise import standard_normal, trial_state  # noqa: E402
+from dronecal_field.core.trial_noise import fill_trial_normals, trial_state  # noqa: E402
 
 LOSS_CODES = {"linear": 0, "huber": 1, "cauchy": 2}
 
@@ -574,7 +574,8 @@ def monte_carlo_trials(
 
     Trial k's standard normal draws Z3 (N, 3) then Z2 (N, 2) come from its
     own stream, ``core.trial_noise.trial_state(key, first_trial + k)``, in
-    that memory order (``trial_noise.trial_normals`` replays them); the
+    that memory order (``trial_noise.fill_trial_normals``;
+    ``trial_noise.trial_normals`` replays them); the
     perturbed points are built in the thread's workspace, with no (K, N)
     arrays of draws.
     """
@@ -584,16 +585,15 @@ def monte_carlo_trials(
         H15, g15, w, sq, sq_t, JtJ, g, invd, L, delta, intr_t, dist_t, R_t, t_t, dR, full, Xs, ys = _workspace(sel.shape[0], N)
         R0 = np.empty((3, 3))
         r = np.empty((2, N))
+        z, redraw = np.empty(5 * N), np.empty(5 * N, np.uint8)
         for k in range(block * BLOCK, min(K, (block + 1) * BLOCK)):
-            s = trial_state(key, first_trial + k)
+            fill_trial_normals(trial_state(key, first_trial + k), z, redraw)
             for n in range(N):
                 for i in range(3):
-                    s, z = standard_normal(s)
-                    Xs[i, n] = z * sigma_3d[n, i] + points[n, i]
+                    Xs[i, n] = z[3 * n + i] * sigma_3d[n, i] + points[n, i]
             for n in range(N):
                 for i in range(2):
-                    s, z = standard_normal(s)
-                    ys[i, n] = z * sigma_2d[n] + pixels[n, i]
+                    ys[i, n] = z[3 * N + 2 * n + i] * sigma_2d[n] + pixels[n, i]
             R0[:, :] = R[k]
             c0, c1 = _reference_step(
                 intr[k], dist[k], R[k], t[k], Xs, ys, Pu, Pv, sel, fx_col, aspect,

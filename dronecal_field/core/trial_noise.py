@@ -7,9 +7,11 @@ one state per thread, so its draws would depend on the schedule). The
 stream is SplitMix64 (Steele, Lea and Flood 2014; passes BigCrush), started
 at a hash of (seed key, trial index); the normals come from Marsaglia and
 Tsang's 256-layer ziggurat (2000), the method numpy's ``standard_normal``
-uses: one 64-bit draw and one table compare for 98.8 % of the values, so
-310 normals cost about a microsecond where numpy's call, with its Python
-overhead and the (K, N, 5) buffer it fills, cost 3 us per trial.
+uses: one 64-bit draw and one table compare for 98.5 % of the values,
+and those are drawn in a loop that compiles to vector instructions
+(:func:`fill_trial_normals`), so a trial's 310 normals cost 0.4 us where
+numpy's call, with its Python overhead and the (K, N, 5) buffer it fills,
+cost 3 us per trial.
 
 Pure functions on integers and arrays; no global state.
 """
@@ -105,6 +107,66 @@ def standard_normal(s):
             return s, -x if negative else x
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _layer(s0, j: int) -> int:
+    """The ziggurat layer of the stream's j-th output (its low 8 bits)."""
+    st = s0 + np.uint64(j + 1) * _GOLDEN
+    b = (st ^ (st >> _S30)) * _MIX1
+    b = (b ^ (b >> _S27)) * _MIX2
+    return np.int64((b ^ (b >> _S31)) & _LOW8)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def fill_trial_normals(s0, z: np.ndarray, redraw: np.ndarray) -> None:
+    """A trial's N(0, 1) draws z (n,) from its stream state s0, in two passes.
+
+    SplitMix64's j-th output is a function of s0 + (j + 1) * increment alone,
+    so the first pass draws every value's 64 bits independently and keeps
+    the 98.5 % that land inside their layer's box: a loop with no carried
+    state, which compiles to vector instructions (0.4 us for 310 values
+    against 0.75 one after the other). The rest (``redraw`` (n,) uint8
+    workspace marks them) are drawn in order by :func:`standard_normal`
+    from the stream's continuation past the first n outputs.
+    """
+    n = z.shape[0]
+    rejected = 0
+    for j in range(n):
+        st = s0 + np.uint64(j + 1) * _GOLDEN
+        b = (st ^ (st >> _S30)) * _MIX1
+        b = (b ^ (b >> _S27)) * _MIX2
+        bits = b ^ (b >> _S31)
+        i = np.int64(bits & _LOW8)
+        m = np.int64(bits >> _S12)
+        sign = 1.0 - 2.0 * np.float64((bits >> _S8) & _ONE)
+        ok = m < _K[i]
+        z[j] = m * _W[i] * sign
+        redraw[j] = 0 if ok else 1
+        rejected += 0 if ok else 1
+    if rejected:
+        s = s0 + np.uint64(n) * _GOLDEN
+        for j in range(n):
+            if redraw[j]:
+                # the ziggurat's slow path for this proposal (tail, or wedge test), then fresh draws if it is refused
+                x = np.abs(z[j])
+                negative = z[j] < 0.0
+                i = _layer(s0, j)
+                if i == 0:
+                    while True:
+                        s, b1 = _splitmix(s)
+                        s, b2 = _splitmix(s)
+                        a = -np.log(_unit_open0(b1)) / _R
+                        b = -np.log(_unit_open0(b2))
+                        if b + b > a * a:
+                            x = _R + a
+                            z[j] = -x if negative else x
+                            break
+                    continue
+                s, b1 = _splitmix(s)
+                y = _F[i] + (_unit_open0(b1) - 2.0**-53) * (_F[i + 1] - _F[i])
+                if not y < np.exp(-0.5 * x * x):
+                    s, z[j] = standard_normal(s)
+
+
 @njit(cache=True, nogil=True)
 def fill_standard_normal(s, out: np.ndarray):
     """Fill the C-contiguous array ``out`` in memory order with N(0, 1) draws; returns the next state."""
@@ -126,8 +188,6 @@ def trial_normals(seed: int, trial: int, n_points: int) -> tuple[np.ndarray, np.
     Its points are P + Z3 * sigma_3d and its pixels p + Z2 * sigma_2d; for
     replaying a trial outside the engine (the tests' cv2 loop).
     """
-    s = np.uint64(trial_state(seed_key(seed), np.int64(trial)))
-    z3, z2 = np.empty((n_points, 3)), np.empty((n_points, 2))
-    s = np.uint64(fill_standard_normal(s, z3))
-    fill_standard_normal(s, z2)
-    return z3, z2
+    z = np.empty(5 * n_points)
+    fill_trial_normals(np.uint64(trial_state(seed_key(seed), np.int64(trial))), z, np.empty(5 * n_points, np.uint8))
+    return z[: 3 * n_points].reshape(n_points, 3).copy(), z[3 * n_points :].reshape(n_points, 2).copy()
