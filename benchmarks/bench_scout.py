@@ -88,9 +88,10 @@ def main() -> None:
     t0 = time.monotonic()
     scout_dir = out / "scout-plan"
     agl = [] if args.min_agl is None else ["--min-agl", args.min_agl]
-    run_step("plan", cli_argv("plan", "--scout", "--out", scout_dir, f"--lat={SITE['lat']}", f"--lon={SITE['lon']}", "--ground-alt", SITE["ground_h"],
-                              "--mount-height", c["mount_height"] + args.height_error, "--azimuth", SITE["azimuth"] + args.az_error,
-                              "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]), *agl), logs / "plan-scout.log", timeout_s=120)
+    if not (out / "scout.mcap").exists():  # never re-plan what was flown
+        run_step("plan", cli_argv("plan", "--scout", "--out", scout_dir, f"--lat={SITE['lat']}", f"--lon={SITE['lon']}", "--ground-alt", SITE["ground_h"],
+                                  "--mount-height", c["mount_height"] + args.height_error, "--azimuth", SITE["azimuth"] + args.az_error,
+                                  "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]), *agl), logs / "plan-scout.log", timeout_s=120)
     sp = json.loads((scout_dir / "plan.json").read_text())
     print(f"{args.camera}: scout planned {sp['flight']['flight_time_s'] / 60:.2f} min, {sp['points']} waypoints", flush=True)
     scout_run = out / "scout.mcap"
@@ -98,8 +99,9 @@ def main() -> None:
         fly(scout_dir, truth_path, scout_run, logs, speedup, args.fps, "scout")
     print(f"scout done at {time.monotonic() - t0:.0f} s wall", flush=True)
     main_dir = out / "main-plan"
-    run_step("plan", cli_argv("plan", "--from-run", scout_run, "--out", main_dir, "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]),
-                              "--fps", args.fps, "--hover", "3", "--trials", "50", "--max-flight-time", "12", *agl), logs / "plan-main.log", timeout_s=900)
+    if not ((main_dir / "plan.json").exists() and (out / "main.mcap").exists()):  # never re-plan what was flown
+        run_step("plan", cli_argv("plan", "--from-run", scout_run, "--out", main_dir, "--marker-offset", ",".join(str(v) for v in MARKER["offset_frd_m"]),
+                                  "--fps", args.fps, "--hover", "3", "--trials", "50", "--max-flight-time", "12", *agl), logs / "plan-main.log", timeout_s=900)
     mp = json.loads((main_dir / "plan.json").read_text())
     e = mp["from_run"]["estimate"]
     az_t, tilt_t = axis_angles_deg(truth.pose.R_cam_from_world)
