@@ -507,7 +507,7 @@ def report_html(report, data: dict) -> str:
         "<h2>Parameter standard deviations</h2><div style='display:flex;gap:2em'>"
         f"<div><h3>from the fit's residuals</h3>{_table(resid_rows)}</div>"
         f"<div><h3>linearised, measured sigmas{_scaled(report)}</h3>{_table(std_rows)}</div>"
-        f"<div><h3>Monte-Carlo</h3>{_table(mc_rows)}</div></div>"
+        f"<div><h3>Monte-Carlo</h3>{_table(mc_rows) if mc_rows else '<p>not run (--trials 0)</p>'}</div></div>"
         "<h2>Figures</h2>" + "".join(figs)
         + "<p style='font-size:12px;color:#777'>All numbers are in report.json.</p></body></html>"
     )
