@@ -181,3 +181,19 @@ def test_sigmas_are_scaled_up_to_explain_the_fit_never_down():
     assert "scaled 2.00x" in sigma_consistency(2.0, 1.0, 2.0)["note"]
     assert "close, but above; every uncertainty figure uses the sigmas scaled 1.20x" in sigma_consistency(1.2, 1.0, 1.2)["note"]
     assert sigma_consistency(2.0, 1.0, 2.0)["sigma_scale"] == 2.0
+
+
+def test_k3_is_tested_at_5_percent_only_when_the_points_reach_the_outer_ring():
+    """k3 acts in the image's outer ring: points that sample it interpolate k3 (a spurious one costs little), points
+    that do not would extrapolate it. The F-test level for k3 is 0.05 from a 90th-percentile radius of 0.8 of the
+    half-diagonal on, the caller's elsewhere."""
+    from dronecal_field.pipeline.maps import k3_significance
+
+    w, h = 3840, 2160
+    centre, half = np.array([(w - 1) / 2, (h - 1) / 2]), 0.5 * np.hypot(w, h)
+    angles = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    uv_at = lambda r: centre + r * half * np.c_[np.cos(angles), np.sin(angles)]  # noqa: E731
+    assert k3_significance(uv_at(0.85), w, h, 0.01) == 0.05
+    assert k3_significance(uv_at(0.74), w, h, 0.01) == 0.01  # the 4K run without its last quarter reached 0.74
+    assert k3_significance(uv_at(0.85), w, h, 0.1) == 0.1  # never stricter than asked
+    assert k3_significance(np.empty((0, 2)), w, h, 0.01) == 0.01
