@@ -108,8 +108,9 @@ def message_class(channel: dict):
 
 
 # ----- feeding the live pipeline as the recorder does -----
-def feed_flight(live: LiveCalibration, truth, t0_ns: int) -> None:
-    """Eight 2 s holds: frames at 15 Hz, fixes at 10 Hz and attitude at 10 Hz, then each hold's ``hover`` event."""
+def feed_flight(live: LiveCalibration, truth, t0_ns: int) -> int:
+    """Eight 2 s holds: frames at 15 Hz, fixes at 10 Hz and attitude at 10 Hz, then each hold's ``hover`` event;
+    returns the stamp after the last hold."""
     renderer = FrameRenderer(truth, SimMarker(size_m=0.4, offset_frd_m=OFFSET), noise_sigma_dn=1.0, seed=4)
     origin = EnuOrigin(*HOME)
     rng = np.random.default_rng(5)
@@ -130,6 +131,17 @@ def feed_flight(live: LiveCalibration, truth, t0_ns: int) -> None:
         end = start + 2_000_000_000
         live.on_record(RunEvent(timestamp_ns=start, duration_ns=end - start, type="hover", metadata={"seq": str(4 + k)}))
         t = end + 500_000_000
+    return t
+
+
+def keep_flying(live: LiveCalibration, end_ns: int, k: int) -> None:
+    """The k-th fix and attitude at the last waypoint after the flight ``feed_flight`` ended at ``end_ns``."""
+    x, y, z = WAYPOINTS[-1]
+    ts = end_ns + k * 100_000_000
+    lat, lon, h = enu_to_geodetic(np.array([[x, y, z]]), EnuOrigin(*HOME))[0]
+    live.on_record(GnssFix(timestamp_ns=ts, lat_deg=lat, lon_deg=lon, alt_m=h, covariance_enu=np.diag([1e-4, 1e-4, 2e-4]), fix_type="rtk_fixed"))
+    live.on_record(Attitude(timestamp_ns=ts, roll_rad=0.0, pitch_rad=0.0, yaw_rad=float(np.arctan2(-x, -y))))
+
 
 
 def test_foxglove_client_sees_every_channel_and_decodes_one_message_of_each():
@@ -140,7 +152,7 @@ def test_foxglove_client_sees_every_channel_and_decodes_one_message_of_each():
     live = LiveCalibration(mission, marker, 640, 480, origin=EnuOrigin(*HOME), options=LiveOptions(), view=view).start()
     sock = None
     try:
-        feed_flight(live, truth, time.time_ns())
+        end_ns = feed_flight(live, truth, time.time_ns())
         sock = ws_connect(view.port)
         channels: dict[str, dict] = {}
         deadline = time.monotonic() + 20
@@ -160,7 +172,14 @@ def test_foxglove_client_sees_every_channel_and_decodes_one_message_of_each():
 
         decoded: dict[str, object] = {}
         deadline = time.monotonic() + 30
+        fixes_after = iter(range(1_000))
+        next_fix = 0.0
         while len(decoded) < len(EXPECTED) and time.monotonic() < deadline:
+            if time.monotonic() > next_fix:
+                # the flight goes on while the client subscribes: a fix the worker published before the subscription
+                # (a busy machine's order) is not sent again, a real receiver's next one is
+                keep_flying(live, end_ns, next(fixes_after))
+                next_fix = time.monotonic() + 0.3
             op, payload = ws_recv(sock)
             if op != 2 or payload[0] != 0x01:
                 continue
