@@ -58,12 +58,18 @@ _R = float(_X[1])
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _mix64(st):
+    """SplitMix64's output function of a state (also the trials' state scrambler)."""
+    z = (st ^ (st >> _S30)) * _MIX1
+    z = (z ^ (z >> _S27)) * _MIX2
+    return z ^ (z >> _S31)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _splitmix(s):
     """(next state, 64 random bits) of SplitMix64."""
     s = s + _GOLDEN
-    z = (s ^ (s >> _S30)) * _MIX1
-    z = (z ^ (z >> _S27)) * _MIX2
-    return s, z ^ (z >> _S31)
+    return s, _mix64(s)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -75,10 +81,7 @@ def _unit_open0(bits) -> float:
 @njit(cache=True, nogil=True)
 def trial_state(key, trial):
     """The stream state trial ``trial`` (int) of seed key ``key`` (uint64) starts from."""
-    s = key + np.uint64(trial) * _TRIAL_STRIDE
-    z = (s ^ (s >> _S30)) * _MIX1
-    z = (z ^ (z >> _S27)) * _MIX2
-    return z ^ (z >> _S31)
+    return _mix64(key + np.uint64(trial) * _TRIAL_STRIDE)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -92,28 +95,33 @@ def standard_normal(s):
         x = m * _W[i]
         if m < _K[i]:  # inside the layer's box under the curve: 98.8 % of draws end here
             return s, -x if negative else x
-        if i == 0:  # the tail beyond r (Marsaglia 1964)
-            while True:
-                s, b1 = _splitmix(s)
-                s, b2 = _splitmix(s)
-                a = -np.log(_unit_open0(b1)) / _R
-                b = -np.log(_unit_open0(b2))
-                if b + b > a * a:
-                    x = _R + a
-                    return s, -x if negative else x
-        s, b1 = _splitmix(s)
-        y = _F[i] + (_unit_open0(b1) - 2.0**-53) * (_F[i + 1] - _F[i])
-        if y < np.exp(-0.5 * x * x):
-            return s, -x if negative else x
+        s, accepted, value = _outside_the_box(s, i, x, negative)
+        if accepted:
+            return s, value
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _outside_the_box(s, i, x, negative):
+    """(next state, accepted, draw) for a proposal ``x`` of layer ``i`` outside its box: layer 0 draws from the tail
+    beyond r (Marsaglia 1964), always accepted; any other layer takes the wedge test, refused: fresh draws follow."""
+    if i == 0:
+        while True:
+            s, b1 = _splitmix(s)
+            s, b2 = _splitmix(s)
+            a = -np.log(_unit_open0(b1)) / _R
+            b = -np.log(_unit_open0(b2))
+            if b + b > a * a:
+                x = _R + a
+                return s, True, -x if negative else x
+    s, b1 = _splitmix(s)
+    y = _F[i] + (_unit_open0(b1) - 2.0**-53) * (_F[i + 1] - _F[i])
+    return s, y < np.exp(-0.5 * x * x), -x if negative else x
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _layer(s0, j: int) -> int:
     """The ziggurat layer of the stream's j-th output (its low 8 bits)."""
-    st = s0 + np.uint64(j + 1) * _GOLDEN
-    b = (st ^ (st >> _S30)) * _MIX1
-    b = (b ^ (b >> _S27)) * _MIX2
-    return np.int64((b ^ (b >> _S31)) & _LOW8)
+    return np.int64(_mix64(s0 + np.uint64(j + 1) * _GOLDEN) & _LOW8)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -131,10 +139,7 @@ def fill_trial_normals(s0, z: np.ndarray, redraw: np.ndarray) -> None:
     n = z.shape[0]
     rejected = 0
     for j in range(n):
-        st = s0 + np.uint64(j + 1) * _GOLDEN
-        b = (st ^ (st >> _S30)) * _MIX1
-        b = (b ^ (b >> _S27)) * _MIX2
-        bits = b ^ (b >> _S31)
+        bits = _mix64(s0 + np.uint64(j + 1) * _GOLDEN)
         i = np.int64(bits & _LOW8)
         m = np.int64(bits >> _S12)
         sign = 1.0 - 2.0 * np.float64((bits >> _S8) & _ONE)
@@ -147,23 +152,10 @@ def fill_trial_normals(s0, z: np.ndarray, redraw: np.ndarray) -> None:
         for j in range(n):
             if redraw[j]:
                 # the ziggurat's slow path for this proposal (tail, or wedge test), then fresh draws if it is refused
-                x = np.abs(z[j])
-                negative = z[j] < 0.0
-                i = _layer(s0, j)
-                if i == 0:
-                    while True:
-                        s, b1 = _splitmix(s)
-                        s, b2 = _splitmix(s)
-                        a = -np.log(_unit_open0(b1)) / _R
-                        b = -np.log(_unit_open0(b2))
-                        if b + b > a * a:
-                            x = _R + a
-                            z[j] = -x if negative else x
-                            break
-                    continue
-                s, b1 = _splitmix(s)
-                y = _F[i] + (_unit_open0(b1) - 2.0**-53) * (_F[i + 1] - _F[i])
-                if not y < np.exp(-0.5 * x * x):
+                s, accepted, value = _outside_the_box(s, _layer(s0, j), np.abs(z[j]), z[j] < 0.0)
+                if accepted:
+                    z[j] = value
+                else:
                     s, z[j] = standard_normal(s)
 
 
